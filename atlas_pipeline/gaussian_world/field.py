@@ -1,0 +1,144 @@
+"""The Gaussian field: the world's state as a set of 3D Gaussians with stable ids."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "GaussianField", "opacity_to_logit", "logit_to_opacity", "scale_to_log", "log_to_scale", "canonicalize",
+]
+
+
+@dataclass
+class GaussianField:
+    """A set of N 3D Gaussians in the world frame.
+
+    Attributes:
+        positions: ``[N, 3]`` float32 means, metres.
+        scales: ``[N, 3]`` float32 standard deviations along the Gaussian's local axes, metres
+            (equal for the isotropic v1 proxy field).
+        rotations_xyzw: ``[N, 4]`` float32 unit quaternions, local axes to world.
+        colors: ``[N, 3]`` uint8 RGB, view-independent.
+        opacities: ``[N]`` float32 in (0, 1].
+        ids: ``[N]`` uint64 stable identifiers (unique; the same surface patch keeps its id across
+            incremental merges and reruns).
+    """
+
+    positions: np.ndarray
+    scales: np.ndarray
+    rotations_xyzw: np.ndarray
+    colors: np.ndarray
+    opacities: np.ndarray
+    ids: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.positions = np.ascontiguousarray(self.positions, dtype=np.float32)
+        self.scales = np.ascontiguousarray(self.scales, dtype=np.float32)
+        self.rotations_xyzw = np.ascontiguousarray(self.rotations_xyzw, dtype=np.float32)
+        self.colors = np.ascontiguousarray(self.colors, dtype=np.uint8)
+        self.opacities = np.ascontiguousarray(self.opacities, dtype=np.float32)
+        self.ids = np.ascontiguousarray(self.ids, dtype=np.uint64)
+        n = len(self.positions)
+        expect = {
+            "positions": (n, 3), "scales": (n, 3), "rotations_xyzw": (n, 4), "colors": (n, 3),
+            "opacities": (n,), "ids": (n,),
+        }
+        for name, shape in expect.items():
+            got = getattr(self, name).shape
+            if got != shape:
+                raise ValueError(f"GaussianField.{name} has shape {got}, expected {shape}")
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @classmethod
+    def empty(cls) -> "GaussianField":
+        return cls(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)),
+                   np.zeros(0), np.zeros(0, np.uint64))
+
+    @property
+    def is_isotropic(self) -> bool:
+        return bool(np.all(self.scales == self.scales[:, :1]))
+
+    def is_finite(self) -> bool:
+        return bool(
+            np.isfinite(self.positions).all() and np.isfinite(self.scales).all()
+            and np.isfinite(self.rotations_xyzw).all() and np.isfinite(self.opacities).all()
+        )
+
+    def subset(self, mask_or_index: np.ndarray) -> "GaussianField":
+        m = mask_or_index
+        return GaussianField(self.positions[m], self.scales[m], self.rotations_xyzw[m],
+                             self.colors[m], self.opacities[m], self.ids[m])
+
+    def content_hash(self) -> str:
+        """sha256 over every array, in a fixed order: the map id of a world state."""
+        h = hashlib.sha256()
+        for name in ("ids", "positions", "scales", "rotations_xyzw", "colors", "opacities"):
+            arr = getattr(self, name)
+            h.update(name.encode())
+            h.update(str(arr.shape).encode())
+            h.update(arr.tobytes())
+        return h.hexdigest()
+
+    def equals(self, other: "GaussianField") -> bool:
+        """Bit-for-bit equality of every array."""
+        return all(
+            np.array_equal(getattr(self, k), getattr(other, k))
+            for k in ("ids", "positions", "scales", "rotations_xyzw", "colors", "opacities")
+        )
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box ``(min [3], max [3])`` of the means."""
+        if len(self) == 0:
+            return np.zeros(3), np.zeros(3)
+        return self.positions.min(axis=0).astype(np.float64), self.positions.max(axis=0).astype(np.float64)
+
+
+# ---- the 3DGS parametrisation: opacity as a logit, scales as logarithms ----------------------
+def opacity_to_logit(o: np.ndarray) -> np.ndarray:
+    o = np.clip(o.astype(np.float64), 1e-7, 1 - 1e-7)
+    return np.log(o / (1 - o)).astype(np.float32)
+
+
+def logit_to_opacity(logit: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-logit.astype(np.float64)))).astype(np.float32)
+
+
+def scale_to_log(s: np.ndarray) -> np.ndarray:
+    return np.log(np.maximum(s.astype(np.float64), 1e-30)).astype(np.float32)
+
+
+def log_to_scale(log_s: np.ndarray) -> np.ndarray:
+    return np.exp(log_s.astype(np.float64)).astype(np.float32)
+
+
+def _fixed_point(x: np.ndarray, enc, dec, rounds: int = 4) -> np.ndarray:
+    """Smallest change to ``x`` after which ``dec(enc(x)) == x`` exactly in float32."""
+    for _ in range(rounds):
+        y = dec(enc(x))
+        if np.array_equal(y, x):
+            return x
+        x = y
+    return x
+
+
+def canonicalize(field: GaussianField) -> GaussianField:
+    """Snap opacities, scales and rotations to values the PLY encoding reproduces bit for bit.
+
+    The PLY stores logit(opacity) and log(scale) in float32; decoding those does not always give
+    back the same float32. Snapping once (a change of a few ulp) makes save/load exact.
+    """
+    rot = field.rotations_xyzw.astype(np.float64)
+    rot /= np.linalg.norm(rot, axis=1, keepdims=True)
+    return GaussianField(
+        field.positions,
+        _fixed_point(field.scales, scale_to_log, log_to_scale),
+        rot.astype(np.float32),
+        field.colors,
+        _fixed_point(field.opacities, opacity_to_logit, logit_to_opacity),
+        field.ids,
+    )

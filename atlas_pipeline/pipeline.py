@@ -1,0 +1,157 @@
+"""The pipeline's stages as plain functions: what each Dagster asset and each CLI command calls.
+
+Each function takes the artifacts of the stages before it and one config section, and returns a
+typed artifact. No orchestration here: ordering, caching and persistence belong to the caller.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pyarrow as pa
+
+from atlas_pipeline.config import PipelineConfig
+from atlas_pipeline.errors import DatasetError
+from atlas_pipeline.gaussian_world.builder import GaussianWorld
+from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.localization.localizer import LocalizationReport, localize_sequence
+from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
+from atlas_pipeline.mapping.mapper import build_world
+from atlas_pipeline.perception.rgbd import FusedFrames, fuse_frames
+from atlas_pipeline.sensors.registry import DatasetEntry, ensure_dataset_files
+from atlas_pipeline.sensors.tum import FrameManifest, load_tum_sequence
+from atlas_pipeline.transition_log.transitions import build_transitions
+
+logger = logging.getLogger(__name__)
+
+LogFn = Callable[[str], None]
+
+__all__ = [
+    "load_dataset",
+    "fuse",
+    "select_keyframes_stage",
+    "build_gaussian_world",
+    "localize",
+    "log_transitions",
+    "DemoVideos",
+    "render_demo_videos",
+    "bundle_metadata",
+]
+
+
+def load_dataset(entry: DatasetEntry, cfg: PipelineConfig, log: LogFn | None = None) -> FrameManifest:
+    """Make the dataset's files exist (generate / download) and read its frame manifest."""
+    root = ensure_dataset_files(entry, log)
+    if entry.kind == "synthetic":
+        from atlas_pipeline.sensors.synthetic import SyntheticSpec
+
+        camera = SyntheticSpec(**entry.params).camera()
+    else:
+        assert entry.camera is not None
+        camera = entry.camera
+    return load_tum_sequence(root, camera, entry.name, cfg.dataset.max_frames)
+
+
+def fuse(manifest: FrameManifest, cfg: PipelineConfig, log: LogFn | None = None) -> FusedFrames:
+    return fuse_frames(manifest, cfg.fusion, log)
+
+
+def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
+                           log: LogFn | None = None) -> KeyframeSet:
+    return build_keyframes(manifest, fused, cfg.mapping, log)
+
+
+def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
+                         log: LogFn | None = None) -> GaussianWorld:
+    return build_world(fused, keyframes, cfg.mapping, log)
+
+
+def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
+             log: LogFn | None = None) -> LocalizationReport:
+    """Track the sequence against its own world, starting at the world's first keyframe."""
+    anchor = int(world.keyframe_indices[0])
+    return localize_sequence(
+        manifest, world.field, world.builder.voxel_size_m, cfg.localization,
+        T_world_cam_start=world.T_world_cam_keyframes[0], anchor_index=anchor, map_id=world.map_id,
+        depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log,
+    )
+
+
+def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int,
+                    cfg: PipelineConfig) -> pa.Table:
+    """Transitions from the estimated (default) or ground-truth trajectory of ``report``."""
+    source = cfg.transitions.pose_source
+    poses = report.pose_source_poses(source)
+    if source == "ground_truth" and not np.isfinite(poses).all(axis=(1, 2)).any():
+        raise DatasetError(partition, "transitions.pose_source is ground_truth but the dataset has no ground truth")
+    status = report.status if source == "estimated" else None
+    return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source, status)
+
+
+@dataclass
+class DemoVideos:
+    """Paths of the rendered demo videos and how they were made."""
+
+    orbit: Path
+    trajectory: Path
+    n_orbit_frames: int
+    n_trajectory_frames: int
+    size: tuple[int, int]
+
+
+def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_K: np.ndarray,
+                       width: int, height: int, cfg: PipelineConfig, out_dir: Path, name: str,
+                       log: LogFn | None = None) -> DemoVideos:
+    """Orbit (360 degrees around the world centroid) and trajectory (replay of the estimated poses)."""
+    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.progress import Progress
+    from atlas_pipeline.viz.video import orbit_poses, write_mp4
+
+    vc = cfg.video
+    s = vc.scale
+    w, h = int(round(width * s)) // 2 * 2, int(round(height * s)) // 2 * 2
+    K = np.asarray(camera_K, np.float64).copy()
+    K[:2] *= np.array([[w / width], [h / height]])
+    if len(field) == 0:
+        raise ValueError("cannot render an empty world")
+
+    def frames(poses: np.ndarray, label: str):
+        progress = Progress(f"rendering {label} video", len(poses), log)
+        for T in poses:
+            r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors,
+                                 field.opacities, T, K, w, h)
+            progress.update()
+            yield r.rgb
+
+    lo, hi = field.bounds()
+    # Robust centre and extent: percentiles ignore a few stray far points.
+    p5, p95 = np.percentile(field.positions, [5, 95], axis=0)
+    center = 0.5 * (p5 + p95)
+    radius = vc.orbit_radius_scale * max(float(np.linalg.norm((p95 - p5)[:2])) / 2.0, 0.5)
+    orbit = orbit_poses(center, radius, vc.orbit_height_m, vc.orbit_frames)
+    traj = trajectory_se3[np.isfinite(trajectory_se3).all(axis=(1, 2))]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    orbit_path = out_dir / f"{name}_orbit.mp4"
+    traj_path = out_dir / f"{name}_trajectory.mp4"
+    n_orbit = write_mp4(frames(orbit, "orbit"), orbit_path, fps=vc.fps)
+    n_traj = write_mp4(frames(traj, "trajectory"), traj_path, fps=vc.fps)
+    return DemoVideos(orbit_path, traj_path, n_orbit, n_traj, (w, h))
+
+
+def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: FrameManifest,
+                    cfg: PipelineConfig, lineage: dict[str, Any] | None = None) -> dict[str, Any]:
+    """metadata.json content (beyond what the writer adds: map id, counts, checksums)."""
+    return {
+        "name": name,
+        "partition": partition,
+        "dataset": {"name": manifest.dataset, "root": str(manifest.root), "n_frames": manifest.n_frames,
+                    "content_hash": manifest.content_hash, "camera": manifest.camera.to_dict()},
+        "gaussians": {"voxel_size_m": world.builder.voxel_size_m, "isotropic": world.field.is_isotropic,
+                      "n_keyframes": int(len(world.keyframe_indices)), "pose_source": world.pose_source},
+        "config": cfg.to_dict(),
+        "lineage": lineage or {},
+    }

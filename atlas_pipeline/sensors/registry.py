@@ -1,0 +1,222 @@
+"""Dataset registry: named datasets (one Dagster partition each) and where their frames come from.
+
+Two YAML files are merged: ``configs/datasets.yaml`` (tracked presets) and a local file for the
+user's own folders (``configs/datasets.local.yaml``, git-ignored, or ``$ATLAS_LOCAL_REGISTRY``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import yaml
+
+from atlas_pipeline.config import configs_dir, load_yaml_file, project_root
+from atlas_pipeline.errors import ConfigError, DatasetError
+from atlas_pipeline.io_utils import write_text_atomic
+from atlas_pipeline.sensors.camera import TUM_CAMERAS, CameraIntrinsics
+
+logger = logging.getLogger(__name__)
+
+# Partition keys become folder names under artifacts/: keep them to a safe alphabet.
+DATASET_NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+
+__all__ = [
+    "DATASET_NAME_RE",
+    "DatasetEntry",
+    "validate_dataset_name",
+    "registry_files",
+    "local_registry_path",
+    "data_dir",
+    "load_registry",
+    "register_local_dataset",
+    "resolve_camera",
+]
+
+
+def validate_dataset_name(name: str) -> str:
+    """Return ``name`` if it is a safe dataset name, else raise ConfigError."""
+    if not isinstance(name, str) or not DATASET_NAME_RE.match(name):
+        raise ConfigError(
+            f"invalid dataset name {name!r}: use 1-64 lower-case letters, digits, '-' or '_', "
+            "starting with a letter or digit"
+        )
+    return name
+
+
+@dataclass(frozen=True)
+class DatasetEntry:
+    """One registered dataset.
+
+    Attributes:
+        name: registry key and partition key.
+        kind: ``synthetic`` (generated) or ``tum`` (folder in TUM layout).
+        path: folder of the frames (absolute once resolved).
+        camera: intrinsics for ``tum`` entries (synthetic ones derive theirs from ``params``).
+        url: archive to download when ``path`` does not exist (``tum`` only).
+        sha256: optional checksum of the archive.
+        params: generator parameters for ``synthetic`` entries.
+        source_file: registry file the entry came from.
+    """
+
+    name: str
+    kind: Literal["synthetic", "tum"]
+    path: Path
+    camera: CameraIntrinsics | None = None
+    url: str | None = None
+    sha256: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    source_file: str = ""
+
+    def describe(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": self.name, "kind": self.kind, "path": str(self.path)}
+        if self.camera is not None:
+            d["camera"] = self.camera.to_dict()
+        if self.url:
+            d["url"] = self.url
+        if self.params:
+            d["params"] = dict(self.params)
+        return d
+
+
+def local_registry_path() -> Path:
+    env = os.environ.get("ATLAS_LOCAL_REGISTRY")
+    return Path(env) if env else configs_dir() / "datasets.local.yaml"
+
+
+def registry_files() -> list[Path]:
+    """The registry files in merge order (later entries override earlier ones)."""
+    files = [configs_dir() / "datasets.yaml"]
+    local = local_registry_path()
+    if local.is_file():
+        files.append(local)
+    return files
+
+
+def data_dir() -> Path:
+    """Where downloaded and generated datasets live (``$ATLAS_DATA_DIR`` or ``<project>/data``)."""
+    env = os.environ.get("ATLAS_DATA_DIR")
+    return Path(env).resolve() if env else project_root() / "data"
+
+
+def resolve_camera(spec: Any, where: str) -> CameraIntrinsics:
+    """A camera from a preset name (``freiburg1`` ...) or an inline mapping."""
+    if isinstance(spec, str):
+        key = spec.lower()
+        key = {"fr1": "freiburg1", "fr2": "freiburg2", "fr3": "freiburg3"}.get(key, key)
+        if key not in TUM_CAMERAS:
+            raise ConfigError(f"{where}: unknown camera preset {spec!r}; known: {sorted(TUM_CAMERAS)}")
+        return TUM_CAMERAS[key]
+    if isinstance(spec, dict):
+        try:
+            return CameraIntrinsics.from_dict(spec)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from exc
+    raise ConfigError(f"{where}: camera must be a preset name or a mapping, got {spec!r}")
+
+
+_SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "fps"}
+
+
+def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
+    where = f"{source}: datasets.{name}"
+    validate_dataset_name(name)
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}: must be a mapping")
+    kind = raw.get("kind")
+    if kind == "synthetic":
+        unknown = set(raw) - {"kind", "path"} - _SYNTH_KEYS
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
+        params = {k: raw[k] for k in _SYNTH_KEYS if k in raw}
+        for k, v in params.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ConfigError(f"{where}.{k}: must be a number")
+        path = Path(raw.get("path", name))
+        path = path if path.is_absolute() else data_dir() / path
+        return DatasetEntry(name, "synthetic", path, params=params, source_file=str(source))
+    if kind == "tum":
+        unknown = set(raw) - {"kind", "path", "camera", "url", "sha256"}
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
+        if "path" not in raw:
+            raise ConfigError(f"{where}: 'path' is required")
+        camera = resolve_camera(raw.get("camera", "default"), where)
+        path = Path(str(raw["path"])).expanduser()
+        path = path if path.is_absolute() else data_dir() / path
+        url = raw.get("url")
+        if url is not None and not (isinstance(url, str) and re.match(r"^https?://", url)):
+            raise ConfigError(f"{where}.url: must be an http(s) URL")
+        return DatasetEntry(name, "tum", path, camera=camera, url=url, sha256=raw.get("sha256"),
+                            source_file=str(source))
+    raise ConfigError(f"{where}: kind must be 'synthetic' or 'tum', got {kind!r}")
+
+
+def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
+    """Merge the registry files into ``{name: DatasetEntry}`` (insertion-ordered)."""
+    entries: dict[str, DatasetEntry] = {}
+    for path in files if files is not None else registry_files():
+        data = load_yaml_file(path) or {}
+        if not isinstance(data, dict) or not isinstance(data.get("datasets", {}), dict):
+            raise ConfigError(f"{path}: expected a top-level 'datasets:' mapping")
+        extra = set(data) - {"datasets"}
+        if extra:
+            raise ConfigError(f"{path}: unknown top-level key(s) {sorted(extra)}")
+        for name, raw in (data.get("datasets") or {}).items():
+            entries[str(name)] = _parse_entry(str(name), raw, path)
+    return entries
+
+
+def register_local_dataset(
+    name: str,
+    path: str | Path,
+    camera: str | dict[str, Any] = "default",
+    registry_path: Path | None = None,
+    check: Callable[[Path], None] | None = None,
+) -> DatasetEntry:
+    """Add (or replace) a TUM-layout folder in the local registry file.
+
+    The folder is checked first (``check``, by default the TUM layout check) so a typo never
+    becomes a partition that fails later. The file is rewritten atomically.
+    """
+    from atlas_pipeline.sensors.tum import check_tum_layout
+
+    validate_dataset_name(name)
+    folder = Path(path).expanduser().resolve()
+    (check or check_tum_layout)(folder)
+    reg = registry_path or local_registry_path()
+    data: dict[str, Any] = {"datasets": {}}
+    if reg.is_file():
+        loaded = load_yaml_file(reg) or {}
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{reg}: expected a top-level 'datasets:' mapping")
+        data = {"datasets": dict(loaded.get("datasets") or {})}
+    entry_raw = {"kind": "tum", "path": str(folder), "camera": camera}
+    entry = _parse_entry(name, entry_raw, reg)  # validates the camera before anything is written
+    data["datasets"][name] = entry_raw
+    header = "# Local datasets registered with `atlas-gs dataset add` (not tracked by git).\n"
+    write_text_atomic(reg, header + yaml.safe_dump(data, sort_keys=False))
+    logger.info("registered dataset %s -> %s in %s", name, folder, reg)
+    return entry
+
+
+def ensure_dataset_files(entry: DatasetEntry, log: Callable[[str], None] | None = None) -> Path:
+    """Make the entry's frames exist on disk: generate synthetic data or download an archive."""
+    log = log or logger.info
+    if entry.kind == "synthetic":
+        from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
+
+        spec = SyntheticSpec(**entry.params)
+        return generate_synthetic_dataset(entry.path, spec)
+    if entry.path.is_dir():
+        return entry.path
+    if entry.url:
+        from atlas_pipeline.sensors.download import download_tum_archive
+
+        log(f"{entry.name}: {entry.path} not found, downloading {entry.url}")
+        return download_tum_archive(entry.url, entry.path, sha256=entry.sha256, log=log)
+    raise DatasetError(entry.path, f"dataset folder of '{entry.name}' not found and no url to download it from")

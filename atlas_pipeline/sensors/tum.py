@@ -1,0 +1,364 @@
+"""TUM RGB-D layout: list files, RGB-depth association, ground-truth lookup, frame manifest.
+
+Layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
+
+    rgb.txt          timestamp filename      (8-bit colour PNG)
+    depth.txt        timestamp filename      (16-bit PNG, depth_m = value / depth_scale, 0 = none)
+    groundtruth.txt  timestamp tx ty tz qx qy qz qw   (camera-to-world, optional)
+
+Comment lines start with ``#``. RGB and depth frames are paired by nearest timestamp within 20 ms
+(as TUM's ``associate.py``); ground truth at each RGB timestamp is interpolated between the two
+neighbouring motion-capture samples, or taken from the nearest one within 20 ms at the ends.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from atlas_pipeline.errors import ArtifactError, DatasetError
+from atlas_pipeline.geometry import interpolate_pose, pose_from_tq, tq_from_pose
+from atlas_pipeline.io_utils import atomic_path, sha256_files, write_json_atomic
+from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+logger = logging.getLogger(__name__)
+
+MAX_ASSOCIATION_DT_S = 0.02  # TUM's associate.py default max_difference
+MAX_GT_INTERPOLATION_GAP_S = 0.1  # never interpolate across a longer hole in the motion capture
+
+__all__ = [
+    "FrameManifest",
+    "read_list_file",
+    "read_groundtruth",
+    "associate",
+    "lookup_groundtruth",
+    "load_tum_sequence",
+    "check_tum_layout",
+    "png_header",
+]
+
+
+def read_list_file(path: Path, n_fields: int) -> list[tuple[int, list[str]]]:
+    """Parse a TUM list file into ``(line_number, fields)`` rows, skipping comments and blanks.
+
+    Raises:
+        DatasetError: missing file, or a line with a wrong number of fields or a bad timestamp.
+    """
+    if not path.is_file():
+        raise DatasetError(path, "list file not found")
+    rows: list[tuple[int, list[str]]] = []
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for lineno, raw in enumerate(f, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            parts = line.replace(",", " ").split()
+            if len(parts) != n_fields:
+                raise DatasetError(
+                    path, f"expected {n_fields} fields, found {len(parts)}: {line[:80]!r}", lineno
+                )
+            try:
+                float(parts[0])
+            except ValueError:
+                raise DatasetError(path, f"timestamp is not a number: {parts[0]!r}", lineno) from None
+            rows.append((lineno, parts))
+    if not rows:
+        raise DatasetError(path, "no entries")
+    return rows
+
+
+def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``groundtruth.txt``: timestamps ``[M]`` and ``poses_se3`` ``[M, 4, 4]`` (camera-to-world).
+
+    Rows are sorted by time; a non-numeric value or a zero quaternion names its line.
+    """
+    rows = read_list_file(path, 8)
+    ts = np.empty(len(rows))
+    tq = np.empty((len(rows), 7))
+    for i, (lineno, parts) in enumerate(rows):
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise DatasetError(path, "non-numeric value", lineno) from None
+        if not np.all(np.isfinite(vals)):
+            raise DatasetError(path, "non-finite value", lineno)
+        if np.linalg.norm(vals[4:8]) < 1e-6:
+            raise DatasetError(path, "quaternion has zero norm", lineno)
+        ts[i] = vals[0]
+        tq[i] = vals[1:]
+    order = np.argsort(ts, kind="stable")
+    ts, tq = ts[order], tq[order]
+    return ts, pose_from_tq(tq[:, :3], tq[:, 3:])
+
+
+def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S) -> list[tuple[int, int]]:
+    """Pair timestamps one-to-one by nearest time within ``max_dt`` (greedy, closest first).
+
+    Same rule as TUM's ``associate.py``: all candidate pairs under ``max_dt`` are taken in order of
+    increasing time difference, each timestamp used at most once. Returns pairs sorted by ``a``.
+    """
+    a = np.asarray(ts_a, dtype=np.float64)
+    b = np.asarray(ts_b, dtype=np.float64)
+    order_b = np.argsort(b, kind="stable")
+    bs = b[order_b]
+    cands: list[tuple[float, int, int]] = []
+    for i, t in enumerate(a):
+        lo = np.searchsorted(bs, t - max_dt, side="left")
+        hi = np.searchsorted(bs, t + max_dt, side="right")
+        for j in range(lo, hi):
+            cands.append((abs(bs[j] - t), i, int(order_b[j])))
+    cands.sort()
+    used_a: set[int] = set()
+    used_b: set[int] = set()
+    pairs = []
+    for _, i, j in cands:
+        if i in used_a or j in used_b:
+            continue
+        used_a.add(i)
+        used_b.add(j)
+        pairs.append((i, j))
+    pairs.sort()
+    return pairs
+
+
+def lookup_groundtruth(
+    gt_ts: np.ndarray, gt_poses: np.ndarray, t: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth pose at each time in ``t`` ``[N]``.
+
+    Inside the motion-capture span the pose is interpolated (linear translation, slerp rotation)
+    between the bracketing samples when they are at most ``MAX_GT_INTERPOLATION_GAP_S`` apart;
+    otherwise, and at the ends, the nearest sample is used if it lies within ``max_dt``.
+
+    Returns:
+        ``(T_world_cam [N, 4, 4] with NaN where unknown, has_gt [N] bool)``.
+    """
+    n = len(t)
+    out = np.full((n, 4, 4), np.nan)
+    has = np.zeros(n, dtype=bool)
+    if len(gt_ts) == 0:
+        return out, has
+    for k, tk in enumerate(t):
+        j = int(np.searchsorted(gt_ts, tk))
+        if 0 < j < len(gt_ts) and gt_ts[j] - gt_ts[j - 1] <= MAX_GT_INTERPOLATION_GAP_S:
+            out[k] = interpolate_pose(gt_ts[j - 1], gt_poses[j - 1], gt_ts[j], gt_poses[j], tk)
+            has[k] = True
+            continue
+        near = [i for i in (j - 1, j) if 0 <= i < len(gt_ts)]
+        best = min(near, key=lambda i: abs(gt_ts[i] - tk))
+        if abs(gt_ts[best] - tk) <= max_dt:
+            out[k] = gt_poses[best]
+            has[k] = True
+    return out, has
+
+
+def png_header(path: Path) -> tuple[int, int, int, int]:
+    """``(width, height, bit_depth, colour_type)`` from a PNG's IHDR chunk, without decoding it."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(33)
+    except FileNotFoundError:
+        raise DatasetError(path, "image file not found") from None
+    if len(head) < 33 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise DatasetError(path, "not a PNG file")
+    w, h, depth, ctype = struct.unpack(">IIBB", head[16:26])
+    return w, h, depth, ctype
+
+
+@dataclass
+class FrameManifest:
+    """The frames of one RGB-D sequence: which files, when, seen by which camera, with what ground truth.
+
+    Attributes:
+        dataset: registry name (the Dagster partition key).
+        root: folder holding the sequence; file paths below are relative to it.
+        camera: intrinsics and depth scale.
+        timestamps_s: ``[N]`` RGB timestamps (the frame time).
+        depth_timestamps_s: ``[N]`` paired depth timestamps.
+        rgb_files, depth_files: ``N`` relative paths.
+        T_world_cam_gt: ``[N, 4, 4]`` ground-truth camera-to-world, NaN where unknown.
+        has_gt: ``[N]`` bool.
+        content_hash: sha256 over the list files and every image used (data version of the raw data).
+    """
+
+    dataset: str
+    root: Path
+    camera: CameraIntrinsics
+    timestamps_s: np.ndarray
+    depth_timestamps_s: np.ndarray
+    rgb_files: list[str]
+    depth_files: list[str]
+    T_world_cam_gt: np.ndarray
+    has_gt: np.ndarray
+    content_hash: str = ""
+    source: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.timestamps_s)
+
+    def rgb_path(self, i: int) -> Path:
+        return self.root / self.rgb_files[i]
+
+    def depth_path(self, i: int) -> Path:
+        return self.root / self.depth_files[i]
+
+    # ---- persistence: frames.parquet (one row per frame) + manifest.json -------------------
+    def save(self, directory: Path) -> list[Path]:
+        directory.mkdir(parents=True, exist_ok=True)
+        t = np.full((self.n_frames, 3), np.nan)
+        q = np.full((self.n_frames, 4), np.nan)
+        if self.has_gt.any():
+            t[self.has_gt], q[self.has_gt] = tq_from_pose(self.T_world_cam_gt[self.has_gt])
+        table = pa.table({
+            "frame_id": pa.array(np.arange(self.n_frames), pa.int64()),
+            "timestamp_s": pa.array(self.timestamps_s, pa.float64()),
+            "depth_timestamp_s": pa.array(self.depth_timestamps_s, pa.float64()),
+            "rgb_file": pa.array(self.rgb_files, pa.string()),
+            "depth_file": pa.array(self.depth_files, pa.string()),
+            "has_gt": pa.array(self.has_gt, pa.bool_()),
+            **{f"gt_{k}": pa.array(t[:, i], pa.float64()) for i, k in enumerate("xyz")},
+            **{f"gt_q{k}": pa.array(q[:, i], pa.float64()) for i, k in enumerate("xyzw")},
+        })
+        frames = directory / "frames.parquet"
+        with atomic_path(frames) as tmp:
+            pq.write_table(table, tmp)
+        meta = directory / "manifest.json"
+        write_json_atomic(meta, {
+            "dataset": self.dataset,
+            "root": str(self.root),
+            "camera": self.camera.to_dict(),
+            "n_frames": self.n_frames,
+            "n_with_ground_truth": int(self.has_gt.sum()),
+            "content_hash": self.content_hash,
+            "source": self.source,
+        })
+        return [frames, meta]
+
+    @classmethod
+    def load(cls, directory: Path) -> "FrameManifest":
+        meta_path = directory / "manifest.json"
+        frames_path = directory / "frames.parquet"
+        if not meta_path.is_file() or not frames_path.is_file():
+            raise ArtifactError(f"{directory}: frame manifest is missing manifest.json or frames.parquet")
+        meta = json.loads(meta_path.read_text())
+        df = pq.read_table(frames_path).to_pandas()
+        has = df["has_gt"].to_numpy(bool)
+        t = df[["gt_x", "gt_y", "gt_z"]].to_numpy(np.float64)
+        q = df[["gt_qx", "gt_qy", "gt_qz", "gt_qw"]].to_numpy(np.float64)
+        T = np.full((len(df), 4, 4), np.nan)
+        if has.any():
+            T[has] = pose_from_tq(t[has], q[has])
+        return cls(
+            dataset=meta["dataset"],
+            root=Path(meta["root"]),
+            camera=CameraIntrinsics.from_dict(meta["camera"]),
+            timestamps_s=df["timestamp_s"].to_numpy(np.float64),
+            depth_timestamps_s=df["depth_timestamp_s"].to_numpy(np.float64),
+            rgb_files=df["rgb_file"].tolist(),
+            depth_files=df["depth_file"].tolist(),
+            T_world_cam_gt=T,
+            has_gt=has,
+            content_hash=meta.get("content_hash", ""),
+            source=meta.get("source", {}),
+        )
+
+
+def check_tum_layout(root: Path) -> None:
+    """Raise DatasetError unless ``root`` looks like a TUM sequence (folder with rgb.txt, depth.txt)."""
+    if not root.is_dir():
+        raise DatasetError(root, "dataset folder not found")
+    for name in ("rgb.txt", "depth.txt"):
+        if not (root / name).is_file():
+            raise DatasetError(root / name, "list file not found (expected TUM RGB-D layout)")
+
+
+def _safe_member(root: Path, rel: str, list_path: Path, lineno: int) -> Path:
+    """Resolve a file named in a list file, refusing paths that leave the dataset folder."""
+    p = (root / rel).resolve()
+    if not p.is_relative_to(root.resolve()):
+        raise DatasetError(list_path, f"file path leaves the dataset folder: {rel!r}", lineno)
+    return p
+
+
+def load_tum_sequence(
+    root: str | Path,
+    camera: CameraIntrinsics,
+    dataset: str,
+    max_frames: int | None = None,
+    max_dt: float = MAX_ASSOCIATION_DT_S,
+) -> FrameManifest:
+    """Read a TUM-layout folder into a :class:`FrameManifest`, checking every image header.
+
+    Every listed image must exist, be a PNG of the camera's size, 8-bit colour for RGB and
+    16-bit single-channel for depth; the first offending file is named with its list line.
+    """
+    root = Path(root)
+    check_tum_layout(root)
+    rgb_rows = read_list_file(root / "rgb.txt", 2)
+    depth_rows = read_list_file(root / "depth.txt", 2)
+    rgb_ts = np.array([float(p[0]) for _, p in rgb_rows])
+    depth_ts = np.array([float(p[0]) for _, p in depth_rows])
+    pairs = associate(rgb_ts, depth_ts, max_dt)
+    if not pairs:
+        raise DatasetError(root / "depth.txt", f"no depth frame within {max_dt * 1000:.0f} ms of any RGB frame")
+    dropped = len(rgb_rows) - len(pairs)
+    if dropped:
+        logger.info("%s: %d RGB frames have no depth within %.0f ms and are skipped", root, dropped, max_dt * 1000)
+    if max_frames is not None:
+        pairs = pairs[:max_frames]
+    if len(pairs) < 2:
+        raise DatasetError(root, f"need at least 2 RGB-D frames, found {len(pairs)}")
+
+    rgb_files, depth_files, used_paths, used_names = [], [], [], []
+    for i, j in pairs:
+        for rows, idx, kind, list_name, files in (
+            (rgb_rows, i, "rgb", "rgb.txt", rgb_files),
+            (depth_rows, j, "depth", "depth.txt", depth_files),
+        ):
+            lineno, parts = rows[idx]
+            list_path = root / list_name
+            path = _safe_member(root, parts[1], list_path, lineno)
+            if not path.is_file():
+                raise DatasetError(list_path, f"{kind} image {parts[1]!r} not found", lineno)
+            w, h, bits, ctype = png_header(path)
+            if (w, h) != (camera.width, camera.height):
+                raise DatasetError(
+                    path, f"image is {w}x{h}, camera expects {camera.width}x{camera.height} ({list_name} line {lineno})"
+                )
+            if kind == "rgb" and (bits != 8 or ctype not in (2, 6)):
+                raise DatasetError(path, f"RGB image must be 8-bit colour PNG (bit depth {bits}, colour type {ctype})")
+            if kind == "depth" and (bits != 16 or ctype != 0):
+                raise DatasetError(path, f"depth image must be 16-bit greyscale PNG (bit depth {bits}, colour type {ctype})")
+            files.append(parts[1])
+            used_paths.append(path)
+            used_names.append(parts[1])
+
+    t_rgb = rgb_ts[[i for i, _ in pairs]]
+    t_depth = depth_ts[[j for _, j in pairs]]
+    gt_file = root / "groundtruth.txt"
+    list_files = [root / "rgb.txt", root / "depth.txt"]
+    if gt_file.is_file():
+        gt_ts, gt_poses = read_groundtruth(gt_file)
+        T_gt, has_gt = lookup_groundtruth(gt_ts, gt_poses, t_rgb, max_dt)
+        list_files.append(gt_file)
+    else:
+        T_gt, has_gt = np.full((len(pairs), 4, 4), np.nan), np.zeros(len(pairs), bool)
+    content_hash = sha256_files(list_files + used_paths, [p.name for p in list_files] + used_names)
+    logger.info(
+        "%s: %d RGB-D frames, %d with ground truth, %.1f s", dataset, len(pairs), int(has_gt.sum()),
+        t_rgb[-1] - t_rgb[0],
+    )
+    return FrameManifest(
+        dataset=dataset, root=root.resolve(), camera=camera, timestamps_s=t_rgb,
+        depth_timestamps_s=t_depth, rgb_files=rgb_files, depth_files=depth_files,
+        T_world_cam_gt=T_gt, has_gt=has_gt, content_hash=content_hash,
+        source={"layout": "tum", "path": str(root.resolve()), "max_frames": max_frames},
+    )
