@@ -6,7 +6,9 @@ typed artifact. No orchestration here: ordering, caching and persistence belong 
 
 from __future__ import annotations
 
+import json
 import logging
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -15,13 +17,15 @@ import numpy as np
 import pyarrow as pa
 
 from atlas_pipeline.config import PipelineConfig
-from atlas_pipeline.errors import DatasetError
+from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.io_utils import write_json_atomic
 from atlas_pipeline.localization.localizer import LocalizationReport, localize_sequence
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.mapping.mapper import build_world
 from atlas_pipeline.perception.rgbd import FusedFrames, fuse_frames
+from atlas_pipeline.scene_memory.bundle import load_world_bundle, write_bundle_files
 from atlas_pipeline.sensors.registry import DatasetEntry, ensure_dataset_files
 from atlas_pipeline.sensors.tum import FrameManifest, load_tum_sequence
 from atlas_pipeline.transition_log.transitions import build_transitions
@@ -38,6 +42,7 @@ __all__ = [
     "localize",
     "log_transitions",
     "DemoVideos",
+    "WorldBundleArtifact",
     "render_demo_videos",
     "bundle_metadata",
 ]
@@ -94,13 +99,57 @@ def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int
 
 @dataclass
 class DemoVideos:
-    """Paths of the rendered demo videos and how they were made."""
+    """The rendered demo videos (orbit and trajectory MP4s) and how they were made."""
 
     orbit: Path
     trajectory: Path
     n_orbit_frames: int
     n_trajectory_frames: int
     size: tuple[int, int]
+
+    def save(self, directory: Path) -> list[Path]:
+        """Move the videos into ``directory`` (same file system: a rename) and describe them."""
+        out = []
+        for attr in ("orbit", "trajectory"):
+            src = getattr(self, attr)
+            dst = directory / src.name
+            if src.resolve() != dst.resolve():
+                shutil.move(str(src), dst)
+            setattr(self, attr, dst)
+            out.append(dst)
+        out.append(write_json_atomic(directory / "videos.json", {
+            "orbit": self.orbit.name, "trajectory": self.trajectory.name,
+            "n_orbit_frames": self.n_orbit_frames, "n_trajectory_frames": self.n_trajectory_frames,
+            "size": list(self.size), "codec": "h264", "pixel_format": "yuv420p",
+        }))
+        return out
+
+    @classmethod
+    def load(cls, directory: Path) -> "DemoVideos":
+        path = directory / "videos.json"
+        if not path.is_file():
+            raise ArtifactError(f"{directory}: videos.json missing")
+        d = json.loads(path.read_text())
+        return cls(directory / d["orbit"], directory / d["trajectory"], int(d["n_orbit_frames"]),
+                   int(d["n_trajectory_frames"]), tuple(d["size"]))
+
+
+@dataclass
+class WorldBundleArtifact:
+    """Everything a world bundle persists; saving writes the section 8.3 layout."""
+
+    field: GaussianField
+    metadata: dict[str, Any]
+    localization: LocalizationReport | None = None
+    transitions: pa.Table | None = None
+
+    def save(self, directory: Path) -> list[Path]:
+        return write_bundle_files(directory, self.field, self.metadata, self.localization, self.transitions)
+
+    @classmethod
+    def load(cls, directory: Path) -> "WorldBundleArtifact":
+        b = load_world_bundle(directory, source="bin")
+        return cls(b.field, b.metadata)
 
 
 def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_K: np.ndarray,
@@ -152,6 +201,10 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
                     "content_hash": manifest.content_hash, "camera": manifest.camera.to_dict()},
         "gaussians": {"voxel_size_m": world.builder.voxel_size_m, "isotropic": world.field.is_isotropic,
                       "n_keyframes": int(len(world.keyframe_indices)), "pose_source": world.pose_source},
+        # Where a session on the same sequence starts: the first keyframe's frame and pose.
+        "anchor": {"frame_index": int(world.keyframe_indices[0]),
+                   "timestamp_s": float(manifest.timestamps_s[world.keyframe_indices[0]]),
+                   "T_world_cam": world.T_world_cam_keyframes[0].tolist()},
         "config": cfg.to_dict(),
         "lineage": lineage or {},
     }

@@ -11,11 +11,13 @@ The image model is the one of Kerbl et al. 2023 / gsplat (EWA splatting):
    makes even sub-pixel Gaussians cover a pixel.
 3. ``radius = ceil(3 sqrt(lambda_max(cov2d)))``; a Gaussian touches only the pixels whose centres lie
    in the square of half-side ``radius`` around its projected mean (its "3-sigma box"). Gaussians
-   whose box misses the image are dropped.
+   whose box misses the image are dropped. (The compiled path further trims the box to the ellipse
+   outside of which ``alpha < 1/255``; those pixels would be skipped anyway, so the image is the
+   same.)
 4. Per pixel, front to back in camera depth (ties keep input order):
    ``alpha_i = min(0.99, opacity_i exp(-0.5 d^T conic_i d))``, skipped when ``alpha_i < 1/255``;
    ``C += T alpha_i c_i``, ``D += T alpha_i z_i``, ``T *= 1 - alpha_i``; a pixel stops as soon as
-   ``T < 1e-4`` (early termination).
+   ``T < 1e-4`` (early termination; the contribution that crosses the threshold is kept).
 5. ``rgb = round(C + T background)``, ``alpha = 1 - T``, ``depth = D / alpha`` where ``alpha >= 0.5``
    else 0.
 
@@ -112,7 +114,7 @@ def _validate(
     if n:
         if np.any(scl < 0):
             raise ValueError("scales: standard deviations must be >= 0")
-        if np.any(np.sum(quat.astype(np.float64) ** 2, axis=1) < 1e-12):
+        if np.any(np.einsum("ij,ij->i", quat, quat) < 1e-12):
             raise ValueError("rotations_xyzw: quaternion with zero norm")
         if col.min() < 0 or col.max() > 255:
             raise ValueError("colors: values must be in [0, 255]")
@@ -129,12 +131,20 @@ def _validate(
         raise ValueError(f"K: expected a finite [3, 3] matrix, got shape {list(Km.shape)}")
     if Km[0, 0] <= 0 or Km[1, 1] <= 0:
         raise ValueError(f"K: focal lengths must be positive, got fx={Km[0, 0]} fy={Km[1, 1]}")
-    if int(width) != width or int(height) != height or width <= 0 or height <= 0:
-        raise ValueError(f"image size must be positive integers, got {width}x{height}")
+    try:
+        size_ok = int(width) == width and int(height) == height and width > 0 and height > 0
+    except (TypeError, ValueError):
+        size_ok = False
+    if not size_ok:
+        raise ValueError(f"image size must be positive integers, got {width!r}x{height!r}")
     bg = np.asarray(background, dtype=np.float64).reshape(-1)
     if bg.shape != (3,) or not np.all(np.isfinite(bg)) or bg.min() < 0 or bg.max() > 255:
         raise ValueError(f"background: expected 3 values in [0, 255], got {background!r}")
-    if not (np.isfinite(near_m) and near_m > 0):
+    try:
+        near_ok = bool(np.isfinite(near_m) and near_m > 0)
+    except TypeError:
+        near_ok = False
+    if not near_ok:
         raise ValueError(f"near_m must be a positive number, got {near_m!r}")
     return pos, scl, quat, col, opa, T, Km, int(width), int(height), bg, float(near_m)
 
@@ -321,6 +331,24 @@ def _radix_argsort_positive(keys):
     return idx
 
 
+@njit(cache=True, parallel=True)
+def _gather_rows(order, feat, box):
+    """``feat[order]``, ``box[order]`` (``[M, 10]``, ``[M, 4]``), threaded.
+
+    Sorted, contiguous copies: each tile then reads its Gaussians front to back in memory order.
+    """
+    m = order.shape[0]
+    feat_s = np.empty((m, feat.shape[1]), dtype=feat.dtype)
+    box_s = np.empty((m, 4), dtype=box.dtype)
+    for k in prange(m):
+        g = order[k]
+        for j in range(feat.shape[1]):
+            feat_s[k, j] = feat[g, j]
+        for j in range(4):
+            box_s[k, j] = box[g, j]
+    return feat_s, box_s
+
+
 @njit(cache=True)
 def _bin_tiles(box, tiles_x, n_tiles):
     """Per-tile lists of Gaussians; ``box [M, 4]`` of the Gaussians already sorted front to back.
@@ -374,20 +402,21 @@ def _exp_neg(x):
     return p * p
 
 
-@njit(cache=True, parallel=True)
-def _rasterize(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg, n_workers):
-    """Composite every tile front to back.
+@njit(cache=True)
+def _rasterize_tiles(
+    worker, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg,
+    rgb, depth_out, alpha_out,
+):
+    """Composite tiles ``worker, worker + n_workers, ...`` front to back into the output images.
 
     ``feat [M, 10]`` / ``box [M, 4]`` are the sorted Gaussians, ``tile_start``/``tile_ids`` from
-    ``_bin_tiles``. Returns rgb ``[H, W, 3]`` uint8, depth and alpha ``[H, W]`` float32.
+    ``_bin_tiles``; writes rgb ``[H, W, 3]`` uint8, depth and alpha ``[H, W]`` float32 in place.
 
-    For each (tile, Gaussian) pair the pixels of every touched tile row are processed as one
-    16-wide branch-free vector (lanes outside the Gaussian's box, below 1/255 or already
-    terminated get alpha 0), which is several times faster than a scalar loop over the box.
+    For each (tile, Gaussian) pair every touched tile row is processed as one 16-wide branch-free
+    vector (lanes outside the Gaussian's box, below 1/255 or already terminated get alpha 0):
+    several times faster than a scalar loop over the box. Kept out of the ``prange`` body so the
+    parallel transform cannot get in the way of that vectorisation.
     """
-    rgb = np.empty((height, width, 3), dtype=np.uint8)
-    depth_out = np.empty((height, width), dtype=np.float32)
-    alpha_out = np.empty((height, width), dtype=np.float32)
     t_min = np.float32(T_MIN)
     a_min = np.float32(ALPHA_MIN)
     a_max = np.float32(ALPHA_MAX)
@@ -395,81 +424,93 @@ def _rasterize(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles,
     one = np.float32(1.0)
     zero = np.float32(0.0)
     lanes = np.uint64(TILE_SIZE)  # unsigned loop index: no negative-index wraparound, so it vectorises
+    T = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    Cr = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    Cg = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    Cb = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    D = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    for t in range(worker, n_tiles, n_workers):
+        px0 = (t % tiles_x) * TILE_SIZE
+        py0 = (t // tiles_x) * TILE_SIZE
+        px1 = min(px0 + TILE_SIZE, width) - 1
+        py1 = min(py0 + TILE_SIZE, height) - 1
+        T[:] = 1.0
+        Cr[:] = 0.0
+        Cg[:] = 0.0
+        Cb[:] = 0.0
+        D[:] = 0.0
+        n_active = (px1 - px0 + 1) * (py1 - py0 + 1)
+        for k in range(tile_start[t], tile_start[t + 1]):
+            if n_active <= 0:  # every pixel of the tile has terminated
+                break
+            g = tile_ids[k]
+            ux = feat[g, _F_U] - np.float32(px0)  # mean relative to the tile's left column
+            v = feat[g, _F_V]
+            nha = np.float32(-0.5) * feat[g, _F_A]
+            cb = feat[g, _F_B]
+            nhc = np.float32(-0.5) * feat[g, _F_C]
+            op = feat[g, _F_OP]
+            cr = feat[g, _F_R]
+            cgr = feat[g, _F_G]
+            cbl = feat[g, _F_BL]
+            z = feat[g, _F_Z]
+            lx0 = np.float32(max(box[g, 0], px0) - px0)
+            lx1 = np.float32(min(box[g, 1], px1) - px0)
+            for py in range(max(box[g, 2], py0), min(box[g, 3], py1) + 1):
+                dy = np.float32(py) - v
+                qy = nhc * dy * dy
+                by = cb * dy
+                r = py - py0
+                Tv = T[r]
+                Crv = Cr[r]
+                Cgv = Cg[r]
+                Cbv = Cb[r]
+                Dv = D[r]
+                done = np.uint64(0)
+                for j in range(lanes):
+                    lj = np.float32(j)
+                    dx = lj - ux
+                    power = nha * dx * dx + qy - by * dx
+                    power = power if power > p_min else p_min
+                    e = op * _exp_neg(power)
+                    alpha = e if e < a_max else a_max
+                    Tl = Tv[j]
+                    ok = (alpha >= a_min) & (Tl >= t_min) & (lj >= lx0) & (lj <= lx1)
+                    a = alpha if ok else zero
+                    wgt = a * Tl
+                    Crv[j] += wgt * cr
+                    Cgv[j] += wgt * cgr
+                    Cbv[j] += wgt * cbl
+                    Dv[j] += wgt * z
+                    Tn = Tl * (one - a)
+                    Tv[j] = Tn
+                    done += np.uint64(ok & (Tn < t_min))
+                n_active -= np.int64(done)
+        for py in range(py0, py1 + 1):
+            r = py - py0
+            for px in range(px0, px1 + 1):
+                c = px - px0
+                Tl = T[r, c]
+                rgb[py, px, 0] = np.uint8(min(255.0, max(0.0, math.floor(Cr[r, c] + Tl * bg[0] + 0.5))))
+                rgb[py, px, 1] = np.uint8(min(255.0, max(0.0, math.floor(Cg[r, c] + Tl * bg[1] + 0.5))))
+                rgb[py, px, 2] = np.uint8(min(255.0, max(0.0, math.floor(Cb[r, c] + Tl * bg[2] + 0.5))))
+                acc = one - Tl
+                alpha_out[py, px] = acc
+                depth_out[py, px] = D[r, c] / acc if acc >= DEPTH_MIN_ALPHA else 0.0
+
+
+@njit(cache=True, parallel=True)
+def _rasterize(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg, n_workers):
+    """All tiles, ``n_workers`` threads. Returns rgb ``[H, W, 3]`` uint8, depth/alpha ``[H, W]``."""
+    rgb = np.empty((height, width, 3), dtype=np.uint8)
+    depth_out = np.empty((height, width), dtype=np.float32)
+    alpha_out = np.empty((height, width), dtype=np.float32)
     # Worker w takes tiles w, w + n_workers, ...: interleaving balances busy and empty regions.
     for w in prange(n_workers):
-        T = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-        Cr = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-        Cg = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-        Cb = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-        D = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-        for t in range(w, n_tiles, n_workers):
-            px0 = (t % tiles_x) * TILE_SIZE
-            py0 = (t // tiles_x) * TILE_SIZE
-            px1 = min(px0 + TILE_SIZE, width) - 1
-            py1 = min(py0 + TILE_SIZE, height) - 1
-            T[:] = 1.0
-            Cr[:] = 0.0
-            Cg[:] = 0.0
-            Cb[:] = 0.0
-            D[:] = 0.0
-            n_active = (px1 - px0 + 1) * (py1 - py0 + 1)
-            for k in range(tile_start[t], tile_start[t + 1]):
-                if n_active <= 0:  # every pixel of the tile has terminated
-                    break
-                g = tile_ids[k]
-                ux = feat[g, _F_U] - np.float32(px0)  # mean relative to the tile's left column
-                v = feat[g, _F_V]
-                nha = np.float32(-0.5) * feat[g, _F_A]
-                cb = feat[g, _F_B]
-                nhc = np.float32(-0.5) * feat[g, _F_C]
-                op = feat[g, _F_OP]
-                cr = feat[g, _F_R]
-                cgr = feat[g, _F_G]
-                cbl = feat[g, _F_BL]
-                z = feat[g, _F_Z]
-                lx0 = np.float32(max(box[g, 0], px0) - px0)
-                lx1 = np.float32(min(box[g, 1], px1) - px0)
-                for py in range(max(box[g, 2], py0), min(box[g, 3], py1) + 1):
-                    dy = np.float32(py) - v
-                    qy = nhc * dy * dy
-                    by = cb * dy
-                    r = py - py0
-                    Tv = T[r]
-                    Crv = Cr[r]
-                    Cgv = Cg[r]
-                    Cbv = Cb[r]
-                    Dv = D[r]
-                    done = np.uint64(0)
-                    for j in range(lanes):
-                        lj = np.float32(j)
-                        dx = lj - ux
-                        power = nha * dx * dx + qy - by * dx
-                        power = power if power > p_min else p_min
-                        e = op * _exp_neg(power)
-                        alpha = e if e < a_max else a_max
-                        Tl = Tv[j]
-                        ok = (alpha >= a_min) & (Tl >= t_min) & (lj >= lx0) & (lj <= lx1)
-                        a = alpha if ok else zero
-                        wgt = a * Tl
-                        Crv[j] += wgt * cr
-                        Cgv[j] += wgt * cgr
-                        Cbv[j] += wgt * cbl
-                        Dv[j] += wgt * z
-                        Tn = Tl * (one - a)
-                        Tv[j] = Tn
-                        done += np.uint64(ok & (Tn < t_min))
-                    n_active -= np.int64(done)
-            for py in range(py0, py1 + 1):
-                r = py - py0
-                for px in range(px0, px1 + 1):
-                    c = px - px0
-                    Tl = T[r, c]
-                    rgb[py, px, 0] = np.uint8(min(255.0, max(0.0, math.floor(Cr[r, c] + Tl * bg[0] + 0.5))))
-                    rgb[py, px, 1] = np.uint8(min(255.0, max(0.0, math.floor(Cg[r, c] + Tl * bg[1] + 0.5))))
-                    rgb[py, px, 2] = np.uint8(min(255.0, max(0.0, math.floor(Cb[r, c] + Tl * bg[2] + 0.5))))
-                    acc = one - Tl
-                    alpha_out[py, px] = acc
-                    depth_out[py, px] = D[r, c] / acc if acc >= DEPTH_MIN_ALPHA else 0.0
+        _rasterize_tiles(
+            w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg,
+            rgb, depth_out, alpha_out,
+        )
     return rgb, depth_out, alpha_out
 
 
@@ -522,9 +563,7 @@ def render_gaussians(
     if ids.size == 0:
         return _empty_result(width, height, bg)
     order = ids[_radix_argsort_positive(depth[ids])]
-    # sorted, contiguous copies: tiles then read their Gaussians front to back in memory order
-    feat = feat[order]
-    box = box[order]
+    feat, box = _gather_rows(order, feat, box)
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_tiles = tiles_x * tiles_y
@@ -535,6 +574,7 @@ def render_gaussians(
         bg.astype(np.float32), n_workers,
     )
     return RenderResult(rgb=rgb, depth_m=depth_m, alpha=alpha)
+
 
 # --------------------------------------------------------------------------------------------
 # NumPy reference

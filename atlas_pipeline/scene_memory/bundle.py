@@ -35,7 +35,7 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
-    "read_metadata", "copy_bundle",
+    "read_metadata", "copy_bundle", "write_bundle_files",
 ]
 
 BUNDLE_FORMAT = "atlas-gs-world-bundle"
@@ -62,6 +62,30 @@ def _file_table(directory: Path) -> dict[str, dict[str, Any]]:
     }
 
 
+def write_bundle_files(
+    directory: Path,
+    field: GaussianField,
+    metadata: dict[str, Any],
+    localization: LocalizationReport | None = None,
+    transitions: pa.Table | None = None,
+) -> list[Path]:
+    """Write a bundle's files into an existing (empty, temporary) folder; returns the paths."""
+    write_gaussian_ply(field, directory / "gaussians.ply")
+    write_atlasgs1(field, directory / "gaussians.bin")
+    _write_parts(directory, localization, transitions)
+    meta = {
+        "format": BUNDLE_FORMAT,
+        "version": BUNDLE_VERSION,
+        "created_at": _utc_now(),
+        "map_id": field.content_hash()[:16],
+        "n_gaussians": len(field),
+        **metadata,
+        "files": _file_table(directory),
+    }
+    write_json_atomic(directory / "metadata.json", meta)
+    return sorted(p for p in directory.iterdir() if p.is_file() and not p.name.startswith("."))
+
+
 def write_world_bundle(
     directory: str | Path,
     field: GaussianField,
@@ -69,22 +93,11 @@ def write_world_bundle(
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
 ) -> Path:
-    """Write a complete bundle; ``metadata`` (name, lineage, config ...) is stored in metadata.json."""
+    """Write a complete bundle folder atomically; ``metadata`` (name, lineage, config ...) goes
+    into metadata.json."""
     directory = Path(directory)
     with atomic_dir(directory) as tmp:
-        write_gaussian_ply(field, tmp / "gaussians.ply")
-        write_atlasgs1(field, tmp / "gaussians.bin")
-        _write_parts(tmp, localization, transitions)
-        meta = {
-            "format": BUNDLE_FORMAT,
-            "version": BUNDLE_VERSION,
-            "created_at": _utc_now(),
-            "map_id": field.content_hash()[:16],
-            "n_gaussians": len(field),
-            **metadata,
-            "files": _file_table(tmp),
-        }
-        write_json_atomic(tmp / "metadata.json", meta)
+        write_bundle_files(tmp, field, metadata, localization, transitions)
     return directory
 
 
