@@ -162,7 +162,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         cfg = atlas.load()
         lineage = {
             "partition": context.partition_key,
-            "run_id": context.run_id,
+            "run_id": context.run.run_id,
             "raw_content_hash": raw_dataset.content_hash,
             "profile": atlas.profile,
         }

@@ -1,9 +1,10 @@
 """Speed of the compiled Gaussian rasteriser against the NumPy reference.
 
-Scene: a 4 x 4 x 2.6 m room seen from inside (walls, floor, ceiling, three boxes), surface Gaussians
-placed where random camera rays hit it (so most are in view, 1-4 m away), flat discs oriented with the
-surface: tangential standard deviations log-uniform in [3 mm, 20 mm], 1 mm along the normal; 10 % of
-the Gaussians are behind the camera (culled). 640x480, fx = fy = 525 (Kinect-like).
+Scene: a 4 x 4.5 x 2.6 m room seen from inside (walls, floor, ceiling, three boxes), surface
+Gaussians placed where random camera rays hit it (so most are in view, 1-4 m away), flat discs
+oriented with the surface: tangential standard deviations log-uniform in [3 mm, 20 mm], 1 mm
+along the normal; 10 % of the Gaussians are behind the camera (culled). 640x480, fx = fy = 525
+(Kinect-like); opacities 70 % in [0.8, 1], 30 % in [0.1, 0.8].
 
 Run: ``python benchmarks/bench_render.py [--gaussians 200000] [--repeats 20] [--ref-gaussians N]``.
 Prints frames per second of both renderers on the same input, the ratio, the first-call time (JIT
@@ -109,7 +110,7 @@ def main() -> None:
     ap.add_argument("--gaussians", type=int, default=200_000)
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--ref-gaussians", type=int, default=None,
-                    help="run the reference (and the compiled comparison) on the first N Gaussians only")
+                    help="run the reference (and compiled, for the ratio) on the first N only")
     args = ap.parse_args()
 
     scene = make_scene(args.gaussians)

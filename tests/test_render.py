@@ -193,7 +193,8 @@ def test_early_termination_changes_nothing_beyond_tolerance():
     opac = rng.uniform(0.5, 1.0, n)
     pos = np.c_[np.zeros(n), np.zeros(n), z]
     quats = np.tile(IDENTITY_Q, (n, 1))
-    res = render_gaussians(pos, np.repeat(sigma[:, None], 3, 1), quats, colors, opac, np.eye(4), k, w, h)
+    scales = np.repeat(sigma[:, None], 3, axis=1)
+    res = render_gaussians(pos, scales, quats, colors, opac, np.eye(4), k, w, h)
     assert (res.alpha > 1 - 1e-4).mean() > 0.5  # most pixels terminated early
     rgb_full, depth_full, _ = _brute_force_on_axis(z, sigma, colors, opac, f, w, h, cx, cy)
     assert np.abs(res.rgb.astype(float) - rgb_full).max() <= 1.0

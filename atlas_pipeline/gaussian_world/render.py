@@ -9,25 +9,25 @@ The image model is the one of Kerbl et al. 2023 / gsplat (EWA splatting):
    perspective Jacobian at the mean (its x/z, y/z clamped to 1.3x the half field of view, as in
    gsplat, so Gaussians far outside the image do not get huge footprints). The 0.3 px^2 low-pass
    makes even sub-pixel Gaussians cover a pixel.
-3. ``radius = ceil(3 sqrt(lambda_max(cov2d)))``; a Gaussian touches only the pixels whose centres lie
-   in the square of half-side ``radius`` around its projected mean (its "3-sigma box"). Gaussians
-   whose box misses the image are dropped. (The compiled path further trims the box to the ellipse
-   outside of which ``alpha < 1/255``; those pixels would be skipped anyway, so the image is the
-   same.)
+3. ``radius = ceil(3 sqrt(lambda_max(cov2d)))``; a Gaussian touches only the pixels whose centres
+   lie in the square of half-side ``radius`` around its projected mean (its "3-sigma box").
+   Gaussians whose box misses the image are dropped. (The compiled path further trims the box to
+   the ellipse outside of which ``alpha < 1/255``; those pixels would be skipped anyway, so the
+   image is the same.)
 4. Per pixel, front to back in camera depth (ties keep input order):
    ``alpha_i = min(0.99, opacity_i exp(-0.5 d^T conic_i d))``, skipped when ``alpha_i < 1/255``;
    ``C += T alpha_i c_i``, ``D += T alpha_i z_i``, ``T *= 1 - alpha_i``; a pixel stops as soon as
    ``T < 1e-4`` (early termination; the contribution that crosses the threshold is kept).
-5. ``rgb = round(C + T background)``, ``alpha = 1 - T``, ``depth = D / alpha`` where ``alpha >= 0.5``
-   else 0.
+5. ``rgb = round(C + T background)``, ``alpha = 1 - T``, ``depth = D / alpha`` where
+   ``alpha >= 0.5``, else 0.
 
-Pixel centres are at integer pixel coordinates, so a point projecting to ``(u, v) = K p / z`` lands
-in the centre of pixel ``(round(u), round(v))`` (the convention of ``CameraIntrinsics``). Skew in ``K``
-is ignored.
+Pixel centres are at integer pixel coordinates, so a point projecting to ``(u, v) = K p / z``
+lands in the centre of pixel ``(round(u), round(v))`` (the convention of ``CameraIntrinsics``).
+Skew in ``K`` is ignored.
 
 ``render_gaussians`` is the fast path: numba-compiled, tiled (16x16 pixel tiles, per-tile lists of
-Gaussians in depth order), multi-threaded over tiles. ``render_gaussians_reference`` is a plain NumPy
-version of the same model used to check it.
+Gaussians in depth order), multi-threaded over tiles. ``render_gaussians_reference`` is a plain
+NumPy version of the same model used to check it.
 """
 
 from __future__ import annotations
@@ -384,8 +384,8 @@ def _bin_tiles(box, tiles_x, n_tiles):
 def _exp_neg(x):
     """``exp(x)`` for float32 ``x`` in [-6, 0] to ~2e-6 relative error, with plain arithmetic.
 
-    ``math.exp`` is a libm call that blocks SIMD; this (Taylor polynomial of ``exp(x / 16)``, squared
-    four times) lets the compiler vectorise a whole tile row.
+    ``math.exp`` is a libm call that blocks SIMD; this (Taylor polynomial of ``exp(x / 16)``,
+    squared four times) lets the compiler vectorise a whole tile row.
     """
     y = x * np.float32(1.0 / 16.0)
     p = np.float32(1.0 / 5040.0)
@@ -400,6 +400,12 @@ def _exp_neg(x):
     p = p * p
     p = p * p
     return p * p
+
+
+@njit(cache=True, inline="always")
+def _to_u8(x):
+    """Round half up and clip to a uint8 colour level."""
+    return np.uint8(min(255.0, max(0.0, math.floor(x + 0.5))))
 
 
 @njit(cache=True)
@@ -423,7 +429,8 @@ def _rasterize_tiles(
     p_min = np.float32(-6.0)  # exp(-6) < 1/255: lanes clamped here are rejected by the alpha test
     one = np.float32(1.0)
     zero = np.float32(0.0)
-    lanes = np.uint64(TILE_SIZE)  # unsigned loop index: no negative-index wraparound, so it vectorises
+    # unsigned loop index: no negative-index wraparound code, so the row loop vectorises
+    lanes = np.uint64(TILE_SIZE)
     T = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     Cr = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     Cg = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
@@ -491,9 +498,9 @@ def _rasterize_tiles(
             for px in range(px0, px1 + 1):
                 c = px - px0
                 Tl = T[r, c]
-                rgb[py, px, 0] = np.uint8(min(255.0, max(0.0, math.floor(Cr[r, c] + Tl * bg[0] + 0.5))))
-                rgb[py, px, 1] = np.uint8(min(255.0, max(0.0, math.floor(Cg[r, c] + Tl * bg[1] + 0.5))))
-                rgb[py, px, 2] = np.uint8(min(255.0, max(0.0, math.floor(Cb[r, c] + Tl * bg[2] + 0.5))))
+                rgb[py, px, 0] = _to_u8(Cr[r, c] + Tl * bg[0])
+                rgb[py, px, 1] = _to_u8(Cg[r, c] + Tl * bg[1])
+                rgb[py, px, 2] = _to_u8(Cb[r, c] + Tl * bg[2])
                 acc = one - Tl
                 alpha_out[py, px] = acc
                 depth_out[py, px] = D[r, c] / acc if acc >= DEPTH_MIN_ALPHA else 0.0
@@ -620,8 +627,10 @@ def render_gaussians_reference(
     Sigma = M @ np.swapaxes(M, 1, 2)
 
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    txz = np.clip(x / zs, -(cx / fx + FRUSTUM_MARGIN * tan_x), (width - cx) / fx + FRUSTUM_MARGIN * tan_x)
-    tyz = np.clip(y / zs, -(cy / fy + FRUSTUM_MARGIN * tan_y), (height - cy) / fy + FRUSTUM_MARGIN * tan_y)
+    lim_x = (cx / fx + FRUSTUM_MARGIN * tan_x, (width - cx) / fx + FRUSTUM_MARGIN * tan_x)
+    lim_y = (cy / fy + FRUSTUM_MARGIN * tan_y, (height - cy) / fy + FRUSTUM_MARGIN * tan_y)
+    txz = np.clip(x / zs, -lim_x[0], lim_x[1])
+    tyz = np.clip(y / zs, -lim_y[0], lim_y[1])
     J = np.zeros((n, 2, 3))
     J[:, 0, 0] = fx / zs
     J[:, 0, 2] = -fx * txz / zs

@@ -89,10 +89,14 @@ def _check_frame(frame, index: int, shape=None, dtype=None) -> np.ndarray:
         if a.dtype != np.uint8:
             raise ValueError(f"frame {index}: expected dtype uint8, got {a.dtype}")
         if a.ndim != 3 or a.shape[2] != 3 or a.shape[0] == 0 or a.shape[1] == 0:
-            raise ValueError(f"frame {index}: expected an RGB image [H, W, 3], got shape {list(a.shape)}")
+            raise ValueError(
+                f"frame {index}: expected an RGB image [H, W, 3], got shape {list(a.shape)}"
+            )
     else:
         if a.dtype != dtype:
-            raise ValueError(f"frame {index}: dtype {a.dtype} differs from the first frame's {dtype}")
+            raise ValueError(
+                f"frame {index}: dtype {a.dtype} differs from the first frame's {dtype}"
+            )
         if a.shape != shape:
             raise ValueError(
                 f"frame {index}: shape {list(a.shape)} differs from the first frame's {list(shape)}"
@@ -196,7 +200,9 @@ def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     a = np.asarray(left)
     b = np.asarray(right)
     if a.ndim != 3 or b.ndim != 3:
-        raise ValueError(f"expected two [H, W, C] images, got shapes {list(a.shape)} and {list(b.shape)}")
+        raise ValueError(
+            f"expected two [H, W, C] images, got shapes {list(a.shape)} and {list(b.shape)}"
+        )
     if a.shape[0] != b.shape[0]:
         raise ValueError(f"image heights differ: {a.shape[0]} and {b.shape[0]}")
     if a.shape[2] != b.shape[2]:

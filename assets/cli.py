@@ -1,0 +1,331 @@
+"""``atlas-gs``: the command line over the library and the Dagster definitions.
+
+It lives in the Dagster layer because ``run`` executes the Dagster job; the paper-style commands
+only call ``atlas_pipeline``.
+
+Paper-style commands (``build``, ``localize``, ``log-transitions``, ``demo-video``) call the library
+directly on a world folder. ``run`` materializes every asset of a dataset partition through Dagster
+(recorded in ``$DAGSTER_HOME``, default ``<project>/.dagster_home``, so the web UI shows it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from atlas_pipeline import pipeline as lib
+from atlas_pipeline.config import PipelineConfig, load_profile, project_root
+from atlas_pipeline.errors import AtlasError, ConfigError
+from atlas_pipeline.geometry import pose_from_tq
+from atlas_pipeline.sensors.camera import TUM_CAMERAS
+from atlas_pipeline.sensors.registry import (
+    DatasetEntry,
+    load_registry,
+    local_registry_path,
+    register_local_dataset,
+    resolve_camera,
+    validate_dataset_name,
+)
+
+logger = logging.getLogger("atlas_gs.cli")
+
+ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
+               "transitions", "demo_videos", "world_bundle"]
+
+
+def _config(args: argparse.Namespace) -> PipelineConfig:
+    cfg = load_profile(args.profile)
+    overrides: dict[str, Any] = {}
+    for item in getattr(args, "set", None) or []:
+        if "=" not in item:
+            raise ConfigError(f"--set expects key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        overrides[k.strip()] = yaml.safe_load(v)
+    return cfg.with_overrides(overrides, "--set") if overrides else cfg
+
+
+def _dataset(spec: str, camera: str | None = None) -> DatasetEntry:
+    """A registered dataset name, or a path to a folder in TUM layout."""
+    registry = load_registry()
+    if spec in registry:
+        return registry[spec]
+    p = Path(spec).expanduser()
+    if p.is_dir():
+        name = "".join(c if c.isalnum() or c in "-_" else "-" for c in p.resolve().name.lower())[:64] or "dataset"
+        return DatasetEntry(name=name.strip("-_") or "dataset", kind="tum", path=p.resolve(),
+                            camera=resolve_camera(camera or "default", "--camera"))
+    raise ConfigError(f"'{spec}' is neither a registered dataset ({', '.join(registry)}) nor a folder")
+
+
+def _default_dagster_home() -> Path:
+    home = Path(os.environ.get("DAGSTER_HOME") or project_root() / ".dagster_home")
+    home.mkdir(parents=True, exist_ok=True)
+    os.environ["DAGSTER_HOME"] = str(home)
+    return home
+
+
+# ---- commands ---------------------------------------------------------------------------------
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    cfg = _config(args)
+    entry = _dataset(args.input, args.camera)
+    manifest = lib.load_dataset(entry, cfg)
+    fused = lib.fuse(manifest, cfg)
+    keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
+    world = lib.build_gaussian_world(fused, keyframes, cfg)
+    from atlas_pipeline.scene_memory.bundle import write_world_bundle
+
+    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, {"created_by": "atlas-gs build"})
+    write_world_bundle(args.output, world.field, meta)
+    logger.info("wrote world with %d Gaussians to %s", len(world.field), args.output)
+    print(json.dumps({"world": str(Path(args.output).resolve()), "n_gaussians": len(world.field),
+                      "n_keyframes": int(len(keyframes.indices)), "map_id": world.map_id}, indent=2))
+    return 0
+
+
+def _start_pose(args: argparse.Namespace, bundle_meta: dict[str, Any], dataset: str) -> tuple[np.ndarray, int]:
+    if args.start_pose:
+        vals = [float(x) for x in args.start_pose.split()]
+        if len(vals) != 7:
+            raise ConfigError("--start-pose needs 7 numbers: tx ty tz qx qy qz qw")
+        return pose_from_tq(np.array(vals[:3]), np.array(vals[3:])), 0
+    anchor = bundle_meta.get("anchor")
+    if bundle_meta.get("dataset", {}).get("name") != dataset or anchor is None:
+        raise ConfigError(
+            f"the world was built from '{bundle_meta.get('dataset', {}).get('name')}', not '{dataset}': "
+            "give the first frame's pose with --start-pose 'tx ty tz qx qy qz qw'"
+        )
+    return np.asarray(anchor["T_world_cam"], np.float64), int(anchor["frame_index"])
+
+
+def cmd_localize(args: argparse.Namespace) -> int:
+    from atlas_pipeline.localization.localizer import localize_sequence
+    from atlas_pipeline.scene_memory.bundle import load_world_bundle, update_world_bundle
+
+    cfg = _config(args)
+    bundle = load_world_bundle(args.world)
+    entry = _dataset(args.input, args.camera)
+    manifest = lib.load_dataset(entry, cfg)
+    T0, anchor = _start_pose(args, bundle.metadata, entry.name)
+    if anchor >= manifest.n_frames:
+        raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
+    voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
+    report = localize_sequence(manifest, bundle.field, voxel, cfg.localization, T0, anchor, bundle.map_id,
+                               (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
+    update_world_bundle(args.world, localization=report)
+    print(json.dumps({"world": str(Path(args.world).resolve()), **{
+        k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.summary.items()}}, indent=2))
+    return 0
+
+
+def cmd_log_transitions(args: argparse.Namespace) -> int:
+    from atlas_pipeline.localization.localizer import LocalizationReport
+    from atlas_pipeline.scene_memory.bundle import read_metadata, update_world_bundle
+
+    cfg = _config(args)
+    world = Path(args.world)
+    meta = read_metadata(world)
+    if not (world / "localization.json").is_file():
+        raise ConfigError(f"{world}: no localization.json; run `atlas-gs localize --world {world} --input {args.input}` first")
+    report = LocalizationReport.load(world)
+    entry = _dataset(args.input, args.camera)
+    if report.dataset != entry.name:
+        raise ConfigError(f"{world}/localization.json is for dataset '{report.dataset}', not '{entry.name}'")
+    if report.pose_source_poses("ground_truth") is not None and cfg.transitions.pose_source == "ground_truth":
+        manifest = lib.load_dataset(entry, cfg)
+        report.T_world_cam_gt = manifest.T_world_cam_gt
+    table = lib.log_transitions(report, entry.name, int(meta.get("n_gaussians", 0)), cfg)
+    update_world_bundle(world, transitions=table)
+    print(json.dumps({"transitions": str((world / "transitions.parquet").resolve()), "rows": table.num_rows}, indent=2))
+    return 0
+
+
+def cmd_demo_video(args: argparse.Namespace) -> int:
+    from atlas_pipeline.localization.localizer import LocalizationReport
+    from atlas_pipeline.scene_memory.bundle import load_world_bundle
+    from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+    cfg = _config(args)
+    bundle = load_world_bundle(args.world)
+    cam = CameraIntrinsics.from_dict(bundle.metadata["dataset"]["camera"]) if "dataset" in bundle.metadata else TUM_CAMERAS["default"]
+    out = Path(args.output)
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.mode == "trajectory":
+            if not (Path(args.world) / "localization.json").is_file():
+                raise ConfigError(f"{args.world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
+            traj = LocalizationReport.load(Path(args.world)).T_world_cam
+        else:
+            traj = np.tile(np.eye(4), (2, 1, 1))
+        videos = lib.render_demo_videos(bundle.field, traj, cam.K, cam.width, cam.height, cfg, Path(tmp), "demo")
+        src = videos.orbit if args.mode == "orbit" else videos.trajectory
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(src, out)
+    print(json.dumps({"video": str(out.resolve()), "mode": args.mode}, indent=2))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Materialize every asset of one or more partitions through Dagster."""
+    _default_dagster_home()
+    if args.profile:
+        os.environ["ATLAS_PROFILE"] = args.profile
+    from dagster import DagsterInstance
+
+    from assets.definitions import artifacts_root, build_definitions
+
+    registry = load_registry()
+    partitions = list(registry) if args.all else [validate_dataset_name(args.dataset)]
+    for p in partitions:
+        if p not in registry:
+            raise ConfigError(f"dataset '{p}' is not registered; known: {', '.join(registry)}")
+    defs = build_definitions(profile=args.profile or "default")
+    job = defs.resolve_job_def("atlas_gs_all")
+    instance = DagsterInstance.get()
+    failed = 0
+    for p in partitions:
+        result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False)
+        root = artifacts_root()
+        summary = {
+            "partition": p,
+            "success": result.success,
+            "run_id": result.run_id,
+            "world_bundle": str(root / "world_bundle" / p),
+            "transitions": str(root / "world_bundle" / p / "transitions.parquet"),
+            "videos": [str(x) for x in sorted((root / "demo_videos" / p).glob("*.mp4"))],
+        }
+        if result.success:
+            loc = json.loads((root / "localization_report" / p / "localization.json").read_text())["summary"]
+            summary["localization"] = {k: loc.get(k) for k in ("n_tracked", "n_lost", "rmse_t_m", "ate_rmse_m")}
+        else:
+            failed += 1
+            for ev in result.all_events:
+                if ev.is_failure and ev.step_key:
+                    err = ev.event_specific_data.error if hasattr(ev.event_specific_data, "error") else None
+                    summary.setdefault("errors", []).append(
+                        f"{ev.step_key}: {err.cause.message.strip() if err and err.cause else (err.message.strip() if err else 'failed')}")
+        print(json.dumps(summary, indent=2))
+    return 1 if failed else 0
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    if args.dataset_cmd == "list":
+        for name, e in load_registry().items():
+            present = "present" if e.path.is_dir() else ("generated on demand" if e.kind == "synthetic" else
+                                                         "downloaded on demand" if e.url else "MISSING")
+            print(f"{name:24s} {e.kind:10s} {present:22s} {e.path}")
+        return 0
+    if args.dataset_cmd == "add":
+        camera: Any = args.camera
+        if args.intrinsics:
+            fx, fy, cx, cy = (float(x) for x in args.intrinsics.split())
+            camera = {"width": args.width, "height": args.height, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
+                      "depth_scale": args.depth_scale}
+        entry = register_local_dataset(args.name, args.path, camera)
+        print(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path())}, indent=2))
+        return 0
+    if args.dataset_cmd == "show":
+        reg = load_registry()
+        if args.name not in reg:
+            raise ConfigError(f"dataset '{args.name}' is not registered")
+        print(json.dumps(reg[args.name].describe(), indent=2))
+        return 0
+    return 2
+
+
+def cmd_ui(args: argparse.Namespace) -> int:
+    home = _default_dagster_home()
+    os.chdir(project_root())
+    cmd = ["dagster", "dev", "-w", "workspace.yaml", "-h", args.host, "-p", str(args.port)]
+    logger.info("DAGSTER_HOME=%s; starting %s", home, " ".join(cmd))
+    os.execvp(cmd[0], cmd)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="atlas-gs", description="Atlas-GS: RGB-D to a persistent 3D Gaussian world.")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--profile", default="default", help="config profile name (configs/NAME.yaml) or YAML path")
+        sp.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override one config value, e.g. --set localization.icp_iterations=10")
+        sp.add_argument("--camera", default=None, help="camera preset for a folder --input (freiburg1/2/3, default)")
+
+    b = sub.add_parser("build", help="build a world bundle from a dataset")
+    common(b)
+    b.add_argument("--input", required=True, help="registered dataset name or TUM-layout folder")
+    b.add_argument("--output", required=True, help="world bundle folder to write")
+    b.set_defaults(func=cmd_build)
+
+    lo = sub.add_parser("localize", help="localize a dataset's frames against a world bundle")
+    common(lo)
+    lo.add_argument("--world", required=True)
+    lo.add_argument("--input", required=True)
+    lo.add_argument("--start-pose", default=None, help="'tx ty tz qx qy qz qw' of the first frame in the world")
+    lo.set_defaults(func=cmd_localize)
+
+    t = sub.add_parser("log-transitions", help="write transitions.parquet into a localized world bundle")
+    common(t)
+    t.add_argument("--world", required=True)
+    t.add_argument("--input", required=True)
+    t.set_defaults(func=cmd_log_transitions)
+
+    d = sub.add_parser("demo-video", help="render an orbit or trajectory MP4 of a world bundle")
+    common(d)
+    d.add_argument("--world", required=True)
+    d.add_argument("--output", required=True)
+    d.add_argument("--mode", choices=["orbit", "trajectory"], default="orbit")
+    d.set_defaults(func=cmd_demo_video)
+
+    r = sub.add_parser("run", help="materialize every asset of a dataset partition through Dagster")
+    r.add_argument("dataset", nargs="?", default="synthetic", help="partition (registered dataset), default synthetic")
+    r.add_argument("--all", action="store_true", help="every registered dataset")
+    r.add_argument("--profile", default=None, help="config profile for the run (default: default)")
+    r.set_defaults(func=cmd_run)
+
+    ds = sub.add_parser("dataset", help="list, show or register datasets (partitions)")
+    dsub = ds.add_subparsers(dest="dataset_cmd", required=True)
+    dsub.add_parser("list", help="registered datasets")
+    sh = dsub.add_parser("show", help="one dataset's registry entry")
+    sh.add_argument("name")
+    add = dsub.add_parser("add", help="register a TUM-layout folder as a dataset (adds a partition)")
+    add.add_argument("name")
+    add.add_argument("path")
+    add.add_argument("--camera", default="default", help="freiburg1, freiburg2, freiburg3 or default")
+    add.add_argument("--intrinsics", default=None, help="'fx fy cx cy' instead of a preset")
+    add.add_argument("--width", type=int, default=640)
+    add.add_argument("--height", type=int, default=480)
+    add.add_argument("--depth-scale", type=float, default=5000.0)
+    ds.set_defaults(func=cmd_dataset)
+
+    ui = sub.add_parser("ui", help="start the Dagster web UI (dagster dev) with the project's DAGSTER_HOME")
+    ui.add_argument("--host", default="127.0.0.1")
+    ui.add_argument("--port", type=int, default=3000)
+    ui.set_defaults(func=cmd_ui)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        return int(args.func(args) or 0)
+    except AtlasError as exc:
+        logger.error("%s", exc)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

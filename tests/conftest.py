@@ -1,0 +1,54 @@
+"""Shared fixtures: a small synthetic dataset, isolated project folders, the real TUM frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+# A quarter-size synthetic sequence: same scene and path as the default, quick to run everywhere.
+SMALL_SYNTH = {"seed": 0, "n_frames": 12, "width": 160, "height": 120,
+               "fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5}
+
+
+def tum_folder(name: str) -> Path:
+    """A folder of ../shared/data, or skip the test saying why."""
+    p = SHARED_DATA / name
+    if not (p / "rgb.txt").is_file():
+        pytest.skip(f"real TUM RGB-D frames not available at {p} (only the project's CI machines have them)")
+    return p
+
+
+@pytest.fixture
+def isolated(tmp_path, monkeypatch):
+    """Data, artifacts and the local registry in a temporary folder, with a small synthetic dataset
+    registered as ``synth-small``."""
+    import yaml
+
+    data = tmp_path / "data"
+    reg = tmp_path / "datasets.local.yaml"
+    reg.write_text(yaml.safe_dump({"datasets": {"synth-small": {"kind": "synthetic", **SMALL_SYNTH}}}))
+    monkeypatch.setenv("ATLAS_DATA_DIR", str(data))
+    monkeypatch.setenv("ATLAS_ARTIFACTS_DIR", str(tmp_path / "artifacts"))
+    monkeypatch.setenv("ATLAS_LOCAL_REGISTRY", str(reg))
+    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "dagster_home"))
+    (tmp_path / "dagster_home").mkdir()
+    return tmp_path
+
+
+@pytest.fixture(scope="session")
+def small_synthetic(tmp_path_factory) -> Path:
+    """A generated small synthetic dataset folder (TUM layout), shared by the session."""
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
+
+    return generate_synthetic_dataset(tmp_path_factory.mktemp("synth") / "synth-small", SyntheticSpec(**SMALL_SYNTH))
+
+
+@pytest.fixture(scope="session")
+def small_manifest(small_synthetic):
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    return load_tum_sequence(small_synthetic, SyntheticSpec(**SMALL_SYNTH).camera(), "synth-small")

@@ -1,0 +1,153 @@
+"""Voxel Gaussian merge, stable ids, and exact PLY / ATLASGS1 round trips."""
+
+import struct
+
+import numpy as np
+import pytest
+
+from atlas_pipeline.errors import BundleFormatError
+from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder, pack_voxel_ids, unpack_voxel_ids
+from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
+from atlas_pipeline.scene_memory.binary import read_atlasgs1, write_atlasgs1
+from atlas_pipeline.scene_memory.ply import read_gaussian_ply, write_gaussian_ply
+
+
+def _points(seed=0, n=5000):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-1, 1, size=(n, 3))
+    c = rng.integers(0, 256, size=(n, 3))
+    return p, c
+
+
+def test_voxel_ids_pack_unpack():
+    ijk = np.array([[0, 0, 0], [-5, 7, 1 << 19], [-(1 << 20), (1 << 20) - 1, 3]])
+    assert np.array_equal(unpack_voxel_ids(pack_voxel_ids(ijk)), ijk)
+    with pytest.raises(ValueError):
+        pack_voxel_ids(np.array([[1 << 20, 0, 0]]))
+
+
+def test_voxel_statistics_are_exact_means():
+    b = VoxelGaussianBuilder(1.0)
+    b.integrate(np.array([[0.1, 0.2, 0.3], [0.5, 0.6, 0.7], [1.5, 0.5, 0.5]]), np.array([[0, 0, 0], [100, 200, 50], [9, 9, 9]]))
+    f = b.to_field()
+    assert len(f) == 2
+    i = int(np.flatnonzero(f.ids == pack_voxel_ids(np.array([[0, 0, 0]])))[0])
+    assert np.allclose(f.positions[i], [0.3, 0.4, 0.5]) and f.colors[i].tolist() == [50, 100, 25]
+    assert np.allclose(f.scales, 0.5)
+
+
+def test_incremental_merge_equals_one_batch_and_keeps_ids():
+    p1, c1 = _points(1)
+    p2, c2 = _points(2)
+    inc = VoxelGaussianBuilder(0.1)
+    inc.integrate(p1, c1)
+    ids_first = inc.to_field().ids.copy()
+    inc.integrate(p2, c2)
+    batch = VoxelGaussianBuilder(0.1)
+    batch.integrate(np.concatenate([p1, p2]), np.concatenate([c1, c2]))
+    fi, fb = inc.to_field(), batch.to_field()
+    assert np.array_equal(fi.ids, fb.ids) and np.array_equal(fi.colors, fb.colors)
+    assert np.allclose(fi.positions, fb.positions, atol=1e-6)
+    assert np.isin(ids_first, fi.ids).all()  # every earlier Gaussian keeps its id
+    assert len(np.unique(fi.ids)) == len(fi)
+
+
+def test_same_input_same_world_bit_for_bit():
+    p, c = _points(3)
+    a, b = VoxelGaussianBuilder(0.05), VoxelGaussianBuilder(0.05)
+    a.integrate(p, c)
+    b.integrate(p, c)
+    assert a.to_field().equals(b.to_field()) and a.to_field().content_hash() == b.to_field().content_hash()
+
+
+@pytest.fixture
+def field():
+    b = VoxelGaussianBuilder(0.02)
+    b.integrate(*_points(4, 20000))
+    return b.to_field()
+
+
+def test_ply_and_binary_roundtrip_bit_for_bit(field, tmp_path):
+    ply = read_gaussian_ply(write_gaussian_ply(field, tmp_path / "g.ply"))
+    binf = read_atlasgs1(write_atlasgs1(field, tmp_path / "g.bin"))
+    for f in (ply, binf):
+        assert np.array_equal(f.ids, field.ids)
+        assert np.array_equal(f.positions, field.positions)
+        assert np.array_equal(f.colors, field.colors)
+        assert f.equals(field)
+    assert (tmp_path / "g.bin").stat().st_size == 16 + 31 * len(field)
+
+
+def test_canonicalize_is_idempotent_and_tiny():
+    rng = np.random.default_rng(5)
+    n = 1000
+    f = GaussianField(rng.normal(size=(n, 3)), rng.uniform(0.001, 0.1, (n, 3)), np.tile([0, 0, 0, 1.0], (n, 1)),
+                      rng.integers(0, 256, (n, 3)), rng.uniform(0.05, 0.99, n), np.arange(n, dtype=np.uint64))
+    c = canonicalize(f)
+    assert canonicalize(c).equals(c)
+    assert np.allclose(c.opacities, f.opacities, rtol=1e-6) and np.allclose(c.scales, f.scales, rtol=1e-6)
+
+
+def test_ply_header_layout_matches_3dgs(field, tmp_path):
+    path = write_gaussian_ply(field, tmp_path / "g.ply")
+    header = path.read_bytes()[:2000].split(b"end_header")[0].decode()
+    names = [ln.split()[-1] for ln in header.splitlines() if ln.startswith("property")]
+    assert names[:17] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                          "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert "format binary_little_endian 1.0" in header
+
+
+def _ply_with(tmp_path, props, n_declared, n_rows, values=None):
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n_declared
+    header += "".join(f"property float {p}\n" for p in props) + "end_header\n"
+    data = np.zeros((n_rows, len(props)), np.float32) if values is None else values
+    p = tmp_path / "x.ply"
+    p.write_bytes(header.encode() + data.tobytes())
+    return p
+
+
+ALL = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+       "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def test_ply_missing_property_refused(tmp_path):
+    with pytest.raises(BundleFormatError, match="missing Gaussian properties: opacity"):
+        read_gaussian_ply(_ply_with(tmp_path, [p for p in ALL if p != "opacity"], 3, 3))
+
+
+def test_ply_nan_refused(tmp_path):
+    vals = np.ones((3, len(ALL)), np.float32)
+    vals[1, 0] = np.nan
+    with pytest.raises(BundleFormatError, match="'x' has NaN"):
+        read_gaussian_ply(_ply_with(tmp_path, ALL, 3, 3, vals))
+
+
+def test_ply_count_larger_than_data_refused_before_allocating(tmp_path):
+    with pytest.raises(BundleFormatError, match="declares 1000000000000 vertices"):
+        read_gaussian_ply(_ply_with(tmp_path, ALL, 10**12, 2))
+
+
+def test_foreign_ply_without_ids_gets_ids(tmp_path):
+    vals = np.zeros((2, len(ALL)), np.float32)
+    vals[:, ALL.index("rot_0")] = 1.0
+    f = read_gaussian_ply(_ply_with(tmp_path, ALL, 2, 2, vals))
+    assert f.ids.tolist() == [0, 1] and np.allclose(f.colors, 128, atol=1)
+
+
+def test_atlasgs1_truncated_or_wrong_magic(field, tmp_path):
+    p = write_atlasgs1(field, tmp_path / "g.bin")
+    data = p.read_bytes()
+    p.write_bytes(data[:-5])
+    with pytest.raises(BundleFormatError, match="needs .* bytes"):
+        read_atlasgs1(p)
+    p.write_bytes(b"NOTATLAS" + struct.pack("<Q", 0))
+    with pytest.raises(BundleFormatError, match="not an ATLASGS1 file"):
+        read_atlasgs1(p)
+
+
+def test_atlasgs1_refuses_anisotropic(field, tmp_path):
+    s = field.scales.copy()
+    s[:, 2] *= 0.1
+    aniso = GaussianField(field.positions, s, field.rotations_xyzw, field.colors, field.opacities, field.ids)
+    with pytest.raises(ValueError, match="anisotropic"):
+        write_atlasgs1(aniso, tmp_path / "a.bin")

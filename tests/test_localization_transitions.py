@@ -1,0 +1,96 @@
+"""Tracking against a world, error metrics, and the transitions table."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from atlas_pipeline import pipeline as lib
+from atlas_pipeline.config import load_profile
+from atlas_pipeline.geometry import pose_from_tq, so3_exp
+from atlas_pipeline.localization.icp import PointModel, estimate_normals, icp_point_to_plane
+from atlas_pipeline.localization.metrics import ate_rmse
+from atlas_pipeline.transition_log.transitions import TRANSITIONS_SCHEMA, build_transitions, read_transitions, write_transitions
+
+
+def test_icp_recovers_a_known_offset():
+    rng = np.random.default_rng(0)
+    # Three perpendicular planes: a well-constrained target.
+    g = rng.uniform(0, 1, size=(3000, 2))
+    pts = np.concatenate([np.c_[g, np.zeros(3000)], np.c_[g[:, :1], np.zeros(3000), g[:, 1:]],
+                          np.c_[np.zeros(3000), g]])
+    model = PointModel(pts, estimate_normals(pts, 0.05))
+    T_true = np.eye(4)
+    T_true[:3, :3] = so3_exp(np.array([0.02, -0.01, 0.03]))
+    T_true[:3, 3] = [0.02, -0.015, 0.01]
+    src = (pts[::3] - T_true[:3, 3]) @ T_true[:3, :3]  # source such that T_true maps it onto the model
+    res = icp_point_to_plane(model, src, np.eye(4), 0.05, 40)
+    assert np.allclose(res.T, T_true, atol=1e-4) and res.fitness > 0.99
+
+
+def test_ate_is_invariant_to_a_rigid_offset():
+    rng = np.random.default_rng(1)
+    gt = rng.normal(size=(30, 3))
+    R = so3_exp(np.array([0.1, 0.2, -0.3]))
+    est = gt @ R.T + [1, 2, 3] + rng.normal(scale=0.01, size=gt.shape)
+    assert ate_rmse(est, gt) < 0.02 < ate_rmse(est, gt, align=False)
+
+
+@pytest.fixture(scope="module")
+def small_run(small_manifest):
+    cfg = load_profile("default")
+    fused = lib.fuse(small_manifest, cfg)
+    kf = lib.select_keyframes_stage(small_manifest, fused, cfg)
+    world = lib.build_gaussian_world(fused, kf, cfg)
+    report = lib.localize(small_manifest, world, cfg)
+    return cfg, world, report
+
+
+def test_localization_on_synthetic_is_millimetric(small_run):
+    _, _, report = small_run
+    s = report.summary
+    assert s["n_lost"] == 0 and s["n_tracked"] == report.n_frames - 1
+    assert s["rmse_t_m"] < 0.005 and s["rmse_rot_deg"] < 0.3
+
+
+def test_report_save_load(small_run, tmp_path):
+    _, _, report = small_run
+    report.save(tmp_path)
+    r2 = type(report).load(tmp_path)
+    assert np.allclose(r2.T_world_cam, report.T_world_cam, atol=1e-8)
+    assert r2.status == report.status
+    lines = (tmp_path / "trajectory_estimated.tum").read_text().splitlines()
+    assert len(lines) == report.n_frames + 1 and len(lines[1].split()) == 8
+
+
+def test_transitions_from_a_known_constant_motion(tmp_path):
+    n, dt = 6, 0.1
+    ts = 100.0 + dt * np.arange(n)
+    # Camera moves +0.05 m along its own z (forward) and turns 0.02 rad about its y each step.
+    T = [np.eye(4)]
+    step = pose_from_tq(np.array([0, 0, 0.05]), np.array([0, np.sin(0.01), 0, np.cos(0.01)]))
+    for _ in range(n - 1):
+        T.append(T[-1] @ step)
+    table = build_transitions("synth", "abc", 42, ts, np.array(T), "ground_truth")
+    path = write_transitions(table, tmp_path / "t.parquet")
+    df = pd.read_parquet(path)
+    assert len(df) == n - 1
+    assert np.allclose(df["action_vz_mps"], 0.5) and np.allclose(df["action_vx_mps"], 0, atol=1e-12)
+    assert np.allclose(df["action_wy_radps"], 0.2)
+    assert np.allclose(df["delta_rotation_deg"], np.degrees(0.02))
+    assert (df["frame_id_after"] - df["frame_id_before"] == 1).all()
+    # Typed columns, no JSON strings in cells.
+    for c in df.columns:
+        if c.startswith(("before_", "after_", "action_", "delta_")) or c in ("dt_s",):
+            assert df[c].dtype == np.float64, c
+    assert df["step"].dtype == np.int64 and df["valid"].dtype == bool
+    assert read_transitions(path).shape == df.shape
+
+
+def test_transitions_with_unknown_poses_are_marked_invalid():
+    T = np.tile(np.eye(4), (4, 1, 1))
+    T[2] = np.nan
+    table = build_transitions("p", "m", 1, np.arange(4.0), T, "ground_truth")
+    df = table.to_pandas()
+    assert df["valid"].tolist() == [True, False, False]
+    assert df.loc[1, ["action_vx_mps", "after_x_m"]].isna().all()
+    assert table.schema.equals(TRANSITIONS_SCHEMA, check_metadata=False)
