@@ -36,7 +36,7 @@ def build_definitions(artifacts_dir: str | Path | None = None, profile: str = "d
     partitions = dataset_partitions(partition_names)
     pipeline_assets = build_pipeline_assets(partitions)
     everything = define_asset_job(
-        "atlas_gs_all", selection=AssetSelection.all(), partitions_def=partitions,
+        "atlas_gs_all", selection=AssetSelection.all(),
         description="Materialize every Atlas-GS asset of one dataset partition.",
     )
     return Definitions(
