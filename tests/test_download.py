@@ -242,10 +242,6 @@ def test_truncated_download_is_refused(server, good_archive, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "download_file catches only OSError; a chunked response cut off mid-transfer raises "
-    "http.client.IncompleteRead (an HTTPException, not an OSError), which escapes as is instead "
-    "of a DatasetError naming the URL"))
 def test_connection_dropped_mid_chunked_download_raises_dataset_error(server, good_archive, tmp_path):
     url = server.url("chunked-drop/good.tgz")
     dest = tmp_path / "seq"
@@ -273,10 +269,6 @@ def test_body_that_is_not_an_archive_is_refused(server, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.xfail(strict=True, raises=FileNotFoundError, reason=(
-    "download_tum_archive lists the extraction folder with out.iterdir() without checking that "
-    "extraction created it; an archive with no members raises a bare FileNotFoundError instead "
-    "of a DatasetError"))
 def test_empty_archive_is_refused(server, tmp_path):
     with tarfile.open(server.root / "empty.tgz", "w:gz"):
         pass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import http.client
 import logging
 import shutil
 import tarfile
@@ -47,8 +48,8 @@ def download_file(url: str, dest: Path, sha256: str | None = None, timeout_s: fl
             raise DatasetError(dest, f"checksum mismatch for {url}: got {h.hexdigest()}, expected {sha256}")
         tmp.replace(dest)
         return dest
-    except OSError as exc:
-        raise DatasetError(dest, f"cannot download {url}: {exc}") from exc
+    except (OSError, http.client.HTTPException) as exc:  # IncompleteRead is an HTTPException
+        raise DatasetError(dest, f"cannot download {url}: {exc!r}") from exc
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -66,13 +67,16 @@ def download_tum_archive(url: str, dest_dir: Path, sha256: str | None = None,
     with tempfile.TemporaryDirectory(prefix=f".{dest_dir.name}.", dir=dest_dir.parent) as tmp:
         archive = download_file(url, Path(tmp) / "archive.tgz", sha256=sha256, log=log)
         out = Path(tmp) / "unpacked"
+        out.mkdir()
         try:
             with tarfile.open(archive, "r:*") as tar:
                 tar.extractall(out, filter="data")
         except (tarfile.TarError, OSError) as exc:
             raise DatasetError(archive, f"cannot unpack archive from {url}: {exc}") from exc
         # TUM archives hold one top folder (rgbd_dataset_freiburg1_xyz/); accept a flat one too.
-        tops = [p for p in out.iterdir()]
+        tops = list(out.iterdir())
+        if not tops:
+            raise DatasetError(archive, f"archive from {url} is empty")
         seq = tops[0] if len(tops) == 1 and tops[0].is_dir() else out
         check_tum_layout(seq)
         if dest_dir.exists():
