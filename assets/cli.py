@@ -14,9 +14,7 @@ import argparse
 import json
 import logging
 import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -160,17 +158,13 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
     bundle = load_world_bundle(args.world)
     cam = CameraIntrinsics.from_dict(bundle.metadata["dataset"]["camera"]) if "dataset" in bundle.metadata else TUM_CAMERAS["default"]
     out = Path(args.output)
-    with tempfile.TemporaryDirectory() as tmp:
-        if args.mode == "trajectory":
-            if not (Path(args.world) / "localization.json").is_file():
-                raise ConfigError(f"{args.world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
-            traj = LocalizationReport.load(Path(args.world)).T_world_cam
-        else:
-            traj = np.tile(np.eye(4), (2, 1, 1))
-        videos = lib.render_demo_videos(bundle.field, traj, cam.K, cam.width, cam.height, cfg, Path(tmp), "demo")
-        src = videos.orbit if args.mode == "orbit" else videos.trajectory
-        out.parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(src, out)
+    if args.mode == "trajectory":
+        if not (Path(args.world) / "localization.json").is_file():
+            raise ConfigError(f"{args.world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
+        poses = LocalizationReport.load(Path(args.world)).T_world_cam
+    else:
+        poses = lib.orbit_trajectory(bundle.field, cfg)
+    lib.render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, out, args.mode)
     print(json.dumps({"video": str(out.resolve()), "mode": args.mode}, indent=2))
     return 0
 

@@ -27,7 +27,6 @@ from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.pipeline import DemoVideos, WorldBundleArtifact
 from atlas_pipeline.sensors.registry import validate_dataset_name
 from atlas_pipeline.sensors.tum import FrameManifest
-from atlas_pipeline.transition_log.transitions import read_transitions  # noqa: F401  (documented reader)
 
 
 class ParquetTable:

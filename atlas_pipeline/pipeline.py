@@ -44,6 +44,8 @@ __all__ = [
     "DemoVideos",
     "WorldBundleArtifact",
     "render_demo_videos",
+    "render_video",
+    "orbit_trajectory",
     "bundle_metadata",
 ]
 
@@ -152,23 +154,39 @@ class WorldBundleArtifact:
         return cls(b.field, b.metadata)
 
 
-def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_K: np.ndarray,
-                       width: int, height: int, cfg: PipelineConfig, out_dir: Path, name: str,
-                       log: LogFn | None = None) -> DemoVideos:
-    """Orbit (360 degrees around the world centroid) and trajectory (replay of the estimated poses)."""
-    from atlas_pipeline.gaussian_world.render import render_gaussians
-    from atlas_pipeline.progress import Progress
-    from atlas_pipeline.viz.video import orbit_poses, write_mp4
+def _render_size(width: int, height: int, K: np.ndarray, scale: float) -> tuple[int, int, np.ndarray]:
+    """Video size (even, for yuv420p) and the intrinsics scaled to it."""
+    w, h = int(round(width * scale)) // 2 * 2, int(round(height * scale)) // 2 * 2
+    K = np.asarray(K, np.float64).copy()
+    K[:2] *= np.array([[w / width], [h / height]])
+    return w, h, K
+
+
+def orbit_trajectory(field: GaussianField, cfg: PipelineConfig) -> np.ndarray:
+    """``[n, 4, 4]`` camera poses circling the world's centre (360 degrees)."""
+    from atlas_pipeline.viz.video import orbit_poses
 
     vc = cfg.video
-    s = vc.scale
-    w, h = int(round(width * s)) // 2 * 2, int(round(height * s)) // 2 * 2
-    K = np.asarray(camera_K, np.float64).copy()
-    K[:2] *= np.array([[w / width], [h / height]])
+    # Robust centre and extent: percentiles ignore a few stray far points.
+    p5, p95 = np.percentile(field.positions, [5, 95], axis=0)
+    center = 0.5 * (p5 + p95)
+    radius = vc.orbit_radius_scale * max(float(np.linalg.norm((p95 - p5)[:2])) / 2.0, 0.5)
+    return orbit_poses(center, radius, vc.orbit_height_m, vc.orbit_frames)
+
+
+def render_video(field: GaussianField, poses_se3: np.ndarray, camera_K: np.ndarray, width: int, height: int,
+                 cfg: PipelineConfig, path: Path, label: str, log: LogFn | None = None) -> tuple[int, tuple[int, int]]:
+    """Render ``field`` from every finite pose of ``poses_se3`` ``[n, 4, 4]`` into an MP4 at ``path``."""
+    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.progress import Progress
+    from atlas_pipeline.viz.video import write_mp4
+
     if len(field) == 0:
         raise ValueError("cannot render an empty world")
+    w, h, K = _render_size(width, height, camera_K, cfg.video.scale)
+    poses = poses_se3[np.isfinite(poses_se3).all(axis=(1, 2))]
 
-    def frames(poses: np.ndarray, label: str):
+    def frames():
         progress = Progress(f"rendering {label} video", len(poses), log)
         for T in poses:
             r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors,
@@ -176,19 +194,19 @@ def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_
             progress.update()
             yield r.rgb
 
-    lo, hi = field.bounds()
-    # Robust centre and extent: percentiles ignore a few stray far points.
-    p5, p95 = np.percentile(field.positions, [5, 95], axis=0)
-    center = 0.5 * (p5 + p95)
-    radius = vc.orbit_radius_scale * max(float(np.linalg.norm((p95 - p5)[:2])) / 2.0, 0.5)
-    orbit = orbit_poses(center, radius, vc.orbit_height_m, vc.orbit_frames)
-    traj = trajectory_se3[np.isfinite(trajectory_se3).all(axis=(1, 2))]
-    out_dir.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_mp4(frames(), path, fps=cfg.video.fps), (w, h)
+
+
+def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_K: np.ndarray,
+                       width: int, height: int, cfg: PipelineConfig, out_dir: Path, name: str,
+                       log: LogFn | None = None) -> DemoVideos:
+    """Orbit (360 degrees around the world centroid) and trajectory (replay of the estimated poses)."""
     orbit_path = out_dir / f"{name}_orbit.mp4"
     traj_path = out_dir / f"{name}_trajectory.mp4"
-    n_orbit = write_mp4(frames(orbit, "orbit"), orbit_path, fps=vc.fps)
-    n_traj = write_mp4(frames(traj, "trajectory"), traj_path, fps=vc.fps)
-    return DemoVideos(orbit_path, traj_path, n_orbit, n_traj, (w, h))
+    n_orbit, size = render_video(field, orbit_trajectory(field, cfg), camera_K, width, height, cfg, orbit_path, "orbit", log)
+    n_traj, _ = render_video(field, trajectory_se3, camera_K, width, height, cfg, traj_path, "trajectory", log)
+    return DemoVideos(orbit_path, traj_path, n_orbit, n_traj, size)
 
 
 def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: FrameManifest,

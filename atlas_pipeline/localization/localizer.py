@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
-from atlas_pipeline.errors import ArtifactError, DatasetError
+from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.io_utils import write_json_atomic
