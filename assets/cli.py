@@ -140,7 +140,7 @@ def cmd_log_transitions(args: argparse.Namespace) -> int:
     entry = _dataset(args.input, args.camera)
     if report.dataset != entry.name:
         raise ConfigError(f"{world}/localization.json is for dataset '{report.dataset}', not '{entry.name}'")
-    if report.pose_source_poses("ground_truth") is not None and cfg.transitions.pose_source == "ground_truth":
+    if cfg.transitions.pose_source == "ground_truth":  # refresh GT from the dataset, not the report
         manifest = lib.load_dataset(entry, cfg)
         report.T_world_cam_gt = manifest.T_world_cam_gt
     table = lib.log_transitions(report, entry.name, int(meta.get("n_gaussians", 0)), cfg)

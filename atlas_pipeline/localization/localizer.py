@@ -1,8 +1,7 @@
 """Localize every frame of a sequence against a Gaussian world (paper section 5.4, without ground truth).
 
 Tracking is frame-to-model: each frame's depth points are registered by point-to-plane ICP against
-the world's Gaussian centres, starting from a constant-velocity prediction of the previous
-estimate. Ground truth is never read while estimating; it is used afterwards to grade.
+the world's Gaussian centres, starting from the previous frame's estimate. Ground truth is never read while estimating; it is used afterwards to grade.
 """
 
 from __future__ import annotations
@@ -165,7 +164,7 @@ def localize_sequence(
     progress = Progress("localizing", n, log)
     down_m = max(voxel_size_m / 2.0, 0.005)
     # Forward from the anchor, then backward for frames before it (a sequence whose first frames
-    # precede the map's first keyframe); each pass keeps its own constant-velocity model.
+    # precede the map's first keyframe).
     order = [list(range(anchor_index, n)), list(range(anchor_index - 1, -1, -1))]
     for pass_idx, frames in enumerate(order):
         prev_i = anchor_index
