@@ -92,24 +92,27 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
-def _start_pose(args: argparse.Namespace, bundle_meta: dict[str, Any], dataset: str) -> tuple[np.ndarray, int]:
+def _start_pose(args: argparse.Namespace, bundle_meta: dict[str, Any], dataset: str) -> tuple[np.ndarray | None, int]:
+    """Where localization starts: ``--start-pose``, the bundle's own anchor (same dataset), or
+    nowhere (None): the first frame is then relocalized in the world with no initial pose."""
     if args.start_pose:
         vals = [float(x) for x in args.start_pose.split()]
         if len(vals) != 7:
             raise ConfigError("--start-pose needs 7 numbers: tx ty tz qx qy qz qw")
         return pose_from_tq(np.array(vals[:3]), np.array(vals[3:])), 0
     anchor = bundle_meta.get("anchor")
-    if bundle_meta.get("dataset", {}).get("name") != dataset or anchor is None:
-        raise ConfigError(
-            f"the world was built from '{bundle_meta.get('dataset', {}).get('name')}', not '{dataset}': "
-            "give the first frame's pose with --start-pose 'tx ty tz qx qy qz qw'"
-        )
+    if getattr(args, "relocalize", False) or bundle_meta.get("dataset", {}).get("name") != dataset or anchor is None:
+        logging.getLogger("atlas_pipeline").info(
+            "no start pose for '%s' in this world (built from '%s'): relocalizing its first frame",
+            dataset, bundle_meta.get("dataset", {}).get("name"))
+        return None, 0
     return np.asarray(anchor["T_world_cam"], np.float64), int(anchor["frame_index"])
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.localizer import localize_sequence
-    from atlas_pipeline.scene_memory.bundle import load_world_bundle, update_world_bundle
+    from atlas_pipeline.localization.tracker import SurfelModel
+    from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle, update_world_bundle
 
     cfg = _config(args)
     bundle = load_world_bundle(args.world)
@@ -119,8 +122,9 @@ def cmd_localize(args: argparse.Namespace) -> int:
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
     voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
-    report = localize_sequence(manifest, bundle.field, voxel, cfg.localization, T0, anchor, bundle.map_id,
-                               (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
+    report = localize_sequence(manifest, SurfelModel.from_field(bundle.field.positions, voxel), cfg.localization,
+                               T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+                               prior_poses=bundle_keyframe_poses(bundle.metadata))
     update_world_bundle(args.world, localization=report)
     print(json.dumps({"world": str(Path(args.world).resolve()), **{
         k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.summary.items()}}, indent=2))
@@ -200,7 +204,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         }
         if result.success:
             loc = json.loads((root / "localization_report" / p / "localization.json").read_text())["summary"]
-            summary["localization"] = {k: loc.get(k) for k in ("n_tracked", "n_lost", "rmse_t_m", "ate_rmse_m")}
+            summary["localization"] = {k: loc.get(k) for k in ("n_tracked", "n_lost", "n_relocalized", "ate_rmse_m", "rpe_trans_rmse_m_per_s")}
         else:
             failed += 1
             for ev in result.all_events:
@@ -253,7 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     def common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--profile", default="default", help="config profile name (configs/NAME.yaml) or YAML path")
         sp.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="override one config value, e.g. --set localization.icp_iterations=10")
+                        help="override one config value, e.g. --set localization.photometric_weight=0.5")
         sp.add_argument("--camera", default=None, help="camera preset for a folder --input (freiburg1/2/3, default)")
 
     b = sub.add_parser("build", help="build a world bundle from a dataset")
@@ -267,6 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--world", required=True)
     lo.add_argument("--input", required=True)
     lo.add_argument("--start-pose", default=None, help="'tx ty tz qx qy qz qw' of the first frame in the world")
+    lo.add_argument("--relocalize", action="store_true",
+                    help="ignore the world's anchor: find the first frame's pose by relocalization")
     lo.set_defaults(func=cmd_localize)
 
     t = sub.add_parser("log-transitions", help="write transitions.parquet into a localized world bundle")

@@ -115,9 +115,11 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         context.add_output_metadata({
             "n_tracked": s["n_tracked"],
             "n_lost": s["n_lost"],
-            "rmse_t_m": _num(s.get("rmse_t_m")),
+            "n_relocalized": s.get("n_relocalized", 0),
             "ate_rmse_m": _num(s.get("ate_rmse_m")),
-            "rmse_rot_deg": _num(s.get("rmse_rot_deg")),
+            "ate_rot_rmse_deg": _num(s.get("ate_rot_rmse_deg")),
+            "rpe_trans_rmse_m_per_s": _num(s.get("rpe_trans_rmse_m_per_s")),
+            "rpe_rot_rmse_deg_per_s": _num(s.get("rpe_rot_rmse_deg_per_s")),
             "frames_per_s": _num(s.get("frames_per_s")),
         })
         return report

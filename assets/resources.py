@@ -16,7 +16,7 @@ class AtlasConfig(ConfigurableResource):
     """Which config profile the run uses, with optional dotted overrides.
 
     ``profile`` is a name under ``configs/`` (``default``, ``demo``) or a path to a YAML file.
-    ``overrides`` maps dotted keys to values, e.g. ``{"localization.icp_iterations": 10}``.
+    ``overrides`` maps dotted keys to values, e.g. ``{"localization.photometric_weight": 0.5}``.
     """
 
     profile: str = "default"

@@ -59,10 +59,18 @@ class MappingConfig:
 
 @dataclass(frozen=True)
 class LocalizationConfig:
-    icp_max_correspondence_m: float = 0.05
-    icp_iterations: int = 30
-    stride: int = 4
-    min_fitness: float = 0.3
+    iterations: tuple[int, ...] = (12, 8, 5)  # Gauss-Newton iterations per pyramid level, coarse to fine
+    finest_level: int = 1  # finest pyramid level used: 0 = full resolution, 1 = half, ...
+    max_correspondence_m: float = 0.1  # association gate at the coarsest level (halves per level)
+    min_correspondence_m: float = 0.02  # ... and its floor, used at the finest level and for grading
+    huber_depth_m: float = 0.01
+    photometric_weight: float = 0.1  # 0 = geometry only
+    motion_model: Literal["constant_velocity", "none"] = "constant_velocity"
+    min_fitness: float = 0.3  # share of frame points with a model correspondence; below it: lost
+    max_residual_m: float = 0.02  # RMS point-to-plane residual; above it: lost
+    reference_translation_m: float = 0.05  # photometric reference frame renewed after this motion
+    reference_rotation_deg: float = 5.0
+    relocalize: bool = True  # lost frames try global relocalization against the map
 
 
 @dataclass(frozen=True)
@@ -104,7 +112,7 @@ class PipelineConfig:
         return _build(cls, data, source, "")
 
     def with_overrides(self, overrides: dict[str, Any], source: str = "<overrides>") -> "PipelineConfig":
-        """Copy with dotted-key overrides applied, e.g. ``{"localization.icp_iterations": 10}``."""
+        """Copy with dotted-key overrides applied, e.g. ``{"localization.photometric_weight": 0.5}``."""
         data = self.to_dict()
         for dotted, value in overrides.items():
             parts = dotted.split(".")
@@ -126,6 +134,10 @@ def _check_value(tp: Any, value: Any, where: str) -> Any:
         if value not in args:
             raise ConfigError(f"{where}: must be one of {list(args)}, got {value!r}")
         return value
+    if getattr(tp, "__origin__", None) is tuple:  # tuple[T, ...] from a YAML list
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: must be a list, got {value!r}")
+        return tuple(_check_value(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
     if type(None) in args:  # Optional[...]
         if value is None:
             return None
@@ -194,8 +206,14 @@ def _validate(obj: Any, source: str) -> None:
         if obj.keyframe_translation_m < 0 or obj.keyframe_rotation_deg < 0:
             raise bad("mapping keyframe thresholds must be non-negative")
     if isinstance(obj, LocalizationConfig):
-        if obj.icp_max_correspondence_m <= 0 or obj.icp_iterations < 1 or obj.stride < 1:
-            raise bad("localization needs icp_max_correspondence_m > 0, icp_iterations >= 1, stride >= 1")
+        if not obj.iterations or min(obj.iterations) < 0 or max(obj.iterations) < 1:
+            raise bad("localization.iterations needs one non-negative count per pyramid level, at least one > 0")
+        if not 0 <= obj.finest_level <= 3 or obj.finest_level + len(obj.iterations) > 6:
+            raise bad("localization.finest_level must lie in 0..3 with at most 6 pyramid levels in all")
+        if not 0 < obj.min_correspondence_m <= obj.max_correspondence_m:
+            raise bad("localization needs 0 < min_correspondence_m <= max_correspondence_m")
+        if obj.huber_depth_m <= 0 or obj.photometric_weight < 0 or obj.max_residual_m <= 0:
+            raise bad("localization needs huber_depth_m > 0, photometric_weight >= 0, max_residual_m > 0")
         if not 0 <= obj.min_fitness <= 1:
             raise bad("localization.min_fitness must lie in [0, 1]")
     if isinstance(obj, VideoConfig):

@@ -69,7 +69,7 @@ def fuse(manifest: FrameManifest, cfg: PipelineConfig, log: LogFn | None = None)
 
 def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
                            log: LogFn | None = None) -> KeyframeSet:
-    return build_keyframes(manifest, fused, cfg.mapping, log)
+    return build_keyframes(manifest, fused, cfg.mapping, cfg.localization, log)
 
 
 def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
@@ -79,12 +79,16 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
 
 def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
              log: LogFn | None = None) -> LocalizationReport:
-    """Track the sequence against its own world, starting at the world's first keyframe."""
+    """Track the sequence against its own world, starting at the world's first keyframe (whose
+    pose the world defines), with the world's keyframe poses as relocalization priors."""
+    from atlas_pipeline.localization.tracker import SurfelModel
+
     anchor = int(world.keyframe_indices[0])
     return localize_sequence(
-        manifest, world.field, world.builder.voxel_size_m, cfg.localization,
+        manifest, SurfelModel.from_builder(world.builder), cfg.localization,
         T_world_cam_start=world.T_world_cam_keyframes[0], anchor_index=anchor, map_id=world.map_id,
-        depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log,
+        depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+        prior_poses=world.T_world_cam_keyframes, log=log,
     )
 
 
@@ -223,6 +227,9 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
         "anchor": {"frame_index": int(world.keyframe_indices[0]),
                    "timestamp_s": float(manifest.timestamps_s[world.keyframe_indices[0]]),
                    "T_world_cam": world.T_world_cam_keyframes[0].tolist()},
+        # Viewpoints the world was mapped from: relocalization priors for later sessions.
+        "keyframes": {"indices": [int(i) for i in world.keyframe_indices],
+                      "T_world_cam": [T.tolist() for T in world.T_world_cam_keyframes]},
         "config": cfg.to_dict(),
         "lineage": lineage or {},
     }

@@ -42,11 +42,13 @@ class Progress:
         el = self.elapsed_s
         return self.done / el if el > 0 else 0.0
 
-    def update(self, n: int = 1) -> None:
+    def update(self, n: int = 1, extra: str = "") -> None:
+        """Count ``n`` more items; ``extra`` is appended to the line (e.g. "3 lost")."""
         self.done += n
         now = time.perf_counter()
         finished = self.total is not None and self.done >= self.total
         if finished or now - self._last >= self.every_s:
             self._last = now
             of = f"/{self.total}" if self.total is not None else ""
-            self.log(f"{self.label}: {self.done}{of} {self.unit} ({self.rate:.1f} {self.unit}/s)")
+            tail = f", {extra}" if extra else ""
+            self.log(f"{self.label}: {self.done}{of} {self.unit} ({self.rate:.1f} {self.unit}/s{tail})")

@@ -16,7 +16,7 @@ def test_paper_commands_build_localize_log_video(isolated, capsys):
     assert main(["build", "--input", "synth-small", "--output", str(world)]) == 0
     assert _json_out(capsys)["n_gaussians"] > 0
     assert main(["localize", "--world", str(world), "--input", "synth-small"]) == 0
-    assert _json_out(capsys)["rmse_t_m"] < 0.005
+    assert _json_out(capsys)["ate_rmse_m"] < 0.005
     assert main(["log-transitions", "--world", str(world), "--input", "synth-small"]) == 0
     assert _json_out(capsys)["rows"] == 11
     assert len(pd.read_parquet(world / "transitions.parquet")) == 11

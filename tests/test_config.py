@@ -8,7 +8,7 @@ def test_profiles_hold_the_papers_appendix_a_values():
     d = load_profile("default")
     assert d.mapping.voxel_size_m == 0.02 and d.fusion.max_depth_m == 4.0
     assert d.mapping.keyframe_translation_m == 0.08 and d.mapping.keyframe_rotation_deg == 8.0
-    assert d.localization.icp_max_correspondence_m == 0.05 and d.localization.icp_iterations == 30
+    assert d.localization.iterations == (12, 8, 5) and d.localization.motion_model == "constant_velocity"
     demo = load_profile("demo")
     assert demo.mapping.voxel_size_m == 0.04 and demo.dataset.max_frames == 40
 
@@ -38,8 +38,8 @@ def test_type_and_range_errors(tmp_path):
 
 def test_overrides_and_section_hash():
     cfg = load_profile("default")
-    c2 = cfg.with_overrides({"localization.icp_iterations": 10})
-    assert c2.localization.icp_iterations == 10
+    c2 = cfg.with_overrides({"localization.photometric_weight": 0.5, "localization.iterations": [4, 2]})
+    assert c2.localization.photometric_weight == 0.5 and c2.localization.iterations == (4, 2)
     assert section_hash(c2.mapping) == section_hash(cfg.mapping)
     assert section_hash(c2.localization) != section_hash(cfg.localization)
     with pytest.raises(ConfigError, match="unknown config key"):

@@ -49,7 +49,7 @@ def test_localization_on_synthetic_is_millimetric(small_run):
     _, _, report = small_run
     s = report.summary
     assert s["n_lost"] == 0 and s["n_tracked"] == report.n_frames - 1
-    assert s["rmse_t_m"] < 0.005 and s["rmse_rot_deg"] < 0.3
+    assert s["rmse_t_unaligned_m"] < 0.005 and s["rmse_rot_unaligned_deg"] < 0.3 and s["ate_rmse_m"] < 0.003
 
 
 def test_report_save_load(small_run, tmp_path):

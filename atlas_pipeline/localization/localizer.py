@@ -1,14 +1,15 @@
 """Localize every frame of a sequence against a Gaussian world (paper section 5.4, without ground truth).
 
-Tracking is frame-to-model: each frame's depth points are registered by point-to-plane ICP against
-the world's Gaussian centres, starting from the previous frame's estimate. Ground truth is never read while estimating; it is used afterwards to grade.
+Tracking is frame-to-model (:mod:`atlas_pipeline.localization.sequence`): each frame is aligned to
+the world's surfels (geometry) and to a recent frame (appearance), starting from a constant-velocity
+guess; poor alignments are marked lost and recovered by relocalization. Ground truth is never read
+while estimating; it is used afterwards to grade (ATE and RPE, TUM conventions).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -17,30 +18,24 @@ import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.errors import ArtifactError
-from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.io_utils import write_json_atomic
-from atlas_pipeline.localization.icp import PointModel, estimate_normals, icp_point_to_plane, voxel_downsample
-from atlas_pipeline.localization.metrics import ate_rmse, error_stats, pose_errors, write_tum_trajectory
-from atlas_pipeline.perception.rgbd import backproject
+from atlas_pipeline.localization.metrics import ate, pose_errors, rpe, write_tum_trajectory
+from atlas_pipeline.localization.sequence import (
+    STATUS_ANCHOR,
+    STATUS_LOST,
+    STATUS_RELOCALIZED,
+    STATUS_TRACKED,
+    SequenceTracker,
+)
+from atlas_pipeline.localization.tracker import SurfelModel
 from atlas_pipeline.progress import Progress
-from atlas_pipeline.sensors.images import read_depth_m
+from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LocalizationReport", "map_model", "localize_sequence"]
-
-STATUS_ANCHOR = "anchor"
-STATUS_TRACKED = "tracked"
-STATUS_LOST = "lost"
-
-
-def map_model(gaussians: GaussianField, voxel_size_m: float) -> PointModel:
-    """Registration target from the Gaussian centres, normals from their neighbourhoods."""
-    pts = gaussians.positions.astype(np.float64)
-    return PointModel(pts, estimate_normals(pts, radius_m=3.0 * voxel_size_m, max_nn=30))
-
+__all__ = ["LocalizationReport", "localize_sequence", "grade"]
 
 @dataclass
 class LocalizationReport:
@@ -49,12 +44,12 @@ class LocalizationReport:
     Attributes:
         timestamps_s: ``[N]``.
         T_world_cam: ``[N, 4, 4]`` estimates.
-        status: ``N`` strings: ``anchor`` (the start pose), ``tracked``, ``lost``.
-        fitness: ``[N]`` share of frame points with a map neighbour.
-        inlier_rmse_m: ``[N]`` point-to-plane RMS residual.
+        status: ``N`` strings: ``anchor`` (the start pose), ``tracked``, ``relocalized``, ``lost``.
+        fitness: ``[N]`` share of frame points with a model correspondence (inlier fraction).
+        inlier_rmse_m: ``[N]`` RMS point-to-plane residual of those correspondences.
         time_s: ``[N]`` seconds spent per frame (reading excluded).
         T_world_cam_gt: ``[N, 4, 4]`` ground truth, NaN where unknown.
-        error_t_m, error_rot_deg: ``[N]`` per-frame errors, NaN without ground truth.
+        error_t_m, error_rot_deg: ``[N]`` per-frame errors after the ATE alignment, NaN without ground truth.
         summary: aggregate figures (RMSE, ATE, counts, rate).
     """
 
@@ -134,95 +129,96 @@ class LocalizationReport:
 
 def localize_sequence(
     manifest: FrameManifest,
-    gaussians: GaussianField,
-    voxel_size_m: float,
+    model: SurfelModel,
     cfg: LocalizationConfig,
-    T_world_cam_start: np.ndarray,
+    T_world_cam_start: np.ndarray | None,
     anchor_index: int = 0,
     map_id: str = "",
     depth_range_m: tuple[float, float] = (0.1, 4.0),
+    prior_poses: np.ndarray | None = None,
     log: Callable[[str], None] | None = None,
 ) -> LocalizationReport:
-    """Track every frame of ``manifest`` against ``gaussians``.
+    """Track every frame of ``manifest`` against a fixed map ``model``.
 
     Args:
-        T_world_cam_start: ``[4, 4]`` pose of frame ``anchor_index`` in the world, i.e. where this
-            session starts (for a world built from this sequence, the first keyframe's mapping
-            pose). Every other pose is estimated from the depth images and the map only.
-        anchor_index: the frame whose pose is given.
+        T_world_cam_start: ``[4, 4]`` pose of frame ``anchor_index`` in the world (where this
+            session starts), or None: the first frame is then relocalized with no initial pose.
+            Every other pose is estimated from the images and the map only; ground truth is
+            read afterwards, to grade.
+        anchor_index: the frame tracking starts from (forward to the end, then backward).
         depth_range_m: depth readings used, ``(min, max)``; the fusion settings of the world.
+        prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (the map's keyframe poses).
     """
-    model = map_model(gaussians, voxel_size_m)
     n = manifest.n_frames
     if not 0 <= anchor_index < n:
         raise ValueError(f"anchor_index {anchor_index} outside 0..{n - 1}")
+    if len(model) == 0:
+        raise ValueError("cannot localize against an empty map")
+    st = SequenceTracker(manifest.camera, cfg, depth_range_m, model=model, prior_poses=prior_poses)
     T_est = np.full((n, 4, 4), np.nan)
     fitness = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
     times = np.full(n, np.nan)
     status: list[str] = [""] * n
     progress = Progress("localizing", n, log)
-    down_m = max(voxel_size_m / 2.0, 0.005)
+    counts = {STATUS_TRACKED: 0, STATUS_LOST: 0, STATUS_RELOCALIZED: 0}
     # Forward from the anchor, then backward for frames before it (a sequence whose first frames
-    # precede the map's first keyframe).
-    order = [list(range(anchor_index, n)), list(range(anchor_index - 1, -1, -1))]
-    for pass_idx, frames in enumerate(order):
-        prev_i = anchor_index
-        for i in frames:
+    # precede the map's first keyframe). Only the frames in flight are held in memory.
+    for order in (range(anchor_index, n), range(anchor_index - 1, -1, -1)):
+        if len(order) == 0:
+            continue
+        if order.start != anchor_index:
+            st.reset(anchor_index, T_est[anchor_index] if np.isfinite(T_est[anchor_index]).all() else None)
+        for i in order:
+            rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
             depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
-            t0 = time.perf_counter()
-            pts, _ = backproject(depth, None, manifest.camera, cfg.stride, *depth_range_m)
-            pts = voxel_downsample(pts.astype(np.float64), down_m)
-            if i == anchor_index and pass_idx == 0:
-                T_est[i] = T_world_cam_start
-                if len(pts) >= 10:
-                    res = icp_point_to_plane(model, pts, T_world_cam_start, cfg.icp_max_correspondence_m,
-                                             cfg.icp_iterations, levels=(1.0,))
-                    fitness[i], rmse[i] = res.fitness, res.inlier_rmse_m
-                status[i] = STATUS_ANCHOR
-            else:
-                # Initial guess: the previous estimate. A constant-velocity guess built from two
-                # noisy estimates fed back into divergence on TUM teddy (measured), so it is not used.
-                guess = T_est[prev_i]
-                res = None
-                if len(pts) >= 10:
-                    res = icp_point_to_plane(model, pts, guess, cfg.icp_max_correspondence_m, cfg.icp_iterations)
-                    fitness[i], rmse[i] = res.fitness, res.inlier_rmse_m
-                if res is not None and res.fitness >= cfg.min_fitness:
-                    T_est[i] = res.T
-                    status[i] = STATUS_TRACKED
-                else:
-                    # No depth or poor overlap: keep the prediction rather than a bad alignment.
-                    T_est[i] = guess
-                    status[i] = STATUS_LOST
-            times[i] = time.perf_counter() - t0
-            prev_i = i
-            progress.update()
+            given = T_world_cam_start if (i == anchor_index and T_world_cam_start is not None) else None
+            est = st.process(i, rgb, depth, T_given=given)
+            T_est[i], status[i] = est.T_world_cam, est.status
+            fitness[i], rmse[i], times[i] = est.inlier_fraction, est.residual_m, est.time_s
+            counts[est.status] = counts.get(est.status, 0) + 1
+            progress.update(extra=f"{counts[STATUS_LOST]} lost, {counts[STATUS_RELOCALIZED]} relocalized")
 
-    has_gt = manifest.has_gt.copy()
-    err_t = np.full(n, np.nan)
-    err_r = np.full(n, np.nan)
-    if has_gt.any():
-        err_t[has_gt], err_r[has_gt] = pose_errors(T_est[has_gt], manifest.T_world_cam_gt[has_gt])
-    graded = has_gt.copy()
-    graded[anchor_index] = False  # the anchor frame is given, not estimated
-    summary: dict = {
-        "n_frames": n,
-        "n_tracked": status.count(STATUS_TRACKED),
-        "n_lost": status.count(STATUS_LOST),
-        "n_graded": int(graded.sum()),
-        "anchor_index": int(anchor_index),
-        "mean_time_per_frame_s": float(np.nanmean(np.delete(times, anchor_index))) if n > 1 else float("nan"),
-    }
+    summary, err_t, err_r = grade(manifest.timestamps_s, T_est, status, manifest.T_world_cam_gt)
+    est_times = np.array([t for t, s in zip(times, status) if s != STATUS_ANCHOR and np.isfinite(t)])
+    summary.update({
+        "n_frames": n, "anchor_index": int(anchor_index), "start": "given" if T_world_cam_start is not None else "relocalized",
+        "mean_time_per_frame_s": float(est_times.mean()) if len(est_times) else float("nan"),
+    })
     summary["frames_per_s"] = 1.0 / summary["mean_time_per_frame_s"] if summary["mean_time_per_frame_s"] > 0 else float("nan")
-    if graded.sum() >= 1:
-        st = error_stats(err_t[graded])
-        summary.update({"rmse_t_m": st["rmse"], "mean_t_m": st["mean"], "median_t_m": st["median"],
-                        "max_t_m": st["max"], "rmse_rot_deg": error_stats(err_r[graded])["rmse"]})
-    if graded.sum() >= 3:
-        summary["ate_rmse_m"] = ate_rmse(T_est[graded, :3, 3], manifest.T_world_cam_gt[graded, :3, 3])
     logger.info("localized %s: %s", manifest.dataset, {k: round(v, 4) if isinstance(v, float) else v for k, v in summary.items()})
-    if status.count(STATUS_LOST) == n - 1 and n > 1:
+    if summary["n_lost"] >= n - 1 and n > 1:
         logger.warning("%s: every frame after the first was lost; check the world and the dataset match", manifest.dataset)
     return LocalizationReport(manifest.dataset, map_id, manifest.timestamps_s.copy(), T_est, status,
                               fitness, rmse, times, manifest.T_world_cam_gt.copy(), err_t, err_r, summary)
+
+
+def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Counts, and where ground truth exists ATE (rigidly aligned, TUM conventions) and RPE per
+    second over the estimated frames (anchors excluded: their pose is given). Returns
+    ``(summary, error_t_m [N], error_rot_deg [N])``, per-frame errors after the alignment."""
+    n = len(timestamps_s)
+    summary: dict = {
+        "n_tracked": status.count(STATUS_TRACKED), "n_lost": status.count(STATUS_LOST),
+        "n_relocalized": status.count(STATUS_RELOCALIZED),
+    }
+    err_t = np.full(n, np.nan)
+    err_r = np.full(n, np.nan)
+    has_gt = np.isfinite(T_gt).all(axis=(1, 2))
+    graded = has_gt & np.isfinite(T_est).all(axis=(1, 2)) & np.array([s != STATUS_ANCHOR for s in status])
+    summary["n_graded"] = int(graded.sum())
+    if graded.sum() >= 3:
+        a = ate(T_est[graded], T_gt[graded])
+        err_t[graded], err_r[graded] = a["errors_t_m"], a["errors_rot_deg"]
+        raw_t, raw_r = pose_errors(T_est[graded], T_gt[graded])
+        r = rpe(timestamps_s[graded], T_est[graded], T_gt[graded], 1.0, "s")
+        summary.update({
+            "ate_rmse_m": a["rmse_m"], "ate_mean_m": a["mean_m"], "ate_median_m": a["median_m"],
+            "ate_max_m": a["max_m"], "ate_rot_rmse_deg": a["rot_rmse_deg"],
+            # Without alignment: meaningful when the world shares the ground truth's frame.
+            "rmse_t_unaligned_m": float(np.sqrt(np.mean(raw_t**2))),
+            "rmse_rot_unaligned_deg": float(np.sqrt(np.mean(raw_r**2))),
+            "rpe_trans_rmse_m_per_s": r["trans_rmse_m"], "rpe_rot_rmse_deg_per_s": r["rot_rmse_deg"],
+            "rpe_n_pairs": r["n_pairs"],
+        })
+    return summary, err_t, err_r

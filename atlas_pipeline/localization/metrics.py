@@ -9,10 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, tq_from_pose, umeyama_alignment
+from atlas_pipeline.errors import DatasetError
+from atlas_pipeline.geometry import invert_se3, pose_from_tq, rotation_angle_rad, tq_from_pose, umeyama_alignment
 from atlas_pipeline.io_utils import write_text_atomic
 
-__all__ = ["pose_errors", "ate_rmse", "write_tum_trajectory", "error_stats"]
+__all__ = ["pose_errors", "ate_rmse", "write_tum_trajectory", "read_tum_trajectory", "error_stats",
+           "align_rigid", "ate", "rpe", "match_trajectories", "evaluate_trajectories"]
+
+TUM_MAX_DT_S = 0.02  # TUM's associate.py / evaluate_ate.py default
 
 
 def pose_errors(poses_est: np.ndarray, poses_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -54,3 +58,134 @@ def write_tum_trajectory(path: Path, timestamps_s: np.ndarray, poses_se3: np.nda
         for ts, ti, qi in zip(np.asarray(timestamps_s)[ok], t, q):
             lines.append(f"{ts:.6f} " + " ".join(f"{v:.9f}" for v in (*ti, *qi)))
     return write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``timestamp tx ty tz qx qy qz qw`` lines: ``(timestamps_s [N], poses_se3 [N, 4, 4])``.
+
+    Comment lines (``#``) and blank lines are skipped; commas are accepted as separators (TUM's
+    tools do the same). A malformed line raises :class:`DatasetError` naming the file and line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "trajectory file not found")
+    ts, tq = [], []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise DatasetError(path, f"expected 8 values (timestamp tx ty tz qx qy qz qw), got {len(parts)}", lineno)
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise DatasetError(path, "non-numeric value", lineno) from None
+        if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[4:]) < 1e-9:
+            raise DatasetError(path, "non-finite value or zero quaternion", lineno)
+        ts.append(vals[0])
+        tq.append(vals[1:])
+    if not ts:
+        return np.zeros(0), np.zeros((0, 4, 4))
+    ts_a, tq_a = np.asarray(ts), np.asarray(tq)
+    order = np.argsort(ts_a, kind="stable")
+    return ts_a[order], pose_from_tq(tq_a[order, :3], tq_a[order, 3:])
+
+
+def match_trajectories(ts_est: np.ndarray, poses_est: np.ndarray, ts_gt: np.ndarray, poses_gt: np.ndarray,
+                       max_dt_s: float = TUM_MAX_DT_S) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of estimated and ground-truth poses whose timestamps differ by at most ``max_dt_s``
+    (TUM's greedy one-to-one association); non-finite poses are dropped first.
+
+    Returns ``(timestamps_s [M], est [M, 4, 4], gt [M, 4, 4])`` sorted by time.
+    """
+    from atlas_pipeline.sensors.tum import associate
+
+    ke = np.flatnonzero(np.isfinite(poses_est).all(axis=(1, 2)))
+    kg = np.flatnonzero(np.isfinite(poses_gt).all(axis=(1, 2)))
+    pairs = associate(np.asarray(ts_est)[ke], np.asarray(ts_gt)[kg], max_dt_s)
+    ie = np.array([ke[a] for a, _ in pairs], dtype=np.int64)
+    ig = np.array([kg[b] for _, b in pairs], dtype=np.int64)
+    return np.asarray(ts_est)[ie], np.asarray(poses_est)[ie], np.asarray(poses_gt)[ig]
+
+
+def align_rigid(poses_est: np.ndarray, poses_gt: np.ndarray) -> np.ndarray:
+    """``[4, 4]`` rigid transform S (Umeyama on positions, no scale) with ``S @ est ≈ gt``."""
+    R, t, _ = umeyama_alignment(poses_est[:, :3, 3], poses_gt[:, :3, 3], with_scale=False)
+    S = np.eye(4)
+    S[:3, :3], S[:3, 3] = R, t
+    return S
+
+
+def ate(poses_est: np.ndarray, poses_gt: np.ndarray, align: bool = True) -> dict:
+    """Absolute trajectory error of matched poses ``[M, 4, 4]`` (TUM ``evaluate_ate``, evo ``ape``
+    with the translation part): positions compared after a rigid alignment of est onto gt.
+
+    Returns ``{"rmse_m", "mean_m", "median_m", "max_m", "rot_rmse_deg", "errors_t_m" [M],
+    "errors_rot_deg" [M], "alignment" [4, 4], "n"}``.
+    """
+    est = np.asarray(poses_est, np.float64)
+    gt = np.asarray(poses_gt, np.float64)
+    S = align_rigid(est, gt) if align and len(est) >= 3 else np.eye(4)
+    aligned = S @ est
+    e_t, e_r = pose_errors(aligned, gt)
+    st = error_stats(e_t)
+    return {"rmse_m": st["rmse"], "mean_m": st["mean"], "median_m": st["median"], "max_m": st["max"],
+            "rot_rmse_deg": error_stats(e_r)["rmse"], "errors_t_m": e_t, "errors_rot_deg": e_r,
+            "alignment": S, "n": int(len(est))}
+
+
+def rpe(timestamps_s: np.ndarray, poses_est: np.ndarray, poses_gt: np.ndarray, delta: float = 1.0,
+        unit: str = "s") -> dict:
+    """Relative pose error over a fixed interval (TUM ``evaluate_rpe`` with ``fixed_delta``).
+
+    For each matched pose ``i``, ``j`` is the pose ``delta`` later (``unit="s"``: the one whose
+    timestamp is closest to ``t_i + delta``; ``unit="frames"``: ``i + delta``, as evo's ``rpe``).
+    Error ``E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)``; translational RMSE in metres (per ``delta``), and
+    rotational RMSE in degrees. No alignment is needed: relative motions are frame-independent.
+    """
+    ts = np.asarray(timestamps_s, np.float64)
+    P = np.asarray(poses_est, np.float64)
+    G = np.asarray(poses_gt, np.float64)
+    n = len(ts)
+    pairs = []
+    if unit == "frames":
+        d = int(delta)
+        if d < 1:
+            raise ValueError("delta in frames must be >= 1")
+        pairs = [(i, i + d) for i in range(n - d)]
+    elif unit == "s":
+        for i in range(n):
+            j = int(np.argmin(np.abs(ts - (ts[i] + delta))))
+            # Skip pairs the sequence is too short for (j would be the last frame, far off the interval).
+            if j > i and abs(ts[j] - ts[i] - delta) <= 0.5 * delta:
+                pairs.append((i, j))
+    else:
+        raise ValueError(f"unit must be 's' or 'frames', got {unit!r}")
+    if not pairs:
+        return {"trans_rmse_m": float("nan"), "rot_rmse_deg": float("nan"), "n_pairs": 0,
+                "delta": delta, "unit": unit}
+    a = np.array([p[0] for p in pairs])
+    b = np.array([p[1] for p in pairs])
+    E = invert_se3(invert_se3(G[a]) @ G[b]) @ (invert_se3(P[a]) @ P[b])
+    et = np.linalg.norm(E[:, :3, 3], axis=1)
+    er = np.degrees(rotation_angle_rad(E[:, :3, :3]))
+    return {"trans_rmse_m": float(np.sqrt(np.mean(et**2))), "trans_mean_m": float(et.mean()),
+            "rot_rmse_deg": float(np.sqrt(np.mean(er**2))), "n_pairs": int(len(pairs)),
+            "delta": delta, "unit": unit}
+
+
+def evaluate_trajectories(ts_est: np.ndarray, poses_est: np.ndarray, ts_gt: np.ndarray, poses_gt: np.ndarray,
+                          max_dt_s: float = TUM_MAX_DT_S, rpe_delta_s: float = 1.0) -> dict:
+    """ATE and RPE (per ``rpe_delta_s`` seconds) of an estimated trajectory against ground truth,
+    with TUM's conventions; figures only (no per-frame arrays)."""
+    t, est, gt = match_trajectories(ts_est, poses_est, ts_gt, poses_gt, max_dt_s)
+    out: dict = {"n_matched": int(len(t)), "n_estimated": int(np.isfinite(poses_est).all(axis=(1, 2)).sum())}
+    if len(t) >= 3:
+        a = ate(est, gt)
+        out.update({"ate_rmse_m": a["rmse_m"], "ate_mean_m": a["mean_m"], "ate_median_m": a["median_m"],
+                    "ate_max_m": a["max_m"], "ate_rot_rmse_deg": a["rot_rmse_deg"]})
+        r = rpe(t, est, gt, rpe_delta_s, "s")
+        out.update({"rpe_trans_rmse_m": r["trans_rmse_m"], "rpe_rot_rmse_deg": r["rot_rmse_deg"],
+                    "rpe_n_pairs": r["n_pairs"], "rpe_delta_s": rpe_delta_s})
+    return out

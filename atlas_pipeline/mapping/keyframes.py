@@ -10,18 +10,17 @@ from typing import Callable
 
 import numpy as np
 
-from atlas_pipeline.config import MappingConfig
+from atlas_pipeline.config import LocalizationConfig, MappingConfig
 from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
-from atlas_pipeline.localization.icp import PointModel, estimate_normals, icp_point_to_plane, voxel_downsample
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["KeyframeSet", "select_keyframes", "odometry_poses", "mapping_poses", "build_keyframes"]
+__all__ = ["KeyframeSet", "select_keyframes", "slam_poses", "uses_ground_truth", "build_keyframes"]
 
 
 def select_keyframes(T_world_cam: np.ndarray, valid: np.ndarray, translation_m: float,
@@ -46,48 +45,52 @@ def select_keyframes(T_world_cam: np.ndarray, valid: np.ndarray, translation_m: 
     return np.asarray(keys, dtype=np.int64)
 
 
-def odometry_poses(fused: FusedFrames, voxel_m: float, max_corr_m: float = 0.05,
-                   iterations: int = 30, log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Frame-to-frame point-to-plane ICP, chained from the first frame (which defines the world).
+def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: LocalizationConfig,
+               depth_range_m: tuple[float, float], fusion_stride: int,
+               log: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Track and map the sequence with no ground truth: frame-to-model RGB-D tracking against the
+    keyframes merged so far (:class:`SequenceTracker`). The first frame defines the world.
 
-    Used for mapping when a dataset has no ground truth. Returns ``(T_world_cam [N, 4, 4],
-    fitness [N])``; the first frame is the identity with fitness 1.
+    Returns ``(T_world_cam [N, 4, 4], status [N], keyframe indices [K])``; lost frames keep
+    their predicted pose and are never keyframes. Frames are read one at a time.
     """
-    n = fused.n_frames
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    fitness = np.ones(n)
-    progress = Progress("odometry", n - 1, log)
-    prev_model = None
-    velocity = np.eye(4)
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+    from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+
+    n = manifest.n_frames
+    poses = np.full((n, 4, 4), np.nan)
+    status: list[str] = []
+    st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=VoxelGaussianBuilder(mapping.voxel_size_m),
+                         keyframe_translation_m=mapping.keyframe_translation_m,
+                         keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride)
+    progress = Progress("tracking and mapping", n, log)
+    started = False
     for i in range(n):
-        pts = voxel_downsample(fused.frame(i)[0].astype(np.float64), voxel_m)
-        if len(pts) < 10:
-            raise DatasetError(f"frame {i}", "too few valid depth points for odometry")
-        if prev_model is not None:
-            res = icp_point_to_plane(prev_model, pts, velocity, max_corr_m, iterations)
-            velocity = res.T  # constant-velocity guess for the next frame
-            poses[i] = poses[i - 1] @ res.T
-            fitness[i] = res.fitness
-            progress.update()
-        prev_model = PointModel(pts, estimate_normals(pts, 3 * voxel_m, viewpoint=np.zeros(3)))
-    return poses, fitness
+        rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
+        depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+        # The first frame with depth anchors the world at the identity.
+        anchor = None if started or np.count_nonzero(depth) < 200 else np.eye(4)
+        est = st.process(i, rgb, depth, T_given=anchor)
+        started = started or anchor is not None
+        poses[i] = est.T_world_cam
+        status.append(est.status)
+        progress.update(extra=f"{est.status}, {len(st.keyframe_indices)} keyframes")
+    if not st.keyframe_indices:
+        raise DatasetError(manifest.root, "tracking found no frame with valid depth to start the map")
+    n_lost = status.count(STATUS_LOST)
+    if n_lost:
+        logger.warning("%s: %d of %d frames lost while tracking", manifest.dataset, n_lost, n)
+    return poses, status, np.asarray(st.keyframe_indices, np.int64)
 
 
-def mapping_poses(manifest: FrameManifest, fused: FusedFrames, cfg: MappingConfig,
-                  log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray, str]:
-    """Poses the mapper places frames with: ``(T_world_cam [N, 4, 4], valid [N], source)``.
-
-    ``auto`` uses ground truth when at least half the frames have it (as the paper does) and
-    estimated odometry otherwise; ``ground_truth`` requires it.
-    """
+def uses_ground_truth(manifest: FrameManifest, cfg: MappingConfig) -> bool:
+    """``auto`` maps with ground truth when at least half the frames have it (as the paper does)."""
     n_gt = int(manifest.has_gt.sum())
     use_gt = cfg.pose_source == "ground_truth" or (cfg.pose_source == "auto" and n_gt >= manifest.n_frames / 2)
-    if use_gt:
-        if n_gt == 0:
-            raise DatasetError(manifest.root, "mapping.pose_source is ground_truth but the dataset has no ground truth")
-        return manifest.T_world_cam_gt.copy(), manifest.has_gt.copy(), "ground_truth"
-    poses, _ = odometry_poses(fused, voxel_m=max(cfg.voxel_size_m, 0.01), log=log)
-    return poses, np.ones(manifest.n_frames, bool), "estimated"
+    if use_gt and n_gt == 0:
+        raise DatasetError(manifest.root, "mapping.pose_source is ground_truth but the dataset has no ground truth")
+    return use_gt
 
 
 @dataclass
@@ -128,9 +131,15 @@ class KeyframeSet:
 
 
 def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingConfig,
-                    log: Callable[[str], None] | None = None) -> KeyframeSet:
-    poses, valid, source = mapping_poses(manifest, fused, cfg, log)
-    idx = select_keyframes(poses, valid, cfg.keyframe_translation_m, cfg.keyframe_rotation_deg)
-    if len(idx) == 0:
-        raise DatasetError(manifest.root, "no frame has a pose to map with")
-    return KeyframeSet(poses, valid, idx, source)
+                    localization: LocalizationConfig, log: Callable[[str], None] | None = None) -> KeyframeSet:
+    """Mapping poses and keyframes: ground truth (selected by motion), or the tracker's own
+    estimates and keyframes (``mapping.pose_source: estimated``, or ``auto`` without ground truth)."""
+    if uses_ground_truth(manifest, cfg):
+        poses, valid = manifest.T_world_cam_gt.copy(), manifest.has_gt.copy()
+        idx = select_keyframes(poses, valid, cfg.keyframe_translation_m, cfg.keyframe_rotation_deg)
+        if len(idx) == 0:
+            raise DatasetError(manifest.root, "no frame has a pose to map with")
+        return KeyframeSet(poses, valid, idx, "ground_truth")
+    poses, status, idx = slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m), fused.stride, log)
+    valid = np.array([s != "lost" for s in status]) & np.isfinite(poses).all(axis=(1, 2))
+    return KeyframeSet(poses, valid, idx, "estimated")

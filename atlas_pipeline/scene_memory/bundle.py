@@ -24,6 +24,8 @@ from typing import Any
 
 import pyarrow as pa
 
+import numpy as np
+
 from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.io_utils import atomic_dir, sha256_file, write_json_atomic
@@ -137,6 +139,18 @@ class WorldBundle:
     @property
     def map_id(self) -> str:
         return self.metadata.get("map_id", "")
+
+
+def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
+    """``[K, 4, 4]`` poses the world was mapped from (metadata ``keyframes``), empty when absent;
+    used as viewpoint priors for relocalization."""
+    kf = metadata.get("keyframes") or {}
+    poses = np.asarray(kf.get("T_world_cam", []), np.float64)
+    if poses.size == 0:
+        return np.zeros((0, 4, 4))
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.isfinite(poses).all():
+        raise BundleFormatError("metadata.json", "keyframes.T_world_cam must be a list of finite 4x4 matrices")
+    return poses
 
 
 def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool = True) -> WorldBundle:

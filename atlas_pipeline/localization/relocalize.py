@@ -1,0 +1,147 @@
+"""Relocalization: the pose of a frame with no initial guess, against a map.
+
+Two sources of hypotheses, then one refinement and one score for all of them:
+
+1. *Global registration*: FPFH features of the frame's points and of the map's surfel centres,
+   matched by RANSAC (Open3D's ``registration_ransac_based_on_feature_matching``), so a frame can
+   be placed anywhere in the map.
+2. *Viewpoint priors*: the poses the map was built from (its keyframes) and, while tracking, the
+   last good pose. A revisited viewpoint converges from these in a few iterations.
+
+Each hypothesis is refined with the tracker's geometric alignment (coarse to fine, wide gate) and
+scored by its inlier fraction and residual; the best wins. ``confidence`` is the winner's inlier
+fraction scaled down when a runner-up that disagrees scores almost as well (an ambiguous scene).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, SurfelModel, TrackResult, pose_change
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RelocalizationResult", "Relocalizer"]
+
+
+@dataclass
+class RelocalizationResult:
+    """Outcome of relocalizing one frame.
+
+    Attributes:
+        T_world_cam: ``[4, 4]`` best pose (NaN when nothing converged).
+        ok: the best hypothesis passed the tracker's quality test.
+        confidence: in [0, 1]; inlier fraction, discounted by ambiguity.
+        inlier_fraction, residual_m: of the best hypothesis.
+        source: which hypothesis won (``global``, ``keyframe``, ``previous``).
+        n_hypotheses: hypotheses refined.
+    """
+
+    T_world_cam: np.ndarray
+    ok: bool
+    confidence: float
+    inlier_fraction: float
+    residual_m: float
+    source: str
+    n_hypotheses: int
+
+
+class Relocalizer:
+    """Finds a frame's pose in a fixed map (see the module docstring).
+
+    Args:
+        tracker: the tracker whose alignment refines the hypotheses.
+        model: the map as surfels.
+        prior_poses: ``[K, 4, 4]`` viewpoint priors (e.g. the map's keyframe poses); may be empty.
+        feature_voxel_m: voxel size for FPFH features (frame and map are downsampled to it).
+        use_global: run global registration (Open3D) as well as the priors.
+    """
+
+    def __init__(self, tracker: RGBDTracker, model: SurfelModel, prior_poses: np.ndarray | None = None,
+                 feature_voxel_m: float = 0.05, use_global: bool = True, seed: int = 0):
+        self.tracker = tracker
+        self.model = model
+        self.priors = np.zeros((0, 4, 4)) if prior_poses is None else np.asarray(prior_poses, np.float64).reshape(-1, 4, 4)
+        self.priors = self.priors[np.isfinite(self.priors).all(axis=(1, 2))]
+        self.voxel = feature_voxel_m
+        self.use_global = use_global and len(model) >= 30
+        self.seed = seed
+        self._map_features = None
+
+    def _features(self, points: np.ndarray):
+        """Downsampled Open3D cloud with normals and its FPFH features."""
+        from atlas_pipeline._open3d import open3d
+
+        o3d = open3d()
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+        pc = pc.voxel_down_sample(self.voxel)
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * self.voxel, max_nn=30))
+        f = o3d.pipelines.registration.compute_fpfh_feature(
+            pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * self.voxel, max_nn=100))
+        return pc, f
+
+    def _global_hypothesis(self, frame: FramePyramid) -> np.ndarray | None:
+        from atlas_pipeline._open3d import open3d
+
+        o3d = open3d()
+        if self._map_features is None:
+            self._map_features = self._features(self.model.centres)
+        pts, _ = frame.points(self.tracker.cfg.finest_level + 1)
+        if len(pts) < 30:
+            return None
+        src, src_f = self._features(pts)
+        dst, dst_f = self._map_features
+        if len(src.points) < 10:
+            return None
+        reg = o3d.pipelines.registration
+        o3d.utility.random.seed(self.seed)  # RANSAC made repeatable
+        res = reg.registration_ransac_based_on_feature_matching(
+            src, dst, src_f, dst_f, True, 1.5 * self.voxel,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * self.voxel)],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
+        if res.fitness <= 0:
+            return None
+        return np.asarray(res.transformation, np.float64)
+
+    def relocalize(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
+        """Pose of ``frame`` in the map, with no initial guess needed."""
+        hyps: list[tuple[str, np.ndarray]] = [("previous", np.asarray(T, np.float64)) for T in (extra_priors or [])]
+        hyps += [("keyframe", T) for T in self.priors]
+        if self.use_global:
+            try:
+                T = self._global_hypothesis(frame)
+            except RuntimeError as exc:  # Open3D reports degenerate inputs this way
+                logger.debug("global registration failed: %s", exc)
+                T = None
+            if T is not None:
+                hyps.append(("global", T))
+        if not hyps:
+            return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "none", 0)
+        # Priors first: cheap screen at the coarse levels only, then full refinement of the best few.
+        results: list[tuple[str, TrackResult]] = []
+        for src, T in hyps:
+            r = self.tracker.align(frame, self.model, T, None)
+            if np.all(np.isfinite(r.T_world_cam)):
+                results.append((src, r))
+        if not results:
+            return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "none", len(hyps))
+
+        def score(r: TrackResult) -> float:
+            res = r.residual_m if np.isfinite(r.residual_m) else 1.0
+            return r.inlier_fraction * np.exp(-res / 0.01)
+
+        results.sort(key=lambda sr: -score(sr[1]))
+        src, best = results[0]
+        conf = best.inlier_fraction
+        for _, other in results[1:]:
+            dt, dr = pose_change(best.T_world_cam, other.T_world_cam)
+            if dt > 0.05 or dr > 5.0:  # a distinct pose that explains the frame almost as well
+                conf *= float(np.clip(1.0 - score(other) / max(score(best), 1e-9), 0.0, 1.0)) ** 0.5 if score(other) > 0.8 * score(best) else 1.0
+                break
+        return RelocalizationResult(best.T_world_cam, best.ok, float(conf), best.inlier_fraction, best.residual_m,
+                                    src, len(hyps))

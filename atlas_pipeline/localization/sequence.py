@@ -1,0 +1,205 @@
+"""Tracking a whole sequence: motion model, loss detection, recovery, and (optionally) mapping.
+
+:class:`SequenceTracker` consumes frames one at a time and keeps only what the next frame needs
+(the current and reference pyramids, the last poses, the map), so memory does not grow with the
+sequence length. With a ``builder`` it is a small RGB-D SLAM system: keyframes (chosen by motion)
+are merged into the voxel map, and the surfel model every later frame is tracked against is
+rebuilt from it. Without one it localizes against a fixed map.
+
+Per frame the status is one of:
+
+* ``anchor``: the pose was given (where the session starts);
+* ``tracked``: aligned to the map from the motion-model guess (or, failing that, the last pose);
+* ``relocalized``: tracking failed, and the frame was placed by :class:`Relocalizer`;
+* ``lost``: no good alignment (too few correspondences, too large a residual, no valid depth);
+  the pose is the motion-model prediction, and the frame never touches the map.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from atlas_pipeline.config import LocalizationConfig
+from atlas_pipeline.localization.relocalize import Relocalizer
+from atlas_pipeline.localization.tracker import (
+    RGBDTracker,
+    SurfelModel,
+    TrackResult,
+    pose_change,
+    predict_constant_velocity,
+)
+from atlas_pipeline.perception.rgbd import backproject
+from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["STATUS_ANCHOR", "STATUS_TRACKED", "STATUS_RELOCALIZED", "STATUS_LOST", "FrameEstimate", "SequenceTracker"]
+
+STATUS_ANCHOR = "anchor"
+STATUS_TRACKED = "tracked"
+STATUS_RELOCALIZED = "relocalized"
+STATUS_LOST = "lost"
+
+_MIN_VALID_DEPTH = 200  # fewer valid depth pixels than this: nothing to align
+
+
+@dataclass
+class FrameEstimate:
+    """One frame's outcome: ``T_world_cam [4, 4]``, status, quality and time (decoding excluded)."""
+
+    index: int
+    T_world_cam: np.ndarray
+    status: str
+    inlier_fraction: float
+    residual_m: float
+    time_s: float
+    keyframe: bool = False
+    note: str = ""
+
+
+class SequenceTracker:
+    """Frame-by-frame tracking against a map that is fixed (``model``) or grown (``builder``).
+
+    Args:
+        camera: intrinsics of the frames.
+        cfg: localization settings.
+        depth_range_m: ``(min, max)`` depth used for tracking and merged into the map.
+        model: a fixed map (localization only).
+        builder: a :class:`VoxelGaussianBuilder` to merge keyframes into (tracking and mapping);
+            may already hold a map (a session that extends a saved world).
+        keyframe_translation_m, keyframe_rotation_deg: motion between keyframes (mapping).
+        fusion_stride: pixel stride of the points merged per keyframe (as the fused frames use).
+        prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (e.g. the map's keyframe poses).
+    """
+
+    def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
+                 model: SurfelModel | None = None, builder=None, keyframe_translation_m: float = 0.08,
+                 keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None):
+        if model is None and builder is None:
+            raise ValueError("SequenceTracker needs a model (localization) or a builder (mapping)")
+        self.camera = camera
+        self.cfg = cfg
+        self.depth_range_m = depth_range_m
+        self.tracker = RGBDTracker(camera, cfg, depth_range_m)
+        self.builder = builder
+        self.kf_t, self.kf_r = keyframe_translation_m, keyframe_rotation_deg
+        self.fusion_stride = fusion_stride
+        self.model = model if model is not None else SurfelModel.from_builder(builder)
+        self.priors = [] if prior_poses is None else [np.asarray(T, np.float64) for T in prior_poses]
+        self.keyframe_indices: list[int] = []
+        self.keyframe_poses: list[np.ndarray] = []
+        self._relocalizer: Relocalizer | None = None
+        self.reset()
+
+    # -- state ---------------------------------------------------------------------------------
+    def reset(self, index: int | None = None, T_world_cam: np.ndarray | None = None) -> None:
+        """Forget the motion state (e.g. before tracking backwards from the anchor)."""
+        self._last: tuple[int, np.ndarray] | None = None if T_world_cam is None else (index, np.asarray(T_world_cam, np.float64))
+        self._prev: tuple[int, np.ndarray] | None = None
+        self._ref = None  # (pyramid, pose) of the photometric reference
+        self._last_kf_pose: np.ndarray | None = self.keyframe_poses[-1] if self.keyframe_poses else None
+
+    @property
+    def relocalizer(self) -> Relocalizer:
+        if self._relocalizer is None:
+            self._relocalizer = Relocalizer(self.tracker, self.model, np.array(self.priors + self.keyframe_poses))
+        return self._relocalizer
+
+    def _predict(self, index: int) -> np.ndarray:
+        assert self._last is not None
+        li, lT = self._last
+        if (self.cfg.motion_model == "constant_velocity" and self._prev is not None
+                and self._prev[0] == li - (index - li) and abs(index - li) == 1):
+            return predict_constant_velocity(lT, self._prev[1])
+        return lT.copy()
+
+    # -- one frame -----------------------------------------------------------------------------
+    def process(self, index: int, rgb: np.ndarray | None, depth_m: np.ndarray,
+                T_given: np.ndarray | None = None) -> FrameEstimate:
+        """Estimate frame ``index``; ``T_given`` makes it an anchor with that pose."""
+        t0 = time.perf_counter()
+        fp = self.tracker.prepare(rgb, depth_m)
+        nan = float("nan")
+        if T_given is not None:
+            est = FrameEstimate(index, np.asarray(T_given, np.float64).copy(), STATUS_ANCHOR, nan, nan, 0.0)
+        elif fp.n_valid < _MIN_VALID_DEPTH:
+            T = self._predict(index) if self._last is not None else np.full((4, 4), np.nan)
+            est = FrameEstimate(index, T, STATUS_LOST, 0.0, nan, 0.0, note="no valid depth")
+        elif self._last is None or len(self.model) == 0:
+            est = self._relocalize(index, fp, [])
+        else:
+            guess = self._predict(index)
+            use_photo = self.cfg.photometric_weight > 0 and self._ref is not None
+            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None)
+            if not res.ok:
+                # Second try: last good pose, geometry only (blur or a bad prediction misleads the hybrid solve).
+                res2 = self.tracker.align(fp, self.model, self._last[1], None)
+                if _better(res2, res):
+                    res = res2
+            if res.ok:
+                est = FrameEstimate(index, res.T_world_cam, STATUS_TRACKED, res.inlier_fraction, res.residual_m, 0.0)
+            elif self.cfg.relocalize:
+                est = self._relocalize(index, fp, [self._last[1]], fallback=(guess, res))
+            else:
+                est = FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0,
+                                    note="poor alignment")
+        if est.status != STATUS_LOST:
+            self._accept(index, fp, est)
+        est.time_s = time.perf_counter() - t0
+        return est
+
+    def _relocalize(self, index: int, fp, extra: list[np.ndarray],
+                    fallback: tuple[np.ndarray, TrackResult] | None = None) -> FrameEstimate:
+        if len(self.model) == 0:
+            return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, 0.0, float("nan"), 0.0, note="empty map")
+        r = self.relocalizer.relocalize(fp, extra)
+        if r.ok:
+            return FrameEstimate(index, r.T_world_cam, STATUS_RELOCALIZED, r.inlier_fraction, r.residual_m, 0.0,
+                                 note=f"relocalized from {r.source} hypothesis, confidence {r.confidence:.2f}")
+        if fallback is not None:
+            guess, res = fallback
+            return FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0, note="poor alignment")
+        return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, r.inlier_fraction, r.residual_m, 0.0,
+                             note="relocalization failed")
+
+    def _accept(self, index: int, fp, est: FrameEstimate) -> None:
+        T = est.T_world_cam
+        consecutive = self._last is not None and abs(index - self._last[0]) == 1 and est.status == STATUS_TRACKED
+        self._prev = self._last if consecutive else None
+        self._last = (index, T)
+        if self._ref is None or est.status != STATUS_TRACKED or _moved(self._ref[1], T, self.cfg.reference_translation_m,
+                                                                        self.cfg.reference_rotation_deg):
+            self._ref = (fp, T)
+        if self.builder is not None and (self._last_kf_pose is None or _moved(self._last_kf_pose, T, self.kf_t, self.kf_r)):
+            self._integrate(index, fp, T)
+            est.keyframe = True
+            self._ref = (fp, T)
+
+    def _integrate(self, index: int, fp, T: np.ndarray) -> None:
+        depth = fp.depth[0]
+        rgb = fp.rgb
+        pts, cols = backproject(depth, rgb, self.camera, self.fusion_stride, *self.depth_range_m)
+        if rgb is None:
+            cols = np.full((len(pts), 3), 128, np.uint8)
+        pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        self.builder.integrate(pw, cols)
+        self.model = SurfelModel.from_builder(self.builder)
+        self._relocalizer = None  # its map features are stale now
+        self.keyframe_indices.append(int(index))
+        self.keyframe_poses.append(T.copy())
+        self._last_kf_pose = T.copy()
+
+
+def _better(a: TrackResult, b: TrackResult) -> bool:
+    if a.ok != b.ok:
+        return a.ok
+    return a.inlier_fraction > b.inlier_fraction
+
+
+def _moved(T_a: np.ndarray, T_b: np.ndarray, translation_m: float, rotation_deg: float) -> bool:
+    dt, dr = pose_change(T_a, T_b)
+    return dt > translation_m or dr > rotation_deg
