@@ -63,6 +63,7 @@ class LocalizationConfig:
     icp_iterations: int = 30
     stride: int = 4
     min_fitness: float = 0.3
+    max_ate_m: float = 0.05  # blocking check: ATE RMSE above this (where ground truth exists) fails
 
 
 @dataclass(frozen=True)
@@ -198,6 +199,8 @@ def _validate(obj: Any, source: str) -> None:
             raise bad("localization needs icp_max_correspondence_m > 0, icp_iterations >= 1, stride >= 1")
         if not 0 <= obj.min_fitness <= 1:
             raise bad("localization.min_fitness must lie in [0, 1]")
+        if not obj.max_ate_m > 0:
+            raise bad("localization.max_ate_m must be positive")
     if isinstance(obj, VideoConfig):
         if obj.fps <= 0 or obj.orbit_frames < 1 or not 0 < obj.scale <= 4:
             raise bad("video needs fps > 0, orbit_frames >= 1 and 0 < scale <= 4")
