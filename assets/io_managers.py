@@ -34,9 +34,6 @@ from atlas_pipeline.sensors.registry import validate_dataset_name
 from atlas_pipeline.sensors.tum import FrameManifest
 from atlas_pipeline.versioning import data_version
 
-# Input metadata key: the input is handed over as a LazyArtifact instead of being loaded.
-LAZY_INPUT = "atlas/lazy"
-
 
 class ParquetTable:
     """Adapter giving ``pyarrow.Table`` the save/load protocol (one ``table.parquet``)."""
@@ -117,8 +114,9 @@ class CachedArtifact:
 class LazyArtifact:
     """An upstream artifact not loaded yet: its record (data version) is at hand, ``get()`` loads it.
 
-    Assets wrapped by :func:`assets.versioning.atlas_asset` receive these, decide from the records
-    whether their own artifact is current, and load the inputs only when they recompute.
+    Assets wrapped by :func:`assets.versioning.atlas_asset` read their upstream artifacts as these,
+    decide from the records whether their own artifact is current, and load the inputs only when
+    they recompute.
     """
 
     directory: Path
@@ -161,6 +159,14 @@ class ArtifactIOManager(ConfigurableIOManager):
 
     def directory(self, asset: str, partition: str) -> Path:
         return artifact_dir(self.root, asset, partition)
+
+    def lazy(self, asset: str, partition: str, needed_by: str) -> LazyArtifact:
+        """The upstream artifact ``asset`` of ``partition`` as a LazyArtifact (record read, data not)."""
+        directory = self.directory(asset, partition)
+        try:
+            return LazyArtifact(directory, read_artifact_record(directory))
+        except ArtifactError as exc:
+            raise ArtifactError(f"{needed_by} [{partition}] needs {asset}: {exc}") from exc
 
     def record(self, asset: str, partition: str) -> dict[str, Any] | None:
         """The artifact record of ``asset``/``partition``, None when there is none (or unreadable)."""
@@ -239,7 +245,4 @@ class ArtifactIOManager(ConfigurableIOManager):
 
     def load_input(self, context: InputContext) -> Any:
         directory = self._dir(context)
-        record = read_artifact_record(directory)
-        if (context.definition_metadata or {}).get(LAZY_INPUT):
-            return LazyArtifact(directory, record)
-        return _load_typed(directory, record)
+        return _load_typed(directory, read_artifact_record(directory))

@@ -6,8 +6,10 @@ What the wrapper does for every asset, so asset bodies stay plain "inputs in, ar
 * Declares ``code_version`` to Dagster with the hash of the config sections that shape the asset
   folded in (``"1+cfg.3fa2c1d0"``): after a config change, reloading the definitions makes Dagster
   mark exactly the shaped assets (and everything downstream) stale.
-* Receives its inputs lazily (:class:`assets.io_managers.LazyArtifact`: the upstream record, not the
-  arrays), computes the input fingerprint (code version, config section hashes, upstream data
+* Declares the body's inputs (parameters named after upstream assets) as Dagster ``deps`` and
+  reads them itself, lazily (:class:`assets.io_managers.LazyArtifact`: the upstream record, not the
+  arrays): Dagster then neither loads nor logs them, which keeps a reusing step to a few events.
+  It computes the input fingerprint (code version, config section hashes, upstream data
   versions, partition, raw-data signature) and, when the artifact on disk was made from the same
   fingerprint and its files are intact, *reuses* it: no input is loaded, no file is written, the run
   log says ``reused cached <asset>``, and the materialization carries the recorded data version,
@@ -34,7 +36,7 @@ from dagster import (
     AssetCheckSeverity,
     AssetCheckSpec,
     AssetExecutionContext,
-    AssetIn,
+    AssetKey,
     ConfigurableResource,
     DataVersion,
     Output,
@@ -43,7 +45,7 @@ from dagster import (
     serialize_value,
 )
 
-from assets.io_managers import LAZY_INPUT, ArtifactIOManager, CachedArtifact, LazyArtifact
+from assets.io_managers import ArtifactIOManager, CachedArtifact, LazyArtifact
 from assets.resources import AtlasConfig
 from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.versioning import (
@@ -58,8 +60,13 @@ __all__ = ["AtlasCheck", "atlas_asset", "dagster_code_version", "current_asset_i
            "expected_fingerprint", "CODE_VERSION_KEY"]
 
 IO_KEY = "artifact_io"
-# Output(data_version=...) is how an asset reports its own data version; Dagster marks it beta.
-warnings.filterwarnings("ignore", message=r".*`data_version`.*", category=BetaWarning)
+
+
+def _output(value: Any, dv: str, metadata: dict[str, Any]) -> Output:
+    """``Output`` with the asset's own data version (the parameter Dagster still marks beta)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", BetaWarning)
+        return Output(value, data_version=DataVersion(dv), metadata=metadata)
 # Asset definition metadata: the stage's own code version (Dagster's code_version adds the config hash).
 CODE_VERSION_KEY = "atlas/code_version"
 SECTIONS_KEY = "atlas/config_sections"
@@ -181,10 +188,9 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
         resources = [p.name for p in params[1:] if _is_resource(hints.get(p.name))]
         inputs = [p.name for p in params[1:] if p.name not in resources]
         wants_atlas = "atlas" in resources
-        # What Dagster sees: the same parameters, inputs untyped (they arrive as LazyArtifact), the
-        # atlas resource always present, no return annotation (the output is a staged artifact).
+        # What Dagster sees: the context and the resources (the atlas resource always); inputs are
+        # deps read by the wrapper; no return annotation (the output is a staged artifact).
         wrapper_params = [params[0].replace(annotation=AssetExecutionContext)]
-        wrapper_params += [p.replace(annotation=inspect.Parameter.empty) for p in params[1:] if p.name in inputs]
         wrapper_params += [p.replace(annotation=hints[p.name]) for p in params[1:] if p.name in resources]
         if not wants_atlas:
             wrapper_params.append(inspect.Parameter("atlas", inspect.Parameter.KEYWORD_ONLY, annotation=AtlasConfig))
@@ -196,7 +202,7 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
             cfg = atlas.load()
             sections = config_section_hashes(cfg, name)
             config_hash = combined_config_hash(sections)
-            lazies: dict[str, LazyArtifact] = {n: kwargs[n] for n in inputs}
+            lazies: dict[str, LazyArtifact] = {n: store.lazy(n, partition, name) for n in inputs}
             upstream = {n: lz.data_version for n, lz in lazies.items()}
             fp = expected_fingerprint(name, code_version, partition, atlas, upstream, cfg)
             check_names = {c.spec.name for c in checks}
@@ -213,7 +219,7 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
                         f"reused cached {name} [{partition}]: inputs, config ({', '.join(sections)}) and code "
                         f"v{code_version} unchanged (fingerprint {fp[:12]}), data version {dv}; no recomputation")
                     md = deserialize_value(record["metadata"]) if record.get("metadata") else {}
-                    yield Output(CachedArtifact(directory, record), data_version=DataVersion(dv), metadata={
+                    yield _output(CachedArtifact(directory, record), dv, {
                         **md, "reused": True, "reused_from_run": str(record.get("run_id")),
                         "fingerprint": fp[:16], "data_version": dv,
                     })
@@ -264,7 +270,7 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
                     "checks": [_check_record(r) for r in results],
                 }, config_hash=config_hash, run_id=context.run.run_id)
                 dv = staged.record["data_version"]
-                yield Output(staged, data_version=DataVersion(dv), metadata={
+                yield _output(staged, dv, {
                     **out_md, "reused": False, "compute_s": round(compute_s, 3),
                     "load_inputs_s": round(t_load, 3), "fingerprint": fp[:16], "data_version": dv,
                 })
@@ -280,11 +286,11 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
         run.__module__ = fn.__module__
         run.__signature__ = inspect.Signature(wrapper_params)  # type: ignore[attr-defined]
         existing_specs = list(asset_kwargs.pop("check_specs", []) or [])
-        ins = {n: AssetIn(metadata={LAZY_INPUT: True}) for n in inputs}
+        deps = list(asset_kwargs.pop("deps", []) or []) + [AssetKey(n) for n in inputs]
         metadata = {**asset_kwargs.pop("metadata", {}), CODE_VERSION_KEY: code_version,
                     SECTIONS_KEY: ", ".join(stage_sections(name))}
         return asset(
-            name=name, ins=ins, metadata=metadata,
+            name=name, deps=deps, metadata=metadata,
             code_version=dagster_code_version(code_version, name, definition_config),
             check_specs=existing_specs + [c.spec for c in checks],
             **{k: v for k, v in asset_kwargs.items() if k != "name"},
