@@ -76,11 +76,29 @@ def cmd_build(args: argparse.Namespace) -> int:
     manifest = lib.load_dataset(entry, cfg)
     fused = lib.fuse(manifest, cfg)
     keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
-    world = lib.build_gaussian_world(fused, keyframes, cfg)
-    from atlas_pipeline.scene_memory.bundle import write_world_bundle
+    from atlas_pipeline.scene_memory.bundle import parent_reference, write_world_bundle
 
-    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, {"created_by": "atlas-gs build"})
-    write_world_bundle(args.output, world.field, meta)
+    parent = None
+    if args.extend:
+        from atlas_pipeline.gaussian_world.builder import GaussianWorld
+        from atlas_pipeline.mapping.mapper import extend_world
+
+        parent = parent_reference(args.extend)  # checks it is a bundle
+        try:
+            previous = GaussianWorld.load(Path(args.extend))
+        except AtlasError as exc:
+            raise ConfigError(f"{args.extend}: cannot extend this bundle, it has no voxel statistics "
+                              f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
+        world = extend_world(previous, fused, keyframes, cfg.mapping)
+    else:
+        world = lib.build_gaussian_world(fused, keyframes, cfg)
+    from datetime import datetime, timezone
+
+    lineage = {"created_by": "atlas-gs build", "partition": entry.name, "run_id": None,
+               "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "profile": cfg.profile,
+               "config_overrides": _overrides(args)}
+    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage, parent=parent)
+    write_world_bundle(args.output, world.field, meta, extras=(world,))
     logger.info("wrote world with %d Gaussians to %s", len(world.field), args.output)
     print(json.dumps({"world": str(Path(args.output).resolve()), "n_gaussians": len(world.field),
                       "n_keyframes": int(len(keyframes.indices)), "map_id": world.map_id}, indent=2))
@@ -347,6 +365,8 @@ def build_parser() -> argparse.ArgumentParser:
     common(b)
     b.add_argument("--input", required=True, help="registered dataset name or TUM-layout folder")
     b.add_argument("--output", required=True, help="world bundle folder to write")
+    b.add_argument("--extend", default=None, metavar="BUNDLE",
+                   help="merge into the world of this earlier bundle (recorded as the lineage parent)")
     b.set_defaults(func=cmd_build)
 
     lo = sub.add_parser("localize", help="localize a dataset's frames against a world bundle")

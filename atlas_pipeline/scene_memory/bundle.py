@@ -68,11 +68,18 @@ def write_bundle_files(
     metadata: dict[str, Any],
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
+    extras: tuple[Any, ...] = (),
 ) -> list[Path]:
-    """Write a bundle's files into an existing (empty, temporary) folder; returns the paths."""
+    """Write a bundle's files into an existing (empty, temporary) folder; returns the paths.
+
+    ``extras`` are objects with ``save(directory)`` stored beside the Gaussians (e.g. the
+    ``GaussianWorld`` with its voxel statistics, so the world can be extended later).
+    """
     write_gaussian_ply(field, directory / "gaussians.ply")
     write_atlasgs1(field, directory / "gaussians.bin")
     _write_parts(directory, localization, transitions)
+    for extra in extras:
+        extra.save(directory)
     meta = {
         "format": BUNDLE_FORMAT,
         "version": BUNDLE_VERSION,
@@ -92,12 +99,13 @@ def write_world_bundle(
     metadata: dict[str, Any],
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
+    extras: tuple[Any, ...] = (),
 ) -> Path:
     """Write a complete bundle folder atomically; ``metadata`` (name, lineage, config ...) goes
     into metadata.json."""
     directory = Path(directory)
     with atomic_dir(directory) as tmp:
-        write_bundle_files(tmp, field, metadata, localization, transitions)
+        write_bundle_files(tmp, field, metadata, localization, transitions, extras)
     return directory
 
 
