@@ -295,7 +295,7 @@ def cmd_lineage(args: argparse.Namespace) -> int:
 
     target = Path(args.bundle).expanduser()
     if not target.is_dir():
-        from assets.definitions import artifacts_root
+        from assets.io_managers import artifacts_root
 
         name = validate_dataset_name(args.bundle)
         target = artifacts_root() / "world_bundle" / name

@@ -37,21 +37,14 @@ from dagster import (
     sensor,
 )
 
-from assets.io_managers import ArtifactIOManager
+from assets.io_managers import ArtifactIOManager, artifacts_root
 from assets.pipeline_assets import build_pipeline_assets
 from assets.resources import AtlasConfig
-from atlas_pipeline.config import project_root
 from atlas_pipeline.sensors.registry import load_registry, register_local_dataset, validate_dataset_name
 
 logger = logging.getLogger("atlas_gs.definitions")
 
 DATASETS = DynamicPartitionsDefinition(name="datasets")
-
-
-def artifacts_root() -> Path:
-    """``$ATLAS_ARTIFACTS_DIR`` or ``<project>/artifacts``."""
-    env = os.environ.get("ATLAS_ARTIFACTS_DIR")
-    return Path(env).resolve() if env else project_root() / "artifacts"
 
 
 def dataset_partitions(names: list[str] | None = None) -> DynamicPartitionsDefinition:

@@ -23,6 +23,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from dagster import ConfigurableIOManager, InputContext, MetadataValue, OutputContext
 
+from atlas_pipeline.config import project_root
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.io_utils import atomic_path, sha256_file, write_json_atomic
@@ -64,6 +65,12 @@ ARTIFACT_TYPES: dict[str, Any] = {
     "DemoVideos": DemoVideos,
     "WorldBundleArtifact": WorldBundleArtifact,
 }
+
+
+def artifacts_root() -> Path:
+    """``$ATLAS_ARTIFACTS_DIR`` or ``<project>/artifacts``."""
+    env = os.environ.get("ATLAS_ARTIFACTS_DIR")
+    return Path(env).resolve() if env else project_root() / "artifacts"
 
 
 def artifact_dir(root: str | Path, asset: str, partition: str) -> Path:
