@@ -5,6 +5,10 @@ An artifact type is a library class with ``save(directory) -> list[Path]`` and a
 ``load(directory)``. The IO manager writes into a temporary folder and swaps it into place, so a
 failed or interrupted run leaves the previous artifact whole. It also records ``_artifact.json``
 (type, files, sha256 of each, one content hash over all of them) beside the files.
+
+Versioned assets (:mod:`assets.versioning`) hand it a :class:`StagedArtifact` (already written to
+the temporary folder, so its content hash and data version were known when the output was
+yielded; only the swap is left) or a :class:`CachedArtifact` (current on disk: nothing is written).
 """
 
 from __future__ import annotations
