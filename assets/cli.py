@@ -43,12 +43,7 @@ ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "lo
 
 def _config(args: argparse.Namespace) -> PipelineConfig:
     cfg = load_profile(args.profile)
-    overrides: dict[str, Any] = {}
-    for item in getattr(args, "set", None) or []:
-        if "=" not in item:
-            raise ConfigError(f"--set expects key=value, got {item!r}")
-        k, v = item.split("=", 1)
-        overrides[k.strip()] = yaml.safe_load(v)
+    overrides = _overrides(args)
     return cfg.with_overrides(overrides, "--set") if overrides else cfg
 
 
@@ -81,11 +76,29 @@ def cmd_build(args: argparse.Namespace) -> int:
     manifest = lib.load_dataset(entry, cfg)
     fused = lib.fuse(manifest, cfg)
     keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
-    world = lib.build_gaussian_world(fused, keyframes, cfg)
-    from atlas_pipeline.scene_memory.bundle import write_world_bundle
+    from atlas_pipeline.scene_memory.bundle import parent_reference, write_world_bundle
 
-    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, {"created_by": "atlas-gs build"})
-    write_world_bundle(args.output, world.field, meta)
+    parent = None
+    if args.extend:
+        from atlas_pipeline.gaussian_world.builder import GaussianWorld
+        from atlas_pipeline.mapping.mapper import extend_world
+
+        parent = parent_reference(args.extend)  # checks it is a bundle
+        try:
+            previous = GaussianWorld.load(Path(args.extend))
+        except AtlasError as exc:
+            raise ConfigError(f"{args.extend}: cannot extend this bundle, it has no voxel statistics "
+                              f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
+        world = extend_world(previous, fused, keyframes, cfg.mapping)
+    else:
+        world = lib.build_gaussian_world(fused, keyframes, cfg)
+    from datetime import datetime, timezone
+
+    lineage = {"created_by": "atlas-gs build", "partition": entry.name, "run_id": None,
+               "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "profile": cfg.profile,
+               "config_overrides": _overrides(args)}
+    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage, parent=parent)
+    write_world_bundle(args.output, world.field, meta, extras=(world,))
     logger.info("wrote world with %d Gaussians to %s", len(world.field), args.output)
     print(json.dumps({"world": str(Path(args.output).resolve()), "n_gaussians": len(world.field),
                       "n_keyframes": int(len(keyframes.indices)), "map_id": world.map_id}, indent=2))
@@ -173,47 +186,131 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_run(args: argparse.Namespace) -> int:
-    """Materialize every asset of one or more partitions through Dagster."""
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    overrides: dict[str, Any] = {}
+    for item in getattr(args, "set", None) or []:
+        if "=" not in item:
+            raise ConfigError(f"--set expects key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        overrides[k.strip()] = yaml.safe_load(v)
+    return overrides
+
+
+def _dagster_setup(args: argparse.Namespace):
+    """DAGSTER_HOME, the definitions for the run's profile and overrides, the instance, the
+    partitions to run (registered datasets, added to the instance as dynamic partitions)."""
     _default_dagster_home()
-    if args.profile:
+    if getattr(args, "profile", None):
         os.environ["ATLAS_PROFILE"] = args.profile
     from dagster import DagsterInstance
 
-    from assets.definitions import artifacts_root, build_definitions
+    from assets.definitions import build_definitions, sync_dataset_partitions
 
+    overrides = _overrides(args)
+    profile = getattr(args, "profile", None) or "default"
+    load_profile(profile).with_overrides(overrides, "--set")  # bad keys fail here, naming the key
     registry = load_registry()
-    partitions = list(registry) if args.all else [validate_dataset_name(args.dataset)]
+    partitions = list(registry) if getattr(args, "all", False) else [validate_dataset_name(args.dataset)]
     for p in partitions:
         if p not in registry:
             raise ConfigError(f"dataset '{p}' is not registered; known: {', '.join(registry)}")
-    defs = build_definitions(profile=args.profile or "default")
-    job = defs.resolve_job_def("atlas_gs_all")
+    defs = build_definitions(profile=profile, overrides=overrides)
     instance = DagsterInstance.get()
+    sync_dataset_partitions(instance, partitions)
+    return defs, instance, partitions
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Materialize the assets of one or more partitions through Dagster (all, or only stale ones)."""
+    from assets.definitions import artifacts_root
+    from assets.staleness import stale_assets
+
+    defs, instance, partitions = _dagster_setup(args)
+    job = defs.resolve_job_def("atlas_gs_all")
     failed = 0
     for p in partitions:
-        result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False)
         root = artifacts_root()
+        selection = None
+        if args.stale_only:
+            stale = stale_assets(defs, instance, p, defs.resources["artifact_io"], defs.resources["atlas"])
+            for a, reasons in stale.items():
+                logger.info("%s [%s] stale: %s", a, p, "; ".join(reasons))
+            if not stale:
+                print(json.dumps({"partition": p, "stale": [], "ran": False,
+                                  "world_bundle": str(root / "world_bundle" / p)}, indent=2))
+                continue
+            from dagster import AssetKey
+
+            selection = [AssetKey(a) for a in stale]
+        result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False,
+                                        asset_selection=selection)
+        reused = sorted({ev.asset_key.path[-1] for ev in result.all_events
+                         if ev.event_type_value == "ASSET_MATERIALIZATION"
+                         and ev.event_specific_data.materialization.metadata.get("reused") is not None
+                         and ev.event_specific_data.materialization.metadata["reused"].value})
+        materialized = sorted({ev.asset_key.path[-1] for ev in result.all_events
+                               if ev.event_type_value == "ASSET_MATERIALIZATION"})
         summary = {
             "partition": p,
             "success": result.success,
             "run_id": result.run_id,
+            "recomputed": [a for a in materialized if a not in reused],
+            "reused": reused,
             "world_bundle": str(root / "world_bundle" / p),
             "transitions": str(root / "world_bundle" / p / "transitions.parquet"),
             "videos": [str(x) for x in sorted((root / "demo_videos" / p).glob("*.mp4"))],
         }
-        if result.success:
-            loc = json.loads((root / "localization_report" / p / "localization.json").read_text())["summary"]
+        if args.stale_only:
+            summary["stale"] = sorted(a.path[-1] for a in selection)
+        loc_path = root / "localization_report" / p / "localization.json"
+        if result.success and loc_path.is_file():
+            loc = json.loads(loc_path.read_text())["summary"]
             summary["localization"] = {k: loc.get(k) for k in ("n_tracked", "n_lost", "n_relocalized", "ate_rmse_m", "rpe_trans_rmse_m_per_s")}
-        else:
+        if not result.success:
             failed += 1
             for ev in result.all_events:
                 if ev.is_failure and ev.step_key:
                     err = ev.event_specific_data.error if hasattr(ev.event_specific_data, "error") else None
                     summary.setdefault("errors", []).append(
                         f"{ev.step_key}: {err.cause.message.strip() if err and err.cause else (err.message.strip() if err else 'failed')}")
+            for ev in result.all_events:
+                if ev.event_type_value == "ASSET_CHECK_EVALUATION" and not ev.event_specific_data.passed:
+                    d = ev.event_specific_data
+                    summary.setdefault("failed_checks", []).append(
+                        f"{d.asset_key.to_user_string()}:{d.check_name}: {d.description or ''}".strip())
         print(json.dumps(summary, indent=2))
     return 1 if failed else 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Print which assets of the partition(s) are stale or missing, and why; runs nothing."""
+    from assets.staleness import stale_assets
+
+    defs, instance, partitions = _dagster_setup(args)
+    out = {p: stale_assets(defs, instance, p, defs.resources["artifact_io"], defs.resources["atlas"])
+           for p in partitions}
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+def cmd_lineage(args: argparse.Namespace) -> int:
+    """Print the lineage of a world bundle (a folder, or a partition's Dagster bundle)."""
+    from atlas_pipeline.scene_memory.bundle import format_lineage, read_lineage
+
+    target = Path(args.bundle).expanduser()
+    if not target.is_dir():
+        from assets.io_managers import artifacts_root
+
+        name = validate_dataset_name(args.bundle)
+        target = artifacts_root() / "world_bundle" / name
+        if not target.is_dir():
+            raise ConfigError(f"'{args.bundle}' is neither a bundle folder nor a partition with a world bundle "
+                              f"(looked in {target})")
+    lin = read_lineage(target)
+    if not args.show_config and not args.json:
+        lin = {k: v for k, v in lin.items() if k != "config"}
+    print(json.dumps(lin, indent=2) if args.json else format_lineage(lin))
+    return 0
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
@@ -230,7 +327,15 @@ def cmd_dataset(args: argparse.Namespace) -> int:
             camera = {"width": args.width, "height": args.height, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
                       "depth_scale": args.depth_scale}
         entry = register_local_dataset(args.name, args.path, camera)
-        print(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path())}, indent=2))
+        _default_dagster_home()
+        from dagster import DagsterInstance
+
+        from assets.definitions import sync_dataset_partitions
+
+        with DagsterInstance.get() as instance:
+            sync_dataset_partitions(instance, [entry.name])
+        print(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path()),
+                          "partition_added": entry.name, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
         return 0
     if args.dataset_cmd == "show":
         reg = load_registry()
@@ -264,6 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     common(b)
     b.add_argument("--input", required=True, help="registered dataset name or TUM-layout folder")
     b.add_argument("--output", required=True, help="world bundle folder to write")
+    b.add_argument("--extend", default=None, metavar="BUNDLE",
+                   help="merge into the world of this earlier bundle (recorded as the lineage parent)")
     b.set_defaults(func=cmd_build)
 
     lo = sub.add_parser("localize", help="localize a dataset's frames against a world bundle")
@@ -288,11 +395,28 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--mode", choices=["orbit", "trajectory"], default="orbit")
     d.set_defaults(func=cmd_demo_video)
 
-    r = sub.add_parser("run", help="materialize every asset of a dataset partition through Dagster")
-    r.add_argument("dataset", nargs="?", default="synthetic", help="partition (registered dataset), default synthetic")
-    r.add_argument("--all", action="store_true", help="every registered dataset")
-    r.add_argument("--profile", default=None, help="config profile for the run (default: default)")
+    def dagster_args(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("dataset", nargs="?", default="synthetic", help="partition (registered dataset), default synthetic")
+        sp.add_argument("--all", action="store_true", help="every registered dataset")
+        sp.add_argument("--profile", default=None, help="config profile for the run (default: default)")
+        sp.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="override one config value, e.g. --set localization.photometric_weight=0.5")
+
+    r = sub.add_parser("run", help="materialize a dataset partition through Dagster (current artifacts are reused)")
+    dagster_args(r)
+    r.add_argument("--stale-only", action="store_true",
+                   help="materialize only the stale or missing assets (nothing when all are current)")
     r.set_defaults(func=cmd_run)
+
+    st = sub.add_parser("status", help="which assets of a partition are stale or missing, and why")
+    dagster_args(st)
+    st.set_defaults(func=cmd_status)
+
+    li = sub.add_parser("lineage", help="print the lineage of a world bundle")
+    li.add_argument("bundle", help="bundle folder, or a partition name (its Dagster world bundle)")
+    li.add_argument("--json", action="store_true", help="machine-readable JSON (includes the resolved config)")
+    li.add_argument("--show-config", action="store_true", help="also print the resolved config")
+    li.set_defaults(func=cmd_lineage)
 
     ds = sub.add_parser("dataset", help="list, show or register datasets (partitions)")
     dsub = ds.add_subparsers(dest="dataset_cmd", required=True)

@@ -1,52 +1,141 @@
-"""The one Dagster ``Definitions`` of Atlas-GS (``dagster dev`` loads ``defs`` from here)."""
+"""The one Dagster ``Definitions`` of Atlas-GS (``dagster dev`` loads ``defs`` from here).
 
-from __future__ import annotations
+Partitions are the registered datasets, kept as Dagster *dynamic* partitions named ``datasets``:
+registering a folder adds a partition without touching code. Three ways keep the instance's
+partitions in step with the registry (``configs/datasets.yaml`` + the local registry file):
 
+* ``atlas-gs dataset add`` / ``atlas-gs run`` add them directly;
+* the ``dataset_registry_sensor`` (running by default under ``dagster dev``) adds every registered
+  dataset that is not a partition yet, so an entry written by hand or by the CLI shows in the UI;
+* the ``register_dataset`` job lets the UI's launchpad register a TUM-layout folder.
+
+Loading this module also adds the registered datasets to the instance of ``$DAGSTER_HOME`` (when it
+is set), so ``dagster asset materialize --partition synthetic -m assets.definitions`` works in a
+fresh home.
+"""
+
+
+import logging
 import os
 from pathlib import Path
+from typing import Any
 
 from dagster import (
     AssetSelection,
+    Config,
+    DagsterInstance,
+    DefaultSensorStatus,
     Definitions,
-    StaticPartitionsDefinition,
+    DynamicPartitionsDefinition,
+    OpExecutionContext,
+    SensorEvaluationContext,
+    SensorResult,
+    SkipReason,
     define_asset_job,
+    job,
+    op,
+    sensor,
 )
 
-from assets.io_managers import ArtifactIOManager
+from assets.io_managers import ArtifactIOManager, artifacts_root
 from assets.pipeline_assets import build_pipeline_assets
 from assets.resources import AtlasConfig
-from atlas_pipeline.config import project_root
-from atlas_pipeline.sensors.registry import load_registry
+from atlas_pipeline.sensors.registry import load_registry, register_local_dataset, validate_dataset_name
+
+logger = logging.getLogger("atlas_gs.definitions")
+
+DATASETS = DynamicPartitionsDefinition(name="datasets")
 
 
-def artifacts_root() -> Path:
-    """``$ATLAS_ARTIFACTS_DIR`` or ``<project>/artifacts``."""
-    env = os.environ.get("ATLAS_ARTIFACTS_DIR")
-    return Path(env).resolve() if env else project_root() / "artifacts"
+def dataset_partitions(names: list[str] | None = None) -> DynamicPartitionsDefinition:
+    """The dataset partitions (dynamic: their keys live in the Dagster instance). ``names`` is
+    accepted for compatibility and ignored; use :func:`sync_dataset_partitions`."""
+    return DATASETS
 
 
-def dataset_partitions(names: list[str] | None = None) -> StaticPartitionsDefinition:
-    """One partition per registered dataset (registry order)."""
-    return StaticPartitionsDefinition(names if names is not None else list(load_registry()))
+def registered_partition_names() -> list[str]:
+    """Registered dataset names (registry order), each checked by the registry's name rule."""
+    return [validate_dataset_name(n) for n in load_registry()]
+
+
+def sync_dataset_partitions(instance: DagsterInstance, names: list[str] | None = None) -> list[str]:
+    """Add every registered dataset (or ``names``) that is not a partition yet; returns the added ones."""
+    wanted = [validate_dataset_name(n) for n in (names if names is not None else registered_partition_names())]
+    have = set(instance.get_dynamic_partitions(DATASETS.name))
+    new = [n for n in wanted if n not in have]
+    if new:
+        instance.add_dynamic_partitions(DATASETS.name, new)
+        logger.info("added dataset partitions: %s", ", ".join(new))
+    return new
+
+
+@sensor(minimum_interval_seconds=30, default_status=DefaultSensorStatus.RUNNING,
+        description="Adds a dynamic partition for every dataset in the registry (configs/datasets.yaml and "
+                    "the local registry) that is not one yet.")
+def dataset_registry_sensor(context: SensorEvaluationContext):
+    try:
+        names = registered_partition_names()
+    except Exception as exc:  # a broken registry file: say which and what, do not crash the daemon
+        return SkipReason(f"dataset registry unreadable: {exc}")
+    have = set(context.instance.get_dynamic_partitions(DATASETS.name))
+    new = [n for n in names if n not in have]
+    if not new:
+        return SkipReason(f"all {len(names)} registered datasets are partitions")
+    return SensorResult(dynamic_partitions_requests=[DATASETS.build_add_request(new)])
+
+
+class RegisterDatasetConfig(Config):
+    """A folder in TUM RGB-D layout to register as a dataset partition."""
+
+    name: str
+    path: str
+    camera: str = "default"
+
+
+@op(description="Validate the name and the TUM layout, write the local registry, add the partition.")
+def register_dataset_op(context: OpExecutionContext, config: RegisterDatasetConfig) -> None:
+    entry = register_local_dataset(config.name, config.path, config.camera)
+    sync_dataset_partitions(context.instance, [entry.name])
+    context.log.info(f"registered dataset {entry.name} -> {entry.path}; partition added")
+
+
+@job(description="Register a TUM-layout folder as a dataset partition (launch from the UI's launchpad "
+                 "with name, path and camera).")
+def register_dataset():
+    register_dataset_op()
 
 
 def build_definitions(artifacts_dir: str | Path | None = None, profile: str = "default",
-                      partition_names: list[str] | None = None) -> Definitions:
+                      partition_names: list[str] | None = None,
+                      overrides: dict[str, Any] | None = None) -> Definitions:
     root = str(artifacts_dir if artifacts_dir is not None else artifacts_root())
-    partitions = dataset_partitions(partition_names)
-    pipeline_assets = build_pipeline_assets(partitions)
+    atlas = AtlasConfig(profile=os.environ.get("ATLAS_PROFILE", profile), overrides=dict(overrides or {}))
+    pipeline_assets = build_pipeline_assets(dataset_partitions(partition_names), atlas.load())
     everything = define_asset_job(
         "atlas_gs_all", selection=AssetSelection.all(),
-        description="Materialize every Atlas-GS asset of one dataset partition.",
+        description="Materialize every Atlas-GS asset of one dataset partition (current artifacts are reused).",
     )
     return Definitions(
         assets=pipeline_assets,
-        jobs=[everything],
+        jobs=[everything, register_dataset],
+        sensors=[dataset_registry_sensor],
         resources={
             "artifact_io": ArtifactIOManager(root=root),
-            "atlas": AtlasConfig(profile=os.environ.get("ATLAS_PROFILE", profile)),
+            "atlas": atlas,
         },
     )
 
 
+def _sync_on_load() -> None:
+    """Best effort: make the registered datasets partitions of ``$DAGSTER_HOME``'s instance."""
+    if not os.environ.get("DAGSTER_HOME") or os.environ.get("ATLAS_SYNC_PARTITIONS", "1") == "0":
+        return
+    try:
+        with DagsterInstance.get() as instance:
+            sync_dataset_partitions(instance)
+    except Exception as exc:  # never stop the code location from loading
+        logger.warning("could not add the registered datasets as partitions: %s", exc)
+
+
 defs = build_definitions()
+_sync_on_load()

@@ -5,28 +5,39 @@ An artifact type is a library class with ``save(directory) -> list[Path]`` and a
 ``load(directory)``. The IO manager writes into a temporary folder and swaps it into place, so a
 failed or interrupted run leaves the previous artifact whole. It also records ``_artifact.json``
 (type, files, sha256 of each, one content hash over all of them) beside the files.
+
+Versioned assets (:mod:`assets.versioning`) hand it a :class:`StagedArtifact` (already written to
+the temporary folder, so its content hash and data version were known when the output was
+yielded; only the swap is left) or a :class:`CachedArtifact` (current on disk: nothing is written).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
+import tempfile
+import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
-from dagster import ConfigurableIOManager, InputContext, OutputContext
+from dagster import ConfigurableIOManager, InputContext, MetadataValue, OutputContext
 
+from atlas_pipeline.config import project_root
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
-from atlas_pipeline.io_utils import atomic_dir, atomic_path, sha256_file, write_json_atomic
+from atlas_pipeline.io_utils import atomic_path, sha256_file, write_json_atomic
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.pipeline import DemoVideos, WorldBundleArtifact
 from atlas_pipeline.sensors.registry import validate_dataset_name
 from atlas_pipeline.sensors.tum import FrameManifest
+from atlas_pipeline.versioning import data_version
 
 
 class ParquetTable:
@@ -60,6 +71,12 @@ ARTIFACT_TYPES: dict[str, Any] = {
 }
 
 
+def artifacts_root() -> Path:
+    """``$ATLAS_ARTIFACTS_DIR`` or ``<project>/artifacts``."""
+    env = os.environ.get("ATLAS_ARTIFACTS_DIR")
+    return Path(env).resolve() if env else project_root() / "artifacts"
+
+
 def artifact_dir(root: str | Path, asset: str, partition: str) -> Path:
     """``<root>/<asset>/<partition>``; the partition name is validated before it becomes a path."""
     validate_dataset_name(partition)
@@ -70,7 +87,73 @@ def read_artifact_record(directory: Path) -> dict[str, Any]:
     path = directory / "_artifact.json"
     if not path.is_file():
         raise ArtifactError(f"{directory}: no artifact record (_artifact.json); materialize the asset first")
-    return json.loads(path.read_text())
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ArtifactError(f"{path}: invalid JSON at line {exc.lineno}: {exc.msg}") from exc
+    if not isinstance(record, dict):
+        raise ArtifactError(f"{path}: expected a JSON object")
+    return record
+
+
+def _load_typed(directory: Path, record: dict[str, Any]) -> Any:
+    handler = ARTIFACT_TYPES.get(record.get("type", ""))
+    if handler is None:
+        raise ArtifactError(f"{directory}: unknown artifact type {record.get('type')!r}")
+    return handler.load(directory)
+
+
+@dataclass
+class StagedArtifact:
+    """An artifact written into a temporary folder beside its target, with its record (content
+    hash, data version) already known; the IO manager swaps it into place."""
+
+    staging: Path
+    target: Path
+    record: dict[str, Any]
+
+
+@dataclass
+class CachedArtifact:
+    """The artifact already on disk is current: the IO manager leaves its files untouched."""
+
+    directory: Path
+    record: dict[str, Any]
+
+
+@dataclass
+class LazyArtifact:
+    """An upstream artifact not loaded yet: its record (data version) is at hand, ``get()`` loads it.
+
+    Assets wrapped by :func:`assets.versioning.atlas_asset` read their upstream artifacts as these,
+    decide from the records whether their own artifact is current, and load the inputs only when
+    they recompute.
+    """
+
+    directory: Path
+    record: dict[str, Any]
+
+    @property
+    def data_version(self) -> str:
+        return str(self.record.get("data_version") or self.record.get("content_hash", ""))
+
+    def get(self) -> Any:
+        return _load_typed(self.directory, self.record)
+
+
+def _file_records(files: list[Path]) -> dict[str, dict[str, Any]]:
+    out = {}
+    for p in sorted(files, key=lambda q: q.name):
+        st = p.stat()
+        out[p.name] = {"bytes": st.st_size, "sha256": sha256_file(p), "mtime_ns": st.st_mtime_ns}
+    return out
+
+
+def _content_hash(record_files: dict[str, dict[str, Any]]) -> str:
+    h = hashlib.sha256()
+    for name, rec in record_files.items():
+        h.update(f"{name}:{rec['sha256']};".encode())
+    return h.hexdigest()
 
 
 class ArtifactIOManager(ConfigurableIOManager):
@@ -83,35 +166,94 @@ class ArtifactIOManager(ConfigurableIOManager):
         partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
         return artifact_dir(self.root, asset, partition)
 
-    def handle_output(self, context: OutputContext, obj: Any) -> None:
+    # -- used by assets.versioning ------------------------------------------------------------
+
+    def directory(self, asset: str, partition: str) -> Path:
+        return artifact_dir(self.root, asset, partition)
+
+    def lazy(self, asset: str, partition: str, needed_by: str) -> LazyArtifact:
+        """The upstream artifact ``asset`` of ``partition`` as a LazyArtifact (record read, data not)."""
+        directory = self.directory(asset, partition)
+        try:
+            return LazyArtifact(directory, read_artifact_record(directory))
+        except ArtifactError as exc:
+            raise ArtifactError(f"{needed_by} [{partition}] needs {asset}: {exc}") from exc
+
+    def record(self, asset: str, partition: str) -> dict[str, Any] | None:
+        """The artifact record of ``asset``/``partition``, None when there is none (or unreadable)."""
+        try:
+            return read_artifact_record(self.directory(asset, partition))
+        except ArtifactError:
+            return None
+
+    def stage(self, asset: str, partition: str, obj: Any, record_extra: dict[str, Any] | None = None,
+              config_hash: str | None = None, run_id: str | None = None) -> StagedArtifact:
+        """Write ``obj`` into a fresh temporary folder beside its target and describe it.
+
+        The record holds the sha256 (and size, mtime) of every file, their content hash and, with
+        ``config_hash``, the data version. Nothing at the target changes until :meth:`commit`.
+        """
         type_name = type(obj).__name__
         handler = ARTIFACT_TYPES.get(type_name)
         if handler is None:
             raise TypeError(f"ArtifactIOManager cannot store a {type_name}; known: {sorted(ARTIFACT_TYPES)}")
-        target = self._dir(context)
-        with atomic_dir(target) as tmp:
+        target = self.directory(asset, partition)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+        tmp.chmod(0o755)
+        try:
             files = handler.save(obj, tmp) if handler is ParquetTable else obj.save(tmp)
-            record_files = {
-                p.name: {"bytes": p.stat().st_size, "sha256": sha256_file(p)} for p in sorted(files)
-            }
-            h = hashlib.sha256()
-            for name, rec in record_files.items():
-                h.update(f"{name}:{rec['sha256']};".encode())
+            record_files = _file_records(list(files))
+            content_hash = _content_hash(record_files)
             record = {
                 "type": type_name,
-                "asset": context.asset_key.to_user_string(),
-                "partition": context.asset_partition_key if context.has_asset_partitions else None,
-                "run_id": context.run_id,
-                "content_hash": h.hexdigest(),
+                "asset": asset,
+                "partition": partition,
+                "run_id": run_id,
+                "content_hash": content_hash,
+                **({"data_version": data_version(content_hash, config_hash)} if config_hash is not None else {}),
                 "files": record_files,
+                **(record_extra or {}),
             }
             write_json_atomic(tmp / "_artifact.json", record)
-        context.add_output_metadata({"path": str(target), "content_hash": record["content_hash"][:16]})
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return StagedArtifact(tmp, target, record)
+
+    @staticmethod
+    def commit(staged: StagedArtifact) -> Path:
+        """Swap a staged folder into place; the previous version is removed only afterwards."""
+        target = staged.target
+        if not staged.staging.is_dir():
+            raise ArtifactError(f"{staged.staging}: staged artifact folder vanished before commit")
+        if target.exists():
+            old = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.old")
+            os.replace(target, old)
+            os.replace(staged.staging, target)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(staged.staging, target)
+        return target
+
+    # -- Dagster IO manager protocol ------------------------------------------------------------
+
+    def handle_output(self, context: OutputContext, obj: Any) -> None:
+        target = self._dir(context)
+        if isinstance(obj, CachedArtifact):
+            # Reused: the files on disk are current; do not touch them.
+            context.add_output_metadata({"path": MetadataValue.path(str(obj.directory)),
+                                         "content_hash": obj.record["content_hash"][:16]})
+            return
+        if not isinstance(obj, StagedArtifact):
+            partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
+            obj = self.stage(context.asset_key.path[-1], partition, obj, run_id=context.run_id)
+        if obj.target.resolve() != target.resolve():
+            raise ArtifactError(f"staged artifact for {obj.target} handed to the output of {target}")
+        self.commit(obj)
+        context.add_output_metadata({"path": MetadataValue.path(str(target)),
+                                     "content_hash": obj.record["content_hash"][:16]})
 
     def load_input(self, context: InputContext) -> Any:
         directory = self._dir(context)
-        record = read_artifact_record(directory)
-        handler = ARTIFACT_TYPES.get(record.get("type", ""))
-        if handler is None:
-            raise ArtifactError(f"{directory}: unknown artifact type {record.get('type')!r}")
-        return handler.load(directory)
+        return _load_typed(directory, read_artifact_record(directory))

@@ -1,12 +1,15 @@
 """The pipeline's software-defined assets, one per phase of the paper.
 
 Each asset unpacks its inputs, calls one library function, and attaches metadata. All of them are
-partitioned by dataset and stored by :class:`assets.io_managers.ArtifactIOManager`.
+partitioned by dataset and stored by :class:`assets.io_managers.ArtifactIOManager`, and all are
+declared with :func:`assets.versioning.atlas_asset`, which gives them code and data versions and
+reuses an artifact whose inputs, config and code are unchanged (see ``assets/versioning.py``).
 """
 
 
 import tempfile
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -17,17 +20,20 @@ from dagster import (
     MetadataValue,
     Output,
     PartitionsDefinition,
-    asset,
 )
 
-from assets.checks import BUNDLE_ROUNDTRIP, GAUSSIANS_VALID, check_bundle_roundtrip, check_gaussians
+from assets.checks import ATE_CHECK, BUNDLE_CHECK, GAUSSIANS_CHECK, TRANSITIONS_CHECK
 from assets.resources import AtlasConfig
+from assets.versioning import atlas_asset, current_asset_info, upstream_lineage
 from atlas_pipeline import pipeline as lib
+from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.sensors.tum import FrameManifest
+from atlas_pipeline.versioning import dataset_signature
+from atlas_pipeline.viz.plots import markdown_image, render_preview_png
 
 GROUP = "atlas_gs"
 IO = "artifact_io"
@@ -45,13 +51,25 @@ def _md_table(df) -> str:
     return head + "\n".join(rows)
 
 
-def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDefinition]:
-    """The asset graph for one partition set (the datasets of the registry)."""
+def _raw_identity(partition: str, atlas: AtlasConfig) -> dict:
+    """What the raw dataset's fingerprint holds besides config: the registry entry and a cheap
+    signature (names, sizes, mtimes) of the dataset's files, so edited frames are noticed."""
+    entry = atlas.dataset(partition)
+    return {"entry": entry.describe(), "files": dataset_signature(entry.path)}
 
-    common = dict(partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP)
 
-    @asset(description="Frame manifest of the dataset: files, timestamps, intrinsics, ground truth, content hash.",
-           code_version="1", **common)
+def build_pipeline_assets(partitions_def: PartitionsDefinition,
+                          cfg: PipelineConfig | None = None) -> list[AssetsDefinition]:
+    """The asset graph for one partition set (the datasets of the registry).
+
+    ``cfg`` is the config the definitions are built with; its section hashes are folded into the
+    code versions Dagster compares, so a config change marks the shaped assets stale.
+    """
+
+    common = dict(partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP, definition_config=cfg)
+
+    @atlas_asset(description="Frame manifest of the dataset: files, timestamps, intrinsics, ground truth, content hash.",
+                 code_version="1", identity=_raw_identity, **common)
     def raw_dataset(context: AssetExecutionContext, atlas: AtlasConfig) -> FrameManifest:
         cfg = atlas.load()
         entry = atlas.dataset(context.partition_key)
@@ -66,8 +84,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         })
         return manifest
 
-    @asset(description="Back-projected coloured points of every frame (camera frame), depth range and stride from config.",
-           code_version="1", **common)
+    @atlas_asset(description="Back-projected coloured points of every frame (camera frame), depth range and stride from config.",
+                 code_version="1", **common)
     def fused_frames(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest) -> FusedFrames:
         t0 = time.perf_counter()
         fused = lib.fuse(raw_dataset, atlas.load(), log=context.log.info)
@@ -79,8 +97,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         })
         return fused
 
-    @asset(description="Mapping poses and keyframes chosen by translation / rotation thresholds.",
-           code_version="1", **common)
+    @atlas_asset(description="Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
+                             "no ground truth) the RGB-D tracker's own trajectory and keyframes.",
+                 code_version="2", **common)
     def keyframes(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                   fused_frames: FusedFrames) -> KeyframeSet:
         kf = lib.select_keyframes_stage(raw_dataset, fused_frames, atlas.load(), log=context.log.info)
@@ -91,23 +110,25 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         })
         return kf
 
-    @asset(description="Gaussian world: voxel merge of the keyframes, incremental, stable uint64 ids.",
-           code_version="1", check_specs=[GAUSSIANS_VALID], **common)
+    @atlas_asset(description="Gaussian world: voxel merge of the keyframes, incremental, stable uint64 ids.",
+                 code_version="1", checks=[GAUSSIANS_CHECK], **common)
     def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, fused_frames: FusedFrames,
-                       keyframes: KeyframeSet):
+                       keyframes: KeyframeSet) -> GaussianWorld:
         world = lib.build_gaussian_world(fused_frames, keyframes, atlas.load(), log=context.log.info)
         lo, hi = world.field.bounds()
-        yield Output(world, metadata={
+        preview = render_preview_png(world.field, world.T_world_cam_keyframes[0])
+        return Output(world, metadata={
             "n_gaussians": len(world.field),
             "map_id": world.map_id,
             "voxel_size_m": world.builder.voxel_size_m,
             "extent_m": MetadataValue.json([round(float(v), 3) for v in hi - lo]),
             "gaussians_after_each_keyframe": MetadataValue.json([int(h) for h in world.history]),
+            "render_preview": MetadataValue.md(markdown_image(preview, "render from the first keyframe")),
         })
-        yield check_gaussians(world.field)
 
-    @asset(description="Per-frame pose estimated against the world (no ground truth used), errors and RMSE where ground truth exists.",
-           code_version="1", **common)
+    @atlas_asset(description="Per-frame pose tracked against the world (frame-to-model, no ground truth used): status, "
+                             "residual, time; ATE and RPE where ground truth exists; trajectory plot.",
+                 code_version="2", checks=[ATE_CHECK], **common)
     def localization_report(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                             gaussian_world: GaussianWorld) -> LocalizationReport:
         report = lib.localize(raw_dataset, gaussian_world, atlas.load(), log=context.log.info)
@@ -121,11 +142,13 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
             "rpe_trans_rmse_m_per_s": _num(s.get("rpe_trans_rmse_m_per_s")),
             "rpe_rot_rmse_deg_per_s": _num(s.get("rpe_rot_rmse_deg_per_s")),
             "frames_per_s": _num(s.get("frames_per_s")),
+            "trajectory_plot": MetadataValue.md(markdown_image(
+                report.trajectory_plot_png(f"{context.partition_key}: top view"), "trajectory, top view")),
         })
         return report
 
-    @asset(description="State-action-state transitions, one row per consecutive frame pair (Parquet).",
-           code_version="1", **common)
+    @atlas_asset(description="State-action-state transitions, one row per consecutive frame pair (Parquet).",
+                 code_version="1", checks=[TRANSITIONS_CHECK], **common)
     def transitions(context: AssetExecutionContext, atlas: AtlasConfig, localization_report: LocalizationReport,
                     gaussian_world: GaussianWorld) -> pa.Table:
         table = lib.log_transitions(localization_report, context.partition_key, len(gaussian_world.field), atlas.load())
@@ -139,8 +162,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         })
         return table
 
-    @asset(description="Orbit and trajectory MP4s (H.264) from the CPU Gaussian rasterizer.",
-           code_version="1", **common)
+    @atlas_asset(description="Orbit and trajectory MP4s (H.264) from the CPU Gaussian rasterizer.",
+                 code_version="1", **common)
     def demo_videos(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                     gaussian_world: GaussianWorld, localization_report: LocalizationReport) -> lib.DemoVideos:
         cfg = atlas.load()
@@ -156,22 +179,32 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition) -> list[AssetsDe
         })
         return videos
 
-    @asset(description="World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, localization.json, transitions.parquet.",
-           code_version="1", check_specs=[BUNDLE_ROUNDTRIP], **common)
+    @atlas_asset(description="World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, localization.json, transitions.parquet.",
+                 code_version="3", checks=[BUNDLE_CHECK], **common)
     def world_bundle(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                      gaussian_world: GaussianWorld, localization_report: LocalizationReport,
                      transitions: pa.Table):
         cfg = atlas.load()
+        info = current_asset_info()
+        upstream = upstream_lineage(context)
         lineage = {
             "partition": context.partition_key,
             "run_id": context.run.run_id,
-            "raw_content_hash": raw_dataset.content_hash,
+            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "profile": atlas.profile,
+            "config_overrides": dict(atlas.overrides),
+            "raw_content_hash": raw_dataset.content_hash,
+            "upstream": upstream,
+            "code_versions": {**{a: u["code_version"] for a, u in upstream.items()},
+                              "world_bundle": info.code_version if info else None},
+            "fingerprint": info.fingerprint if info else None,
+            "parent": None,  # the pipeline builds every partition's world from scratch
         }
         meta = lib.bundle_metadata(context.partition_key, context.partition_key, gaussian_world, raw_dataset, cfg, lineage)
-        yield Output(lib.WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions),
-                     metadata={"n_gaussians": len(gaussian_world.field), "map_id": gaussian_world.map_id})
-        yield check_bundle_roundtrip(gaussian_world.field)
+        return Output(lib.WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions),
+                      metadata={"n_gaussians": len(gaussian_world.field), "map_id": gaussian_world.map_id,
+                                "upstream_data_versions": MetadataValue.json(
+                                    {a: u["data_version"] for a, u in upstream.items()})})
 
     return [raw_dataset, fused_frames, keyframes, gaussian_world, localization_report, transitions,
             demo_videos, world_bundle]

@@ -71,6 +71,7 @@ class LocalizationConfig:
     reference_translation_m: float = 0.05  # photometric reference frame renewed after this motion
     reference_rotation_deg: float = 5.0
     relocalize: bool = True  # lost frames try global relocalization against the map
+    max_ate_m: float = 0.05  # blocking check: ATE RMSE above this (where ground truth exists) fails
 
 
 @dataclass(frozen=True)
@@ -216,6 +217,8 @@ def _validate(obj: Any, source: str) -> None:
             raise bad("localization needs huber_depth_m > 0, photometric_weight >= 0, max_residual_m > 0")
         if not 0 <= obj.min_fitness <= 1:
             raise bad("localization.min_fitness must lie in [0, 1]")
+        if not obj.max_ate_m > 0:
+            raise bad("localization.max_ate_m must be positive")
     if isinstance(obj, VideoConfig):
         if obj.fps <= 0 or obj.orbit_frames < 1 or not 0 < obj.scale <= 4:
             raise bad("video needs fps > 0, orbit_frames >= 1 and 0 < scale <= 4")

@@ -214,8 +214,16 @@ def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_
 
 
 def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: FrameManifest,
-                    cfg: PipelineConfig, lineage: dict[str, Any] | None = None) -> dict[str, Any]:
-    """metadata.json content (beyond what the writer adds: map id, counts, checksums)."""
+                    cfg: PipelineConfig, lineage: dict[str, Any] | None = None,
+                    parent: dict[str, Any] | None = None) -> dict[str, Any]:
+    """metadata.json content (beyond what the writer adds: map id, counts, checksums).
+
+    ``parent`` (see :func:`atlas_pipeline.scene_memory.bundle.parent_reference`) names the bundle
+    this world was extended from; it is recorded as ``lineage.parent``.
+    """
+    lineage = dict(lineage or {})
+    if parent is not None or "parent" not in lineage:
+        lineage["parent"] = parent
     return {
         "name": name,
         "partition": partition,
@@ -231,5 +239,5 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
         "keyframes": {"indices": [int(i) for i in world.keyframe_indices],
                       "T_world_cam": [T.tolist() for T in world.T_world_cam_keyframes]},
         "config": cfg.to_dict(),
-        "lineage": lineage or {},
+        "lineage": lineage,
     }

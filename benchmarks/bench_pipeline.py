@@ -196,9 +196,9 @@ def run_once(entry: DatasetEntry, cfg: PipelineConfig, work: Path) -> dict[str, 
         "mapping_pose_source": keyframes.pose_source,
         "n_gaussians": n_g,
         "localization": {
-            "rmse_t_m": num(s.get("rmse_t_m")),
+            "rpe_trans_rmse_m_per_s": num(s.get("rpe_trans_rmse_m_per_s")),
             "ate_rmse_m": num(s.get("ate_rmse_m")),
-            "rmse_rot_deg": num(s.get("rmse_rot_deg")),
+            "n_relocalized": s.get("n_relocalized"),
             "n_tracked": int(s["n_tracked"]),
             "n_lost": int(s["n_lost"]),
             "n_graded": int(s.get("n_graded", 0)),
@@ -240,9 +240,9 @@ def print_dataset(name: str, entry: DatasetEntry, notes: dict[str, Any], runs: l
     print(f"   {'total':<16}{total:>{max(12, len(rep) + 10)}.3f}{last['n_frames']:>9d}"
           f"{last['n_frames'] / total:>11.2f}")
     loc = last["localization"]
-    print(f"   localization: rmse_t_m {_fmt(loc['rmse_t_m'], '.4f')}  ate_rmse_m {_fmt(loc['ate_rmse_m'], '.4f')}  "
-          f"rmse_rot_deg {_fmt(loc['rmse_rot_deg'], '.3f')}  n_tracked {loc['n_tracked']}  n_lost {loc['n_lost']}  "
-          f"(ICP alone {_fmt(loc['icp_frames_per_s'], '.1f')} frames/s)")
+    print(f"   localization: rpe_m_per_s {_fmt(loc['rpe_trans_rmse_m_per_s'], '.4f')}  ate_rmse_m {_fmt(loc['ate_rmse_m'], '.4f')}  "
+          f"n_relocalized {loc['n_relocalized']}  n_tracked {loc['n_tracked']}  n_lost {loc['n_lost']}  "
+          f"(tracking alone {_fmt(loc['icp_frames_per_s'], '.1f')} frames/s)")
     b = last["bundle"]
     print(f"   world: {last['n_gaussians']} Gaussians from {last['n_keyframes']} keyframes "
           f"({last['mapping_pose_source']} poses, {last['n_fused_points']} fused points)")

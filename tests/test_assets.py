@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 from dagster import DagsterInstance, materialize
 
-from assets.definitions import build_definitions
+from assets.definitions import build_definitions, sync_dataset_partitions
 from assets.io_managers import ArtifactIOManager
 from assets.resources import AtlasConfig
 from atlas_pipeline.scene_memory.bundle import load_world_bundle
@@ -19,11 +19,14 @@ ASSETS = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localiz
           "transitions", "demo_videos", "world_bundle"]
 
 
-def _materialize(root: Path, partition: str, profile: str = "default", overrides=None, raise_on_error=True):
-    defs = build_definitions(root / "artifacts", profile=profile)
-    assets = list(defs.assets)
+def _materialize(root: Path, partition: str, profile: str = "default", overrides=None, raise_on_error=True,
+                 instance=None):
+    """Materialize every asset of ``partition`` in-process (``instance``: ephemeral unless given)."""
+    defs = build_definitions(root / "artifacts", profile=profile, overrides=overrides)
+    instance = instance or DagsterInstance.ephemeral()
+    sync_dataset_partitions(instance)
     return materialize(
-        assets, partition_key=partition, instance=DagsterInstance.ephemeral(),
+        list(defs.assets), partition_key=partition, instance=instance,
         resources={"artifact_io": ArtifactIOManager(root=str(root / "artifacts")),
                    "atlas": AtlasConfig(profile=profile, overrides=overrides or {})},
         raise_on_error=raise_on_error,
@@ -31,14 +34,21 @@ def _materialize(root: Path, partition: str, profile: str = "default", overrides
 
 
 def test_library_does_not_import_dagster():
-    code = "import sys, atlas_pipeline.pipeline, atlas_pipeline.scene_memory.bundle; print('dagster' in sys.modules)"
+    code = ("import sys, atlas_pipeline.pipeline, atlas_pipeline.scene_memory.bundle, atlas_pipeline.versioning, "
+            "atlas_pipeline.viz.plots; print('dagster' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
 
 def test_partitions_come_from_the_registry(isolated):
+    from dagster._core.definitions.partitions.context import partition_loading_context
+
     defs = build_definitions(isolated / "artifacts")
-    keys = defs.resolve_job_def("atlas_gs_all").partitions_def.get_partition_keys()
+    instance = DagsterInstance.ephemeral()
+    assert sync_dataset_partitions(instance)[:1] == ["synthetic"]
+    assert sync_dataset_partitions(instance) == []  # idempotent
+    with partition_loading_context(dynamic_partitions_store=instance):
+        keys = defs.resolve_job_def("atlas_gs_all").partitions_def.get_partition_keys()
     assert keys[0] == "synthetic" and "synth-small" in keys and "tum-fr3-teddy" in keys
 
 
@@ -66,7 +76,8 @@ def test_full_graph_materializes_on_synthetic(isolated):
     assert [v.name for v in videos] == ["synth-small_orbit.mp4", "synth-small_trajectory.mp4"]
     checks = {e.asset_check_evaluation_data.check_name: e.asset_check_evaluation_data.passed
               for e in result.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"}
-    assert checks == {"gaussians_finite_and_nonempty": True, "bundle_reload_identical": True}
+    assert checks == {"gaussians_finite_and_nonempty": True, "bundle_reload_identical": True,
+                      "ate_within_bound": True, "transitions_schema": True}
 
 
 def test_bad_input_fails_and_keeps_earlier_artifacts(isolated):

@@ -19,8 +19,8 @@ import numpy as np
 from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
-from atlas_pipeline.io_utils import write_json_atomic
-from atlas_pipeline.localization.metrics import ate, pose_errors, rpe, write_tum_trajectory
+from atlas_pipeline.io_utils import atomic_path, write_json_atomic
+from atlas_pipeline.localization.metrics import align_rigid, ate, pose_errors, rpe, write_tum_trajectory
 from atlas_pipeline.localization.sequence import (
     STATUS_ANCHOR,
     STATUS_LOST,
@@ -95,7 +95,10 @@ class LocalizationReport:
         js = write_json_atomic(directory / "localization.json", self.to_json())
         est = write_tum_trajectory(directory / "trajectory_estimated.tum", self.timestamps_s, self.T_world_cam)
         gt = write_tum_trajectory(directory / "trajectory_groundtruth.tum", self.timestamps_s, self.T_world_cam_gt)
-        return [js, est, gt]
+        png = directory / "trajectory_top.png"
+        with atomic_path(png) as tmp:
+            tmp.write_bytes(self.trajectory_plot_png())
+        return [js, est, gt, png]
 
     @classmethod
     def load(cls, directory: Path) -> "LocalizationReport":
@@ -121,6 +124,23 @@ class LocalizationReport:
         return cls(d["dataset"], d["map_id"], np.array([f["timestamp_s"] for f in fr]), T,
                    [f["status"] for f in fr], arr("fitness"), arr("inlier_rmse_m"), arr("time_s"), T_gt,
                    arr("error_t_m"), arr("error_rot_deg"), d.get("summary", {}))
+
+    def aligned_poses(self) -> np.ndarray:
+        """``[N, 4, 4]`` estimates moved onto the ground truth's frame by the ATE alignment (as
+        plotted and graded); the estimates themselves where there are fewer than 3 graded frames."""
+        ok = (np.isfinite(self.T_world_cam).all(axis=(1, 2)) & np.isfinite(self.T_world_cam_gt).all(axis=(1, 2))
+              & np.array([s != STATUS_ANCHOR for s in self.status]))
+        if ok.sum() < 3:
+            return self.T_world_cam.copy()
+        return align_rigid(self.T_world_cam[ok], self.T_world_cam_gt[ok]) @ self.T_world_cam
+
+    def trajectory_plot_png(self, title: str = "") -> bytes:
+        """Top view of the (aligned) estimated trajectory against ground truth, as PNG bytes."""
+        from atlas_pipeline.viz.plots import trajectory_png
+
+        has_gt = np.isfinite(self.T_world_cam_gt).all(axis=(1, 2)).any()
+        return trajectory_png(self.aligned_poses()[:, :3, 3], self.T_world_cam_gt[:, :3, 3] if has_gt else None,
+                              title or f"{self.dataset}: top view")
 
     def pose_source_poses(self, source: str) -> np.ndarray:
         """``estimated`` or ``ground_truth`` poses ``[N, 4, 4]``."""

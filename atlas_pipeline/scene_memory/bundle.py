@@ -37,7 +37,7 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
-    "read_metadata", "copy_bundle", "write_bundle_files",
+    "read_metadata", "copy_bundle", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
 ]
 
 BUNDLE_FORMAT = "atlas-gs-world-bundle"
@@ -70,11 +70,18 @@ def write_bundle_files(
     metadata: dict[str, Any],
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
+    extras: tuple[Any, ...] = (),
 ) -> list[Path]:
-    """Write a bundle's files into an existing (empty, temporary) folder; returns the paths."""
+    """Write a bundle's files into an existing (empty, temporary) folder; returns the paths.
+
+    ``extras`` are objects with ``save(directory)`` stored beside the Gaussians (e.g. the
+    ``GaussianWorld`` with its voxel statistics, so the world can be extended later).
+    """
     write_gaussian_ply(field, directory / "gaussians.ply")
     write_atlasgs1(field, directory / "gaussians.bin")
     _write_parts(directory, localization, transitions)
+    for extra in extras:
+        extra.save(directory)
     meta = {
         "format": BUNDLE_FORMAT,
         "version": BUNDLE_VERSION,
@@ -94,12 +101,13 @@ def write_world_bundle(
     metadata: dict[str, Any],
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
+    extras: tuple[Any, ...] = (),
 ) -> Path:
     """Write a complete bundle folder atomically; ``metadata`` (name, lineage, config ...) goes
     into metadata.json."""
     directory = Path(directory)
     with atomic_dir(directory) as tmp:
-        write_bundle_files(tmp, field, metadata, localization, transitions)
+        write_bundle_files(tmp, field, metadata, localization, transitions, extras)
     return directory
 
 
@@ -186,3 +194,73 @@ def copy_bundle(src: Path, dst: Path) -> Path:
                 shutil.copy2(p, tmp / p.name)
     return dst
 
+
+
+def parent_reference(directory: str | Path) -> dict[str, Any]:
+    """How a world extended from the bundle at ``directory`` names it in ``lineage.parent``."""
+    directory = Path(directory).resolve()
+    meta = read_metadata(directory)
+    files = meta.get("files", {})
+    return {
+        "path": str(directory),
+        "map_id": meta.get("map_id"),
+        "partition": meta.get("partition"),
+        "created_at": meta.get("created_at"),
+        "gaussians_bin_sha256": files.get("gaussians.bin", {}).get("sha256"),
+        "run_id": (meta.get("lineage") or {}).get("run_id"),
+    }
+
+
+def read_lineage(directory: str | Path) -> dict[str, Any]:
+    """The lineage of a bundle: partition, upstream data versions, code versions, config, run id,
+    creation time and parent, gathered from its metadata.json."""
+    directory = Path(directory)
+    meta = read_metadata(directory)
+    lin = dict(meta.get("lineage") or {})
+    return {
+        "bundle": str(directory.resolve()),
+        "map_id": meta.get("map_id"),
+        "n_gaussians": meta.get("n_gaussians"),
+        "partition": lin.get("partition", meta.get("partition")),
+        "run_id": lin.get("run_id"),
+        "created_utc": lin.get("created_utc", meta.get("created_at")),
+        "created_by": lin.get("created_by", "dagster" if lin.get("run_id") else None),
+        "profile": lin.get("profile", (meta.get("config") or {}).get("profile")),
+        "config_overrides": lin.get("config_overrides", {}),
+        "dataset": {k: (meta.get("dataset") or {}).get(k) for k in ("name", "root", "n_frames", "content_hash")},
+        "upstream": lin.get("upstream", {}),
+        "code_versions": lin.get("code_versions", {}),
+        "parent": lin.get("parent"),
+        "config": meta.get("config", {}),
+    }
+
+
+def format_lineage(lin: dict[str, Any]) -> str:
+    """Human-readable lineage (what ``atlas-gs lineage`` prints)."""
+    out = [
+        f"bundle      {lin['bundle']}",
+        f"map_id      {lin.get('map_id')}  ({lin.get('n_gaussians')} Gaussians)",
+        f"partition   {lin.get('partition')}",
+        f"run id      {lin.get('run_id') or '-'}",
+        f"created     {lin.get('created_utc') or '-'}" + (f"  by {lin['created_by']}" if lin.get("created_by") else ""),
+        f"profile     {lin.get('profile')}" + (f"  overrides {json.dumps(lin['config_overrides'])}"
+                                              if lin.get("config_overrides") else ""),
+        f"dataset     {lin['dataset'].get('name')} ({lin['dataset'].get('n_frames')} frames, "
+        f"content {str(lin['dataset'].get('content_hash') or '-')[:16]}) at {lin['dataset'].get('root')}",
+    ]
+    parent = lin.get("parent")
+    out.append(f"parent      {parent.get('path')} (map_id {parent.get('map_id')})" if parent else
+               "parent      none (built from scratch)")
+    if lin.get("upstream"):
+        out.append("upstream    asset                 data version              code  config            run id")
+        for a, u in lin["upstream"].items():
+            out.append(f"            {a:21s} {str(u.get('data_version') or '-'):25s} {str(u.get('code_version') or '-'):5s} "
+                       f"{str(u.get('config_hash') or '-'):17s} {u.get('run_id') or '-'}")
+    if lin.get("code_versions"):
+        out.append("code        " + ", ".join(f"{a}={v}" for a, v in lin["code_versions"].items()))
+    for section, values in (lin.get("config") or {}).items():
+        if isinstance(values, dict):
+            out.append(f"config      {section}: " + ", ".join(f"{k}={v}" for k, v in values.items()))
+        else:
+            out.append(f"config      {section}: {values}")
+    return "\n".join(out)

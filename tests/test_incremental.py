@@ -1,0 +1,217 @@
+"""Reruns recompute only what is stale; lineage, dataset partitions and blocking checks."""
+
+import json
+from pathlib import Path
+
+import pytest
+from dagster import DagsterInstance, build_sensor_context, materialize
+
+from assets.cli import main
+from assets.definitions import build_definitions, dataset_registry_sensor, sync_dataset_partitions
+from assets.io_managers import ArtifactIOManager
+from assets.resources import AtlasConfig
+from assets.staleness import dagster_status, stale_assets
+
+PART = "synth-small"
+UPSTREAM = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world"]
+DOWNSTREAM_OF_LOCALIZATION = ["localization_report", "transitions", "demo_videos", "world_bundle"]
+
+
+def _run(root: Path, instance, overrides=None, raise_on_error=True):
+    defs = build_definitions(root / "artifacts", overrides=overrides)
+    sync_dataset_partitions(instance, [PART])
+    return materialize(list(defs.assets), partition_key=PART, instance=instance,
+                       resources={"artifact_io": ArtifactIOManager(root=str(root / "artifacts")),
+                                  "atlas": AtlasConfig(overrides=overrides or {})},
+                       raise_on_error=raise_on_error)
+
+
+def _files(root: Path, assets=None) -> dict[str, tuple[int, bytes]]:
+    art = root / "artifacts"
+    return {str(p.relative_to(art)): (p.stat().st_mtime_ns, p.read_bytes())
+            for p in sorted(art.rglob("*")) if p.is_file() and (assets is None or p.relative_to(art).parts[0] in assets)}
+
+
+def _materializations(result) -> dict[str, dict]:
+    return {ev.asset_key.path[-1]: ev.event_specific_data.materialization.metadata for ev in result.all_events
+            if ev.event_type_value == "ASSET_MATERIALIZATION"}
+
+
+def _data_versions(instance, names):
+    out = {}
+    for a in names:
+        ev = instance.get_latest_materialization_event(__import__("dagster").AssetKey(a))
+        out[a] = ev.dagster_event.event_specific_data.materialization.tags.get("dagster/data_version")
+    return out
+
+
+@pytest.fixture
+def persistent(isolated):
+    with DagsterInstance.get() as instance:  # DAGSTER_HOME of the isolated fixture
+        yield isolated, instance
+
+
+def test_second_run_reuses_everything_and_touches_nothing(persistent):
+    root, instance = persistent
+    first = _run(root, instance)
+    before = _files(root)
+    dv_before = _data_versions(instance, UPSTREAM + DOWNSTREAM_OF_LOCALIZATION)
+    second = _run(root, instance)
+    assert _files(root) == before  # bytes and modification times
+    md = _materializations(second)
+    assert set(md) == set(UPSTREAM + DOWNSTREAM_OF_LOCALIZATION)
+    assert all(m["reused"].value for m in md.values())
+    assert all(not m["reused"].value for m in _materializations(first).values())
+    logs = [e.user_message for e in instance.all_logs(second.run_id) if e.user_message]
+    assert sorted(m.split()[2] for m in logs if m.startswith("reused cached")) == sorted(md)
+    # Same data versions, so nothing downstream becomes stale; checks are reported again.
+    assert _data_versions(instance, list(md)) == dv_before
+    checks = {e.asset_check_evaluation_data.check_name: e.asset_check_evaluation_data.passed
+              for e in second.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"}
+    assert checks == {"gaussians_finite_and_nonempty": True, "ate_within_bound": True,
+                      "transitions_schema": True, "bundle_reload_identical": True}
+    # Metadata worth looking at survives reuse: the plot and the preview travel with the record.
+    assert "trajectory_plot" in md["localization_report"] and "render_preview" in md["gaussian_world"]
+    assert md["localization_report"]["trajectory_plot"].value.startswith("![")
+    assert "preview" in md["transitions"] and "compute_s" in md["fused_frames"]
+
+
+def test_localization_change_recomputes_only_localization_and_downstream(persistent):
+    root, instance = persistent
+    _run(root, instance)
+    up_before = _files(root, UPSTREAM)
+    change = {"localization.photometric_weight": 0.3}
+    # Dagster's view after the definitions pick up the change: localization stale, upstream fresh.
+    defs = build_definitions(root / "artifacts", overrides=change)
+    status = dagster_status(defs, instance, PART)
+    assert status["localization_report"][0] == "STALE"
+    assert all(status[a][0] == "FRESH" for a in UPSTREAM)
+    stale = stale_assets(defs, instance, PART, ArtifactIOManager(root=str(root / "artifacts")), AtlasConfig(overrides=change))
+    assert sorted(stale) == sorted(DOWNSTREAM_OF_LOCALIZATION)
+    result = _run(root, instance, change)
+    md = _materializations(result)
+    assert sorted(a for a, m in md.items() if not m["reused"].value) == sorted(DOWNSTREAM_OF_LOCALIZATION)
+    assert _files(root, UPSTREAM) == up_before
+    rec = json.loads((root / "artifacts" / "localization_report" / PART / "_artifact.json").read_text())
+    assert rec["run_id"] == result.run_id
+    # Everything is current again, in Dagster's view and the artifacts'.
+    assert stale_assets(defs, instance, PART, ArtifactIOManager(root=str(root / "artifacts")),
+                        AtlasConfig(overrides=change)) == {}
+
+
+def test_edited_raw_files_are_noticed(persistent):
+    root, instance = persistent
+    _run(root, instance)
+    fused_before = _files(root, ["fused_frames"])
+    depth = sorted((root / "data" / PART / "depth").iterdir())[3]
+    depth.write_bytes(depth.read_bytes())  # same bytes, new mtime: re-read, content hash unchanged
+    result = _run(root, instance)
+    md = _materializations(result)
+    assert not md["raw_dataset"]["reused"].value and md["fused_frames"]["reused"].value
+    assert _files(root, ["fused_frames"]) == fused_before
+
+
+def test_cli_stale_only_runs_nothing_when_current_then_only_the_changed(isolated, capsys):
+    assert main(["run", PART]) == 0
+    capsys.readouterr()
+    assert main(["run", PART, "--stale-only"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["stale"] == [] and out["ran"] is False
+    assert main(["status", PART, "--set", "localization.photometric_weight=0.5"]) == 0
+    status = json.loads(capsys.readouterr().out)[PART]
+    assert sorted(status) == sorted(DOWNSTREAM_OF_LOCALIZATION)
+    assert main(["run", PART, "--stale-only", "--set", "localization.photometric_weight=0.5"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert sorted(out["stale"]) == sorted(out["recomputed"]) == sorted(DOWNSTREAM_OF_LOCALIZATION)
+    assert out["reused"] == []
+
+
+def test_bundle_lineage_and_lineage_command(persistent, capsys):
+    root, instance = persistent
+    result = _run(root, instance)
+    bundle = root / "artifacts" / "world_bundle" / PART
+    lin = json.loads((bundle / "metadata.json").read_text())["lineage"]
+    assert lin["partition"] == PART and lin["run_id"] == result.run_id and lin["created_utc"]
+    assert set(lin["upstream"]) == set(UPSTREAM) | {"localization_report", "transitions"}
+    dvs = _data_versions(instance, list(lin["upstream"]))
+    assert {a: u["data_version"] for a, u in lin["upstream"].items()} == dvs
+    assert lin["code_versions"]["world_bundle"] and lin["code_versions"]["fused_frames"] == "1"
+    assert lin["parent"] is None
+    assert main(["lineage", PART]) == 0
+    text = capsys.readouterr().out
+    assert f"run id      {result.run_id}" in text and dvs["gaussian_world"] in text and "parent      none" in text
+    assert main(["lineage", str(bundle), "--json"]) == 0
+    js = json.loads(capsys.readouterr().out)
+    assert js["run_id"] == result.run_id and js["config"]["localization"]["photometric_weight"] == 0.1
+    assert main(["lineage", "no-such-bundle"]) == 2
+
+
+def test_extended_world_names_its_parent(isolated, capsys):
+    from atlas_pipeline.scene_memory.bundle import read_lineage
+
+    parent = isolated / "worlds" / "first"
+    assert main(["build", "--input", PART, "--output", str(parent)]) == 0
+    child = isolated / "worlds" / "second"
+    assert main(["build", "--input", PART, "--output", str(child), "--extend", str(parent)]) == 0
+    capsys.readouterr()
+    lin = read_lineage(child)
+    pmeta = json.loads((parent / "metadata.json").read_text())
+    assert lin["parent"]["path"] == str(parent.resolve()) and lin["parent"]["map_id"] == pmeta["map_id"]
+    assert read_lineage(parent)["parent"] is None
+    assert main(["lineage", str(child)]) == 0
+    assert f"parent      {parent.resolve()} (map_id {pmeta['map_id']})" in capsys.readouterr().out
+
+
+def test_failing_blocking_check_stops_downstream(persistent):
+    root, instance = persistent
+    result = _run(root, instance, {"localization.max_ate_m": 1e-9}, raise_on_error=False)
+    checks = {e.asset_check_evaluation_data.check_name: e.asset_check_evaluation_data
+              for e in result.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"}
+    assert checks["ate_within_bound"].passed is False
+    done = set(_materializations(result))
+    assert "localization_report" in done
+    assert not done & {"transitions", "world_bundle", "demo_videos"}
+    assert not (root / "artifacts" / "world_bundle" / PART).exists()
+    # A rerun with the same bound reuses the report and replays the failed check: still gated.
+    again = _run(root, instance, {"localization.max_ate_m": 1e-9}, raise_on_error=False)
+    assert _materializations(again)["localization_report"]["reused"].value
+    assert "world_bundle" not in _materializations(again)
+
+
+def test_dataset_add_adds_a_partition_and_the_sensor_syncs_the_registry(isolated, small_synthetic, capsys):
+    import yaml
+
+    from atlas_pipeline.errors import ConfigError
+    from atlas_pipeline.sensors.registry import validate_dataset_name
+
+    for bad in ("Bad Name!", "../escape", "", "-lead"):
+        with pytest.raises(ConfigError):
+            validate_dataset_name(bad)
+    assert main(["dataset", "add", "../x", str(small_synthetic)]) == 2
+    assert main(["dataset", "add", "my-room", str(small_synthetic), "--camera", "freiburg3"]) == 0
+    with DagsterInstance.get() as instance:
+        assert "my-room" in instance.get_dynamic_partitions("datasets")
+        # A dataset written into the registry by hand: the sensor adds it.
+        reg = isolated / "datasets.local.yaml"
+        data = yaml.safe_load(reg.read_text())
+        data["datasets"]["by-hand"] = {"kind": "tum", "path": str(small_synthetic), "camera": "freiburg1"}
+        reg.write_text(yaml.safe_dump(data))
+        result = dataset_registry_sensor(build_sensor_context(instance=instance))
+        added = [k for r in result.dynamic_partitions_requests for k in r.partition_keys]
+        assert "by-hand" in added and "my-room" not in added
+        # A broken registry is reported, not raised.
+        reg.write_text("datasets:\n  Bad Name: {kind: tum, path: x}\n")
+        skip = dataset_registry_sensor(build_sensor_context(instance=instance))
+        assert "Bad Name" in skip.skip_message and "invalid dataset name" in skip.skip_message
+
+
+def test_register_dataset_job_from_the_ui(isolated, small_synthetic):
+    defs = build_definitions(isolated / "artifacts")
+    with DagsterInstance.get() as instance:
+        job = defs.resolve_job_def("register_dataset")
+        ok = job.execute_in_process(instance=instance, run_config={"ops": {"register_dataset_op": {"config": {
+            "name": "ui-room", "path": str(small_synthetic), "camera": "freiburg3"}}}})
+        assert ok.success and "ui-room" in instance.get_dynamic_partitions("datasets")
+        bad = job.execute_in_process(instance=instance, raise_on_error=False, run_config={"ops": {
+            "register_dataset_op": {"config": {"name": "UI Room", "path": str(small_synthetic)}}}})
+        assert not bad.success and "UI Room" not in instance.get_dynamic_partitions("datasets")
