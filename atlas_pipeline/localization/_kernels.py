@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 __all__ = ["downsample_depth", "downsample_mean", "image_gradients", "splat_surfels", "accumulate_normal_equations"]
 
@@ -66,7 +66,7 @@ def image_gradients(img):
     return gx, gy
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def splat_surfels(pos_w, nrm_w, radius_m, T_world_cam, fx, fy, cx, cy, w, h, max_px):
     """Render oriented disks (surfels) into a pinhole view with a z-buffer.
 
@@ -85,8 +85,11 @@ def splat_surfels(pos_w, nrm_w, radius_m, T_world_cam, fx, fy, cx, cy, w, h, max
     pts = np.full((h, w, 3), np.nan)
     nrm = np.full((h, w, 3), np.nan)
     r2 = radius_m * radius_m
-    for k in range(pos_w.shape[0]):
-        # camera coordinates: R^T (p - t)
+    n = pos_w.shape[0]
+    # Pass 1 (parallel over surfels): camera-frame centre, camera-facing normal, pixel box.
+    cam = np.empty((n, 7))  # xc yc zc nx ny nz n.c
+    box = np.full((n, 4), -1, np.int64)  # ulo uhi vlo vhi; -1 = not visible
+    for k in prange(n):
         dx = pos_w[k, 0] - t[0]
         dy = pos_w[k, 1] - t[1]
         dz = pos_w[k, 2] - t[2]
@@ -108,9 +111,31 @@ def splat_surfels(pos_w, nrm_w, radius_m, T_world_cam, fx, fy, cx, cy, w, h, max
         uhi = min(int(u0) + rp + 1, w - 1)
         vlo = max(int(v0) - rp, 0)
         vhi = min(int(v0) + rp + 1, h - 1)
-        for v in range(vlo, vhi + 1):
+        if ulo > uhi or vlo > vhi:
+            continue
+        cam[k, 0], cam[k, 1], cam[k, 2] = xc, yc, zc
+        cam[k, 3], cam[k, 4], cam[k, 5], cam[k, 6] = nx, ny, nz, ndotc
+        box[k, 0], box[k, 1], box[k, 2], box[k, 3] = ulo, uhi, vlo, vhi
+    # Pass 2 (parallel over image bands): each band writes only its own rows, so there is no
+    # race on the z-buffer and the result does not depend on the number of threads.
+    n_bands = 4
+    band_h = (h + n_bands - 1) // n_bands
+    for band in prange(n_bands):
+        _splat_band(band * band_h, min(h, (band + 1) * band_h), cam, box, r2, fx, fy, cx, cy, zbuf, pts, nrm)
+    return pts, nrm
+
+
+@njit(cache=True)
+def _splat_band(row_lo, row_hi, cam, box, r2, fx, fy, cx, cy, zbuf, pts, nrm):
+    """Surfels into rows ``row_lo:row_hi`` of the buffers (see :func:`splat_surfels`)."""
+    for k in range(cam.shape[0]):
+        if box[k, 0] < 0 or box[k, 3] < row_lo or box[k, 2] >= row_hi:
+            continue
+        xc, yc, zc = cam[k, 0], cam[k, 1], cam[k, 2]
+        nx, ny, nz, ndotc = cam[k, 3], cam[k, 4], cam[k, 5], cam[k, 6]
+        for v in range(max(box[k, 2], row_lo), min(box[k, 3], row_hi - 1) + 1):
             ry = (v - cy) / fy
-            for u in range(ulo, uhi + 1):
+            for u in range(box[k, 0], box[k, 1] + 1):
                 rx = (u - cx) / fx
                 denom = nx * rx + ny * ry + nz
                 if denom > -0.15:  # grazing (> ~80 deg) or back-facing ray
@@ -130,7 +155,6 @@ def splat_surfels(pos_w, nrm_w, radius_m, T_world_cam, fx, fy, cx, cy, w, h, max
                 nrm[v, u, 0] = nx
                 nrm[v, u, 1] = ny
                 nrm[v, u, 2] = nz
-    return pts, nrm
 
 
 @njit(cache=True)
@@ -148,25 +172,15 @@ def _bilinear(img, x, y):
 
 
 @njit(cache=True)
-def accumulate_normal_equations(
+def _accumulate_range(
+    lo, hi, H, g, stats,
     pts_cam, inten_cur, T,
     model_pts, model_nrm, T_ref, mfx, mfy, mcx, mcy, max_dist_m, delta_g,
     ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m,
 ):
-    """Gauss-Newton normal equations of the hybrid residual for a left world-frame update
-    ``T <- exp(xi) T`` with ``xi = (v, omega)``.
-
-    Geometric: point-to-plane ``n . (x - q)`` against the model view (projective association,
-    pixels of ``model_pts`` / ``model_nrm`` in the camera ``T_ref``). Photometric: intensity of the
-    reference image ``ref_I`` at the point's projection minus the point's own intensity, weighted
-    by ``w_photo`` (0 disables it). Huber weights with thresholds ``delta_g`` (m) and ``delta_p``.
-
-    Returns ``(H [6, 6], g [6], stats [6])`` with stats = (sum w r^2 geometric, n geometric,
-    sum w r^2 photometric, n photometric, sum r^2 geometric inliers, n points).
+    """One chunk of :func:`accumulate_normal_equations`: adds points ``lo:hi`` into ``H``
+    (upper triangle), ``g`` and ``stats``.
     """
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
-    stats = np.zeros(6)
     R = T[:3, :3]
     t = T[:3, 3]
     Rr = T_ref[:3, :3]
@@ -177,9 +191,7 @@ def accumulate_normal_equations(
     J = np.zeros(6)
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     has_dist = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
-    n_pts = pts_cam.shape[0]
-    stats[5] = n_pts
-    for k in range(n_pts):
+    for k in range(lo, hi):
         px = R[0, 0] * pts_cam[k, 0] + R[0, 1] * pts_cam[k, 1] + R[0, 2] * pts_cam[k, 2] + t[0]
         py = R[1, 0] * pts_cam[k, 0] + R[1, 1] * pts_cam[k, 1] + R[1, 2] * pts_cam[k, 2] + t[1]
         pz = R[2, 0] * pts_cam[k, 0] + R[2, 1] * pts_cam[k, 1] + R[2, 2] * pts_cam[k, 2] + t[2]
@@ -264,6 +276,47 @@ def accumulate_normal_equations(
                             H[a, b] += wgt * J[a] * J[b]
                     stats[2] += wgt * r * r
                     stats[3] += 1
+
+
+@njit(cache=True, parallel=True)
+def accumulate_normal_equations(
+    pts_cam, inten_cur, T,
+    model_pts, model_nrm, T_ref, mfx, mfy, mcx, mcy, max_dist_m, delta_g,
+    ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m,
+):
+    """Gauss-Newton normal equations of the hybrid residual for a left world-frame update
+    ``T <- exp(xi) T`` with ``xi = (v, omega)``.
+
+    Geometric: point-to-plane ``n . (x - q)`` against the model view (projective association,
+    pixels of ``model_pts`` / ``model_nrm`` in the camera ``T_ref``). Photometric: intensity of the
+    reference image ``ref_I`` at the point's projection minus the point's own intensity, weighted
+    by ``w_photo`` (0 disables it). Huber weights with thresholds ``delta_g`` (m) and ``delta_p``.
+    Points are split into chunks summed in parallel, then added in chunk order (deterministic).
+
+    Returns ``(H [6, 6], g [6], stats [6])`` with stats = (sum w r^2 geometric, n geometric,
+    sum w r^2 photometric, n photometric, sum r^2 geometric inliers, n points).
+    """
+    n_pts = pts_cam.shape[0]
+    n_chunks = 16
+    Hs = np.zeros((n_chunks, 6, 6))
+    gs = np.zeros((n_chunks, 6))
+    ss = np.zeros((n_chunks, 6))
+    step = (n_pts + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        lo = c * step
+        hi = min(n_pts, lo + step)
+        if lo < hi:
+            _accumulate_range(lo, hi, Hs[c], gs[c], ss[c], pts_cam, inten_cur, T,
+                              model_pts, model_nrm, T_ref, mfx, mfy, mcx, mcy, max_dist_m, delta_g,
+                              ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m)
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    stats = np.zeros(6)
+    for c in range(n_chunks):
+        H += Hs[c]
+        g += gs[c]
+        stats += ss[c]
+    stats[5] = n_pts
     for a in range(6):
         for b in range(a):
             H[a, b] = H[b, a]
