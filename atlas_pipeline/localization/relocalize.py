@@ -5,21 +5,23 @@ Two sources of hypotheses, then one refinement and one score for all of them:
 1. *Global registration*: FPFH features of the frame's points and of the map's surfel centres,
    matched by RANSAC (Open3D's ``registration_ransac_based_on_feature_matching``), so a frame can
    be placed anywhere in the map.
-2. *Viewpoint priors*: the poses the map was built from (its keyframes) and, while tracking, the
-   last good pose. A revisited viewpoint converges from these in a few iterations.
+2. *Viewpoint priors*: the poses the map was built from (its keyframes), the same poses swung
+   about the point they look at, and, while tracking, the last good pose.
 
-Each hypothesis is refined with the tracker's geometric alignment (coarse to fine, wide gate) and
-scored by its inlier fraction and residual; the best wins. ``confidence`` is the winner's inlier
+Every hypothesis is screened with the tracker's geometric alignment on the coarse levels, the best
+few are refined on all levels and scored by inlier fraction and residual; the best wins. ``confidence`` is the winner's inlier
 fraction scaled down when a runner-up that disagrees scores almost as well (an ambiguous scene).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
+from atlas_pipeline.geometry import so3_exp
 from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, SurfelModel, TrackResult, pose_change
 
 logger = logging.getLogger(__name__)
@@ -49,6 +51,31 @@ class RelocalizationResult:
     n_hypotheses: int
 
 
+def score(r: TrackResult) -> float:
+    """Higher is better: share of points explained, discounted by their residual."""
+    res = r.residual_m if np.isfinite(r.residual_m) else 1.0
+    return r.inlier_fraction * float(np.exp(-res / 0.01))
+
+
+def orbit_samples(T_world_cam: np.ndarray, frame: FramePyramid,
+                  angles_deg: tuple[float, ...] = (-45.0, -30.0, -15.0, 15.0, 30.0, 45.0)) -> list[np.ndarray]:
+    """Poses ``[4, 4]`` made by swinging ``T_world_cam`` about the point it looks at (median depth
+    of ``frame`` along the optical axis), around the camera's own vertical (image y) axis."""
+    d = frame.depth[-1]
+    z = float(np.median(d[d > 0])) if np.any(d > 0) else 1.5
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    pivot = t + R[:, 2] * z
+    axis = R[:, 1]
+    out = []
+    for a in np.radians(angles_deg):
+        Ra = so3_exp(axis * a)
+        T = np.eye(4)
+        T[:3, :3] = Ra @ R
+        T[:3, 3] = pivot + Ra @ (t - pivot)
+        out.append(T)
+    return out
+
+
 class Relocalizer:
     """Finds a frame's pose in a fixed map (see the module docstring).
 
@@ -61,7 +88,7 @@ class Relocalizer:
     """
 
     def __init__(self, tracker: RGBDTracker, model: SurfelModel, prior_poses: np.ndarray | None = None,
-                 feature_voxel_m: float = 0.05, use_global: bool = True, seed: int = 0):
+                 feature_voxel_m: float = 0.05, use_global: bool = True, seed: int = 0, n_global: int = 6):
         self.tracker = tracker
         self.model = model
         self.priors = np.zeros((0, 4, 4)) if prior_poses is None else np.asarray(prior_poses, np.float64).reshape(-1, 4, 4)
@@ -69,7 +96,14 @@ class Relocalizer:
         self.voxel = feature_voxel_m
         self.use_global = use_global and len(model) >= 30
         self.seed = seed
+        self.n_global = n_global
+        self.n_refine = 4
+        cfg = tracker.cfg
+        # Screening tracker: the same solver on the coarse levels only (a few ms per hypothesis).
+        coarse_iters = tuple(cfg.iterations[:-1]) + (0,) if len(cfg.iterations) > 1 else cfg.iterations
+        self._coarse = RGBDTracker(tracker.camera, dataclasses.replace(cfg, iterations=coarse_iters), tracker.depth_range_m)
         self._map_features = None
+        self._map_cloud = None
 
     def _features(self, points: np.ndarray):
         """Downsampled Open3D cloud with normals and its FPFH features."""
@@ -83,30 +117,44 @@ class Relocalizer:
             pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * self.voxel, max_nn=100))
         return pc, f
 
-    def _global_hypothesis(self, frame: FramePyramid) -> np.ndarray | None:
+    def _global_hypotheses(self, frame: FramePyramid) -> list[np.ndarray]:
+        """Poses from FPFH + RANSAC, several seeded runs (feature matches in man-made scenes are
+        ambiguous, so one run often locks onto a symmetric twin), each polished by a coarse-to-fine
+        point-to-plane ICP whose wide first gate widens the tracker's basin."""
         from atlas_pipeline._open3d import open3d
 
         o3d = open3d()
+        reg = o3d.pipelines.registration
         if self._map_features is None:
             self._map_features = self._features(self.model.centres)
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.model.centres))
+            cloud.normals = o3d.utility.Vector3dVector(self.model.normals)
+            self._map_cloud = cloud
         pts, _ = frame.points(self.tracker.cfg.finest_level + 1)
         if len(pts) < 30:
-            return None
+            return []
         src, src_f = self._features(pts)
         dst, dst_f = self._map_features
         if len(src.points) < 10:
-            return None
-        reg = o3d.pipelines.registration
-        o3d.utility.random.seed(self.seed)  # RANSAC made repeatable
-        res = reg.registration_ransac_based_on_feature_matching(
-            src, dst, src_f, dst_f, True, 1.5 * self.voxel,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * self.voxel)],
-            reg.RANSACConvergenceCriteria(100000, 0.999),
-        )
-        if res.fitness <= 0:
-            return None
-        return np.asarray(res.transformation, np.float64)
+            return []
+        out = []
+        for k in range(self.n_global):
+            o3d.utility.random.seed(self.seed + k)  # RANSAC made repeatable
+            res = reg.registration_ransac_based_on_feature_matching(
+                src, dst, src_f, dst_f, True, 1.5 * self.voxel,
+                reg.TransformationEstimationPointToPoint(False), 3,
+                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * self.voxel)],
+                reg.RANSACConvergenceCriteria(100000, 0.999),
+            )
+            if res.fitness <= 0:
+                continue
+            T = np.asarray(res.transformation, np.float64)
+            for gate in (4.0 * self.voxel, 2.0 * self.voxel, self.voxel):
+                T = np.asarray(reg.registration_icp(src, self._map_cloud, gate, T,
+                                                    reg.TransformationEstimationPointToPlane(),
+                                                    reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
+            out.append(T)
+        return out
 
     def relocalize(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
         """Pose of ``frame`` in the map, with no initial guess needed."""
@@ -114,26 +162,28 @@ class Relocalizer:
         hyps += [("keyframe", T) for T in self.priors]
         if self.use_global:
             try:
-                T = self._global_hypothesis(frame)
+                hyps += [("global", T) for T in self._global_hypotheses(frame)]
             except RuntimeError as exc:  # Open3D reports degenerate inputs this way
                 logger.debug("global registration failed: %s", exc)
-                T = None
-            if T is not None:
-                hyps.append(("global", T))
         if not hyps:
             return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "none", 0)
-        # Priors first: cheap screen at the coarse levels only, then full refinement of the best few.
-        results: list[tuple[str, TrackResult]] = []
+        # Viewpoints around each prior: the camera swung about the point it looks at (an RGB-D
+        # session usually circles what it scans), so a later frame from further round is reachable.
+        hyps += [("keyframe", T) for _, P in list(hyps) if _ == "keyframe" for T in orbit_samples(P, frame)]
+        # Screen every hypothesis with the coarse levels only, then refine the best few fully.
+        screened: list[tuple[float, str, TrackResult]] = []
         for src, T in hyps:
-            r = self.tracker.align(frame, self.model, T, None)
+            r = self._coarse.align(frame, self.model, T, None)
+            if np.all(np.isfinite(r.T_world_cam)):
+                screened.append((score(r), src, r))
+        screened.sort(key=lambda x: -x[0])
+        results: list[tuple[str, TrackResult]] = []
+        for _, src, rc in screened[: self.n_refine]:
+            r = self.tracker.align(frame, self.model, rc.T_world_cam, None)
             if np.all(np.isfinite(r.T_world_cam)):
                 results.append((src, r))
         if not results:
             return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "none", len(hyps))
-
-        def score(r: TrackResult) -> float:
-            res = r.residual_m if np.isfinite(r.residual_m) else 1.0
-            return r.inlier_fraction * np.exp(-res / 0.01)
 
         results.sort(key=lambda sr: -score(sr[1]))
         src, best = results[0]
