@@ -75,13 +75,12 @@ def cmd_build(args: argparse.Namespace) -> int:
     entry = _dataset(args.input, args.camera)
     manifest = lib.load_dataset(entry, cfg)
     fused = lib.fuse(manifest, cfg)
-    keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
     from atlas_pipeline.scene_memory.bundle import parent_reference, write_world_bundle
 
     parent = None
     if args.extend:
         from atlas_pipeline.gaussian_world.builder import GaussianWorld
-        from atlas_pipeline.mapping.mapper import extend_world
+        from atlas_pipeline.mapping.mapper import extend_world, extend_world_by_tracking
 
         parent = parent_reference(args.extend)  # checks it is a bundle
         try:
@@ -89,9 +88,20 @@ def cmd_build(args: argparse.Namespace) -> int:
         except AtlasError as exc:
             raise ConfigError(f"{args.extend}: cannot extend this bundle, it has no voxel statistics "
                               f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
-        world = extend_world(previous, fused, keyframes, cfg.mapping)
+        if cfg.mapping.pose_source == "ground_truth":
+            # Ground-truth poses of the new sequence are taken to share the parent's frame.
+            keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
+            world = extend_world(previous, fused, keyframes, cfg.mapping)
+        else:
+            # A second session: relocalize in the saved world, then track and map into it.
+            world, _, _ = extend_world_by_tracking(
+                previous, manifest, cfg.mapping, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+                cfg.fusion.stride)
+        n_new_keyframes = len(world.keyframe_indices) - len(previous.keyframe_indices)
     else:
+        keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
         world = lib.build_gaussian_world(fused, keyframes, cfg)
+        n_new_keyframes = len(keyframes.indices)
     from datetime import datetime, timezone
 
     lineage = {"created_by": "atlas-gs build", "partition": entry.name, "run_id": None,
@@ -101,7 +111,8 @@ def cmd_build(args: argparse.Namespace) -> int:
     write_world_bundle(args.output, world.field, meta, extras=(world,))
     logger.info("wrote world with %d Gaussians to %s", len(world.field), args.output)
     print(json.dumps({"world": str(Path(args.output).resolve()), "n_gaussians": len(world.field),
-                      "n_keyframes": int(len(keyframes.indices)), "map_id": world.map_id}, indent=2))
+                      "n_keyframes": int(n_new_keyframes), "map_id": world.map_id,
+                      "parent": parent}, indent=2, default=str))
     return 0
 
 
@@ -370,7 +381,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--input", required=True, help="registered dataset name or TUM-layout folder")
     b.add_argument("--output", required=True, help="world bundle folder to write")
     b.add_argument("--extend", default=None, metavar="BUNDLE",
-                   help="merge into the world of this earlier bundle (recorded as the lineage parent)")
+                   help="keep mapping into the world of this earlier bundle, recorded as the lineage parent: "
+                        "the first frame is relocalized in it, then frames are tracked and keyframes merged "
+                        "(with mapping.pose_source ground_truth: merged at their ground-truth poses)")
     b.set_defaults(func=cmd_build)
 
     lo = sub.add_parser("localize", help="localize a dataset's frames against a world bundle")

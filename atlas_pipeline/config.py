@@ -66,7 +66,8 @@ class LocalizationConfig:
     huber_depth_m: float = 0.01
     photometric_weight: float = 0.1  # 0 = geometry only
     motion_model: Literal["constant_velocity", "none"] = "constant_velocity"
-    min_fitness: float = 0.3  # share of frame points with a model correspondence; below it: lost
+    min_fitness: float = 0.15  # share of frame points with a model correspondence; below it: lost
+    min_agreement: float = 0.6  # share of the points landing on the map that fit it; below it: lost
     max_residual_m: float = 0.02  # RMS point-to-plane residual; above it: lost
     reference_translation_m: float = 0.05  # photometric reference frame renewed after this motion
     reference_rotation_deg: float = 5.0
@@ -215,8 +216,8 @@ def _validate(obj: Any, source: str) -> None:
             raise bad("localization needs 0 < min_correspondence_m <= max_correspondence_m")
         if obj.huber_depth_m <= 0 or obj.photometric_weight < 0 or obj.max_residual_m <= 0:
             raise bad("localization needs huber_depth_m > 0, photometric_weight >= 0, max_residual_m > 0")
-        if not 0 <= obj.min_fitness <= 1:
-            raise bad("localization.min_fitness must lie in [0, 1]")
+        if not 0 <= obj.min_fitness <= 1 or not 0 <= obj.min_agreement <= 1:
+            raise bad("localization.min_fitness and min_agreement must lie in [0, 1]")
         if not obj.max_ate_m > 0:
             raise bad("localization.max_ate_m must be positive")
     if isinstance(obj, VideoConfig):

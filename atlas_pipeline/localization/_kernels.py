@@ -204,6 +204,7 @@ def _accumulate_range(
             u = int(mfx * xr / zr + mcx + 0.5)
             v = int(mfy * yr / zr + mcy + 0.5)
             if 0 <= u < mw and 0 <= v < mh and model_pts[v, u, 2] == model_pts[v, u, 2]:
+                stats[6] += 1
                 ex = xr - model_pts[v, u, 0]
                 ey = yr - model_pts[v, u, 1]
                 ez = zr - model_pts[v, u, 2]
@@ -293,14 +294,15 @@ def accumulate_normal_equations(
     by ``w_photo`` (0 disables it). Huber weights with thresholds ``delta_g`` (m) and ``delta_p``.
     Points are split into chunks summed in parallel, then added in chunk order (deterministic).
 
-    Returns ``(H [6, 6], g [6], stats [6])`` with stats = (sum w r^2 geometric, n geometric,
-    sum w r^2 photometric, n photometric, sum r^2 geometric inliers, n points).
+    Returns ``(H [6, 6], g [6], stats [7])`` with stats = (sum w r^2 geometric, n geometric,
+    sum w r^2 photometric, n photometric, sum r^2 geometric inliers, n points, n points that
+    land on the model view).
     """
     n_pts = pts_cam.shape[0]
     n_chunks = 16
     Hs = np.zeros((n_chunks, 6, 6))
     gs = np.zeros((n_chunks, 6))
-    ss = np.zeros((n_chunks, 6))
+    ss = np.zeros((n_chunks, 7))
     step = (n_pts + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
         lo = c * step
@@ -311,7 +313,7 @@ def accumulate_normal_equations(
                               ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m)
     H = np.zeros((6, 6))
     g = np.zeros(6)
-    stats = np.zeros(6)
+    stats = np.zeros(7)
     for c in range(n_chunks):
         H += Hs[c]
         g += gs[c]

@@ -193,7 +193,7 @@ def localize_sequence(
             rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
             depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
             given = T_world_cam_start if (i == anchor_index and T_world_cam_start is not None) else None
-            est = st.process(i, rgb, depth, T_given=given)
+            est = st.process(i, rgb, depth, T_given=given, timestamp_s=float(manifest.timestamps_s[i]))
             T_est[i], status[i] = est.T_world_cam, est.status
             fitness[i], rmse[i], times[i] = est.inlier_fraction, est.residual_m, est.time_s
             counts[est.status] = counts.get(est.status, 0) + 1

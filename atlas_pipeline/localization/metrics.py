@@ -140,7 +140,8 @@ def rpe(timestamps_s: np.ndarray, poses_est: np.ndarray, poses_gt: np.ndarray, d
     """Relative pose error over a fixed interval (TUM ``evaluate_rpe`` with ``fixed_delta``).
 
     For each matched pose ``i``, ``j`` is the pose ``delta`` later (``unit="s"``: the one whose
-    timestamp is closest to ``t_i + delta``; ``unit="frames"``: ``i + delta``, as evo's ``rpe``).
+    timestamp is closest to ``t_i + delta``, until that is the last pose, as TUM's script does;
+    ``unit="frames"``: ``i + delta``, as evo's ``rpe``).
     Error ``E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)``; translational RMSE in metres (per ``delta``), and
     rotational RMSE in degrees. No alignment is needed: relative motions are frame-independent.
     """
@@ -155,10 +156,13 @@ def rpe(timestamps_s: np.ndarray, poses_est: np.ndarray, poses_gt: np.ndarray, d
             raise ValueError("delta in frames must be >= 1")
         pairs = [(i, i + d) for i in range(n - d)]
     elif unit == "s":
+        # TUM's evaluate_rpe (fixed delta): j is the pose closest in time to t_i + delta, and the
+        # pairing stops once that is the last pose (the interval no longer fits in the sequence).
         for i in range(n):
             j = int(np.argmin(np.abs(ts - (ts[i] + delta))))
-            # Skip pairs the sequence is too short for (j would be the last frame, far off the interval).
-            if j > i and abs(ts[j] - ts[i] - delta) <= 0.5 * delta:
+            if j == n - 1:
+                break
+            if j > i:
                 pairs.append((i, j))
     else:
         raise ValueError(f"unit must be 's' or 'frames', got {unit!r}")

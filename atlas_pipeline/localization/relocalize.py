@@ -124,6 +124,8 @@ class Relocalizer:
         from atlas_pipeline._open3d import open3d
 
         o3d = open3d()
+        # Open3D prints a warning per RANSAC run when the mutual filter leaves few matches.
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
         reg = o3d.pipelines.registration
         if self._map_features is None:
             self._map_features = self._features(self.model.centres)

@@ -100,6 +100,8 @@ class SequenceTracker:
         """Forget the motion state (e.g. before tracking backwards from the anchor)."""
         self._last: tuple[int, np.ndarray] | None = None if T_world_cam is None else (index, np.asarray(T_world_cam, np.float64))
         self._prev: tuple[int, np.ndarray] | None = None
+        self._t_last: float | None = None
+        self._t_prev: float | None = None
         self._ref = None  # (pyramid, pose) of the photometric reference
         self._last_kf_pose: np.ndarray | None = self.keyframe_poses[-1] if self.keyframe_poses else None
 
@@ -109,30 +111,42 @@ class SequenceTracker:
             self._relocalizer = Relocalizer(self.tracker, self.model, np.array(self.priors + self.keyframe_poses))
         return self._relocalizer
 
-    def _predict(self, index: int) -> np.ndarray:
+    def _predict(self, index: int, timestamp_s: float | None = None) -> np.ndarray:
+        """Constant-velocity guess from the last two frames when they and this one are evenly
+        spaced in time (within a factor 1.5); the last pose otherwise (a gap in the recording,
+        a restart after a loss)."""
         assert self._last is not None
         li, lT = self._last
         if (self.cfg.motion_model == "constant_velocity" and self._prev is not None
                 and self._prev[0] == li - (index - li) and abs(index - li) == 1):
-            return predict_constant_velocity(lT, self._prev[1])
+            if timestamp_s is None or self._t_last is None or self._t_prev is None:
+                return predict_constant_velocity(lT, self._prev[1])
+            dt, dt_prev = abs(timestamp_s - self._t_last), abs(self._t_last - self._t_prev)
+            if dt_prev > 0 and 1 / 1.5 <= dt / dt_prev <= 1.5:
+                return predict_constant_velocity(lT, self._prev[1])
         return lT.copy()
 
     # -- one frame -----------------------------------------------------------------------------
     def process(self, index: int, rgb: np.ndarray | None, depth_m: np.ndarray,
-                T_given: np.ndarray | None = None) -> FrameEstimate:
-        """Estimate frame ``index``; ``T_given`` makes it an anchor with that pose."""
+                T_given: np.ndarray | None = None, timestamp_s: float | None = None) -> FrameEstimate:
+        """Estimate frame ``index``; ``T_given`` makes it an anchor with that pose.
+
+        Args:
+            rgb: ``[H, W, 3]`` uint8 or None (geometry only); depth_m ``[H, W]`` float32.
+            timestamp_s: the frame's time; a gap in time switches the motion model off for it.
+        """
         t0 = time.perf_counter()
         fp = self.tracker.prepare(rgb, depth_m)
         nan = float("nan")
         if T_given is not None:
             est = FrameEstimate(index, np.asarray(T_given, np.float64).copy(), STATUS_ANCHOR, nan, nan, 0.0)
         elif fp.n_valid < _MIN_VALID_DEPTH:
-            T = self._predict(index) if self._last is not None else np.full((4, 4), np.nan)
+            T = self._predict(index, timestamp_s) if self._last is not None else np.full((4, 4), np.nan)
             est = FrameEstimate(index, T, STATUS_LOST, 0.0, nan, 0.0, note="no valid depth")
         elif self._last is None or len(self.model) == 0:
             est = self._relocalize(index, fp, [])
         else:
-            guess = self._predict(index)
+            guess = self._predict(index, timestamp_s)
             use_photo = self.cfg.photometric_weight > 0 and self._ref is not None
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None)
             if not res.ok:
@@ -148,7 +162,7 @@ class SequenceTracker:
                 est = FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0,
                                     note="poor alignment")
         if est.status != STATUS_LOST:
-            self._accept(index, fp, est)
+            self._accept(index, fp, est, timestamp_s)
         est.time_s = time.perf_counter() - t0
         return est
 
@@ -166,11 +180,13 @@ class SequenceTracker:
         return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, r.inlier_fraction, r.residual_m, 0.0,
                              note="relocalization failed")
 
-    def _accept(self, index: int, fp, est: FrameEstimate) -> None:
+    def _accept(self, index: int, fp, est: FrameEstimate, timestamp_s: float | None) -> None:
         T = est.T_world_cam
         consecutive = self._last is not None and abs(index - self._last[0]) == 1 and est.status == STATUS_TRACKED
         self._prev = self._last if consecutive else None
+        self._t_prev = self._t_last if consecutive else None
         self._last = (index, T)
+        self._t_last = timestamp_s
         if self._ref is None or est.status != STATUS_TRACKED or _moved(self._ref[1], T, self.cfg.reference_translation_m,
                                                                         self.cfg.reference_rotation_deg):
             self._ref = (fp, T)

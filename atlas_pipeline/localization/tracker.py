@@ -124,7 +124,7 @@ class FramePyramid:
 
 
 def surfels_from_voxels(ids: np.ndarray, count: np.ndarray, sum_xyz: np.ndarray, sum_sq: np.ndarray,
-                        min_points: int = 1, min_support: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                        min_points: int = 1, min_support: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Surfel centres and normals from voxel statistics.
 
     Args:
@@ -211,6 +211,8 @@ class TrackResult:
     Attributes:
         T_world_cam: ``[4, 4]`` estimate.
         inlier_fraction: share of the frame's finest-level points with a model correspondence.
+        agreement: share of the points that land on the model view that are correspondences
+            (low: the frame overlaps the map but does not fit it, i.e. a wrong pose).
         residual_m: RMS point-to-plane residual of those correspondences.
         n_points: finest-level points used.
         ok: alignment judged good (see :meth:`RGBDTracker.judge`).
@@ -222,6 +224,7 @@ class TrackResult:
     n_points: int
     ok: bool
     iterations: int = 0
+    agreement: float = float("nan")
 
 
 class RGBDTracker:
@@ -315,13 +318,16 @@ class RGBDTracker:
         )
         n = int(stats[5])
         frac = float(stats[1] / n) if n else 0.0
+        agree = float(stats[1] / stats[6]) if stats[6] else 0.0
         res = float(np.sqrt(stats[4] / stats[1])) if stats[1] else float("nan")
         T = orthonormalize(T)
-        return TrackResult(T, frac, res, n, self.judge(frac, res), total_it)
+        return TrackResult(T, frac, res, n, self.judge(frac, res, agree), total_it, agree)
 
-    def judge(self, inlier_fraction: float, residual_m: float) -> bool:
-        return (inlier_fraction >= self.cfg.min_fitness and np.isfinite(residual_m)
-                and residual_m <= self.cfg.max_residual_m)
+    def judge(self, inlier_fraction: float, residual_m: float, agreement: float = 1.0) -> bool:
+        """Good alignment: enough of the frame explained by the map, the part of it that overlaps
+        the map mostly agreeing with it, and a small residual."""
+        return (inlier_fraction >= self.cfg.min_fitness and agreement >= self.cfg.min_agreement
+                and np.isfinite(residual_m) and residual_m <= self.cfg.max_residual_m)
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:

@@ -71,7 +71,7 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
         depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
         # The first frame with depth anchors the world at the identity.
         anchor = None if started or np.count_nonzero(depth) < 200 else np.eye(4)
-        est = st.process(i, rgb, depth, T_given=anchor)
+        est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]))
         started = started or anchor is not None
         poses[i] = est.T_world_cam
         status.append(est.status)

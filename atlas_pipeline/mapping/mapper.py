@@ -15,7 +15,7 @@ from atlas_pipeline.progress import Progress
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["build_world", "extend_world"]
+__all__ = ["build_world", "extend_world", "extend_world_by_tracking"]
 
 
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
@@ -57,3 +57,55 @@ def build_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: MappingConfig,
     world = extend_world(None, fused, keyframes, cfg, log)
     logger.info("built world: %d Gaussians from %d keyframes", len(world.field), len(keyframes.indices))
     return world
+
+
+def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingConfig, localization,
+                             depth_range_m: tuple[float, float], fusion_stride: int,
+                             log: Callable[[str], None] | None = None):
+    """A second session inside a saved world: the first frame is relocalized in ``world`` (no
+    initial pose), then every frame is tracked against the world and keyframes are merged into a
+    copy of its voxel statistics (ids of surfaces seen before are kept).
+
+    Returns ``(extended world, T_world_cam [N, 4, 4], status [N])``; ``world`` is not modified.
+    Raises :class:`DatasetError` when no frame of the sequence can be placed in the world.
+    """
+    import copy
+
+    from atlas_pipeline.errors import DatasetError
+    from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+
+    if abs(world.builder.voxel_size_m - mapping.voxel_size_m) > 1e-12:
+        raise ValueError(f"cannot extend a world built with {world.builder.voxel_size_m} m voxels "
+                         f"using {mapping.voxel_size_m} m")
+    builder = copy.deepcopy(world.builder)
+    st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=builder,
+                         keyframe_translation_m=mapping.keyframe_translation_m,
+                         keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
+                         prior_poses=world.T_world_cam_keyframes)
+    n = manifest.n_frames
+    poses = np.full((n, 4, 4), np.nan)
+    status: list[str] = []
+    history = list(world.history)
+    progress = Progress("tracking into the saved world", n, log)
+    for i in range(n):
+        rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
+        depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+        est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]))
+        poses[i], _ = est.T_world_cam, status.append(est.status)
+        if est.keyframe:
+            history.append(len(builder))
+        progress.update(extra=est.status)
+    if status.count(STATUS_LOST) == n:
+        raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
+                                          "everywhere): is it a world of the same place?")
+    idx = np.asarray(st.keyframe_indices, np.int64)
+    extended = GaussianWorld(
+        field=builder.to_field(), builder=builder,
+        keyframe_indices=np.concatenate([world.keyframe_indices, idx]).astype(np.int64),
+        T_world_cam_keyframes=np.concatenate([world.T_world_cam_keyframes, poses[idx]]) if len(idx) else world.T_world_cam_keyframes,
+        pose_source="estimated", history=np.asarray(history, np.int64),
+    )
+    logger.info("extended world: %d -> %d Gaussians, %d new keyframes, %d frames lost",
+                len(world.field), len(extended.field), len(idx), status.count(STATUS_LOST))
+    return extended, poses, status

@@ -1,0 +1,234 @@
+"""Tracking without ground truth, loss and relocalization, and trajectory metrics (checked against evo)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from atlas_pipeline import pipeline as lib
+from atlas_pipeline.config import load_profile
+from atlas_pipeline.errors import DatasetError
+from atlas_pipeline.geometry import pose_from_tq, so3_exp
+from atlas_pipeline.localization.localizer import localize_sequence
+from atlas_pipeline.localization.metrics import (
+    ate,
+    evaluate_trajectories,
+    match_trajectories,
+    read_tum_trajectory,
+    rpe,
+    write_tum_trajectory,
+)
+from atlas_pipeline.localization.relocalize import Relocalizer
+from atlas_pipeline.localization.sequence import SequenceTracker
+from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, pose_change
+from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+
+# Half-size synthetic sequence: enough pixels for relocalization, quick to generate.
+MEDIUM_SYNTH = {"seed": 0, "n_frames": 24, "width": 320, "height": 240,
+                "fx": 262.5, "fy": 262.5, "cx": 159.5, "cy": 119.5}
+
+
+@pytest.fixture(scope="module")
+def medium_manifest(tmp_path_factory):
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    spec = SyntheticSpec(**MEDIUM_SYNTH)
+    root = generate_synthetic_dataset(tmp_path_factory.mktemp("synth") / "synth-medium", spec)
+    return load_tum_sequence(root, spec.camera(), "synth-medium")
+
+
+def _smooth_trajectory(n: int, rng: np.random.Generator) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, n)
+    pos = np.stack([np.cos(t), np.sin(t), 0.2 * np.sin(2 * t)], axis=1)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        poses[i, :3, :3] = so3_exp(np.array([0.1 * np.sin(t[i]), 0.2 * np.cos(t[i]), t[i]]))
+        poses[i, :3, 3] = pos[i]
+    return poses
+
+
+# ---- metrics ------------------------------------------------------------------------------------
+
+
+def test_ate_and_rpe_match_evo_on_the_same_tum_files(tmp_path):
+    evo_sync = pytest.importorskip("evo.core.sync")
+    from evo.core import metrics
+    from evo.core.units import Unit
+    from evo.tools import file_interface
+
+    rng = np.random.default_rng(0)
+    n = 60
+    gt = _smooth_trajectory(n + 10, rng)
+    ts_gt = np.arange(n + 10) / 30.0
+    # Estimate: a rigidly moved copy with noise, 5 ms late, missing the first and last frames.
+    S = pose_from_tq(np.array([0.3, -0.2, 1.0]), np.array([0.1, 0.2, 0.3, 0.9]))
+    est = S @ gt[5:5 + n]
+    est[:, :3, 3] += rng.normal(scale=0.01, size=(n, 3))
+    for i in range(n):
+        est[i, :3, :3] = est[i, :3, :3] @ so3_exp(rng.normal(scale=0.01, size=3))
+    ts_est = ts_gt[5:5 + n] + 0.005
+    f_est = write_tum_trajectory(tmp_path / "est.tum", ts_est, est)
+    f_gt = write_tum_trajectory(tmp_path / "gt.tum", ts_gt, gt)
+
+    t_e, P = read_tum_trajectory(f_est)
+    t_g, G = read_tum_trajectory(f_gt)
+    ours = evaluate_trajectories(t_e, P, t_g, G)
+    assert ours["n_matched"] == n
+
+    ref = file_interface.read_tum_trajectory_file(str(f_gt))
+    tra = file_interface.read_tum_trajectory_file(str(f_est))
+    ref, tra = evo_sync.associate_trajectories(ref, tra, max_diff=0.02)
+    tra.align(ref, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, tra))
+    assert ours["ate_rmse_m"] == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse), rel=1e-6)
+
+    # RPE over a fixed number of frames, translation and rotation, against evo's.
+    ts, Pm, Gm = match_trajectories(t_e, P, t_g, G)
+    ref2 = file_interface.read_tum_trajectory_file(str(f_gt))
+    tra2 = file_interface.read_tum_trajectory_file(str(f_est))
+    ref2, tra2 = evo_sync.associate_trajectories(ref2, tra2, max_diff=0.02)
+    for relation, key in ((metrics.PoseRelation.translation_part, "trans_rmse_m"),
+                          (metrics.PoseRelation.rotation_angle_deg, "rot_rmse_deg")):
+        r_evo = metrics.RPE(relation, delta=5, delta_unit=Unit.frames, all_pairs=True)  # every i, as ours
+        r_evo.process_data((ref2, tra2))
+        assert rpe(ts, Pm, Gm, 5, "frames")[key] == pytest.approx(r_evo.get_statistic(metrics.StatisticsType.rmse), rel=1e-6)
+
+
+def test_ate_is_blind_to_a_rigid_change_of_frame_and_rpe_per_second_pairs_by_time():
+    rng = np.random.default_rng(1)
+    gt = _smooth_trajectory(90, rng)
+    ts = np.arange(90) / 30.0
+    S = pose_from_tq(np.array([1.0, 2.0, 3.0]), np.array([0.3, -0.1, 0.2, 0.9]))
+    a = ate(S @ gt, gt)
+    assert a["rmse_m"] < 1e-9 and a["rot_rmse_deg"] < 1e-6
+    r = rpe(ts, S @ gt, gt, 1.0, "s")
+    assert r["n_pairs"] == 59 and r["trans_rmse_m"] < 1e-9  # pairs (i, i + 30 frames) until j is the last
+
+
+def test_read_tum_trajectory_names_file_and_line(tmp_path):
+    p = tmp_path / "bad.tum"
+    p.write_text("# timestamp tx ty tz qx qy qz qw\n0.0 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"bad\.tum:3: expected 8 values"):
+        read_tum_trajectory(p)
+
+
+# ---- tracking -----------------------------------------------------------------------------------
+
+
+def test_slam_on_synthetic_without_ground_truth(small_manifest):
+    cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated"})
+    fused = lib.fuse(small_manifest, cfg)
+    kf = lib.select_keyframes_stage(small_manifest, fused, cfg)
+    assert kf.pose_source == "estimated" and kf.valid.all() and len(kf.indices) >= 2
+    res = evaluate_trajectories(small_manifest.timestamps_s, kf.T_world_cam, small_manifest.timestamps_s,
+                                small_manifest.T_world_cam_gt)
+    assert res["ate_rmse_m"] < 0.003
+    # Ground truth is never read while tracking: removing it changes nothing.
+    blind = dataclasses.replace(small_manifest, T_world_cam_gt=np.full_like(small_manifest.T_world_cam_gt, np.nan),
+                                has_gt=np.zeros_like(small_manifest.has_gt))
+    kf_blind = lib.select_keyframes_stage(blind, fused, cfg)
+    assert np.array_equal(kf_blind.T_world_cam, kf.T_world_cam)
+
+
+@pytest.fixture(scope="module")
+def small_world(small_manifest):
+    cfg = load_profile("default")
+    fused = lib.fuse(small_manifest, cfg)
+    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(small_manifest, fused, cfg), cfg)
+    return cfg, world
+
+
+def test_a_frame_with_no_depth_is_lost_and_tracking_recovers(small_manifest, small_world):
+    cfg, world = small_world
+    m = small_manifest
+    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder))
+    frames = [(read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera)) for i in range(4)]
+    e0 = st.process(0, *frames[0], T_given=m.T_world_cam_gt[0])
+    e1 = st.process(1, frames[1][0], np.zeros_like(frames[1][1]))
+    e2 = st.process(2, *frames[2])
+    assert (e0.status, e1.status) == ("anchor", "lost") and e1.note == "no valid depth"
+    assert e2.status in ("tracked", "relocalized")
+    assert pose_change(e2.T_world_cam, m.T_world_cam_gt[2])[0] < 0.01
+
+
+def test_frames_of_another_scene_get_a_status_not_a_crash(small_manifest, small_world):
+    cfg, world = small_world
+    m = small_manifest
+    rng = np.random.default_rng(0)
+    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder),
+                         prior_poses=world.T_world_cam_keyframes)
+    statuses = []
+    for i in range(3):  # speckle: depth with no surface at all, random colour
+        depth = rng.uniform(0.5, 3.5, (m.camera.height, m.camera.width)).astype(np.float32)
+        rgb = rng.integers(0, 255, (m.camera.height, m.camera.width, 3), dtype=np.uint8)
+        e = st.process(i, rgb, depth)
+        statuses.append(e.status)
+        assert e.status == "lost" and e.note and not np.isfinite(e.T_world_cam).all()
+    assert statuses == ["lost"] * 3
+
+
+def test_time_gap_switches_the_motion_model_off(small_manifest, small_world):
+    cfg, world = small_world
+    m = small_manifest
+    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder))
+    for i in range(2):
+        st.process(i, read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera),
+                   T_given=m.T_world_cam_gt[0] if i == 0 else None, timestamp_s=i / 30.0)
+    last = st._last[1]
+    assert not np.allclose(st._predict(2, 2 / 30.0), last)  # even spacing: constant velocity
+    assert np.allclose(st._predict(2, 1.0), last)  # a 1 s gap: the last pose
+
+
+def test_relocalization_of_unseen_frames_in_a_half_sequence_world(medium_manifest):
+    """The issue's protocol at small scale: world from the first half, second-half frames placed
+    with no initial pose."""
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    cfg = load_profile("default")
+    first = load_tum_sequence(medium_manifest.root, medium_manifest.camera, "first-half", 12)
+    fused = lib.fuse(first, cfg)
+    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(first, fused, cfg), cfg)
+    model = SurfelModel.from_field(world.field.positions, world.builder.voxel_size_m)
+    tracker = RGBDTracker(medium_manifest.camera, cfg.localization, (0.1, 4.0))
+    reloc = Relocalizer(tracker, model, world.T_world_cam_keyframes)
+    m = medium_manifest
+    good = []
+    for i in range(12, 24, 2):
+        fp = tracker.prepare(read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera))
+        r = reloc.relocalize(fp)
+        dt, dr = pose_change(r.T_world_cam, m.T_world_cam_gt[i])
+        good.append(r.ok and dt < 0.05 and dr < 5.0)
+        assert 0.0 <= r.confidence <= 1.0
+    assert np.mean(good) >= 0.8, good
+
+
+def test_second_session_relocalizes_then_maps_into_the_saved_world(medium_manifest):
+    from atlas_pipeline.mapping.mapper import extend_world_by_tracking
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated"})
+    first = load_tum_sequence(medium_manifest.root, medium_manifest.camera, "first-half", 12)
+    fused = lib.fuse(first, cfg)
+    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(first, fused, cfg), cfg)
+    n_before = len(world.field)
+    ext, poses, status = extend_world_by_tracking(world, medium_manifest, cfg.mapping, cfg.localization,
+                                                  (0.1, 4.0), cfg.fusion.stride)
+    assert status[0] == "relocalized" and status.count("lost") == 0
+    assert len(world.field) == n_before  # the parent world is untouched
+    assert len(ext.field) > n_before and len(ext.keyframe_indices) > len(world.keyframe_indices)
+    # The second session's trajectory lies in the first session's frame.
+    S_first = world.T_world_cam_keyframes[0] @ np.linalg.inv(medium_manifest.T_world_cam_gt[0])
+    a = ate(poses, S_first @ medium_manifest.T_world_cam_gt, align=False)
+    assert a["rmse_m"] < 0.02
+
+
+def test_localize_sequence_without_start_pose_relocalizes_its_first_frame(small_manifest, small_world):
+    cfg, world = small_world
+    rep = localize_sequence(small_manifest, SurfelModel.from_builder(world.builder), cfg.localization, None,
+                            prior_poses=world.T_world_cam_keyframes)
+    assert rep.status[0] == "relocalized" and rep.summary["start"] == "relocalized"
+    assert rep.summary["rmse_t_unaligned_m"] < 0.01
