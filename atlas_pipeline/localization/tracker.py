@@ -136,34 +136,16 @@ def surfels_from_voxels(ids: np.ndarray, count: np.ndarray, sum_xyz: np.ndarray,
         handful of noisy points, too few for a stable plane). Voxels with fewer than
         ``min_points`` points or a neighbourhood of fewer than ``min_support`` are left out.
     """
-    from atlas_pipeline.gaussian_world.builder import pack_voxel_ids, unpack_voxel_ids
+    from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, unpack_voxel_ids
 
-    ids = np.asarray(ids, np.uint64)
-    ijk = unpack_voxel_ids(ids)
-    n_all = count.astype(np.float64)
-    nb_n = np.zeros(len(ids))
-    nb_xyz = np.zeros((len(ids), 3))
-    nb_sq = np.zeros((len(ids), 6))
-    for off in np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), -1).reshape(-1, 3):
-        q = ijk + off
-        # Neighbours outside the addressable range cannot exist; clip keeps pack_voxel_ids in range.
-        q = np.clip(q, -(1 << 20), (1 << 20) - 1)
-        nid = pack_voxel_ids(q)
-        j = np.minimum(np.searchsorted(ids, nid), len(ids) - 1)
-        hit = ids[j] == nid
-        nb_n[hit] += n_all[j[hit]]
-        nb_xyz[hit] += sum_xyz[j[hit]]
-        nb_sq[hit] += sum_sq[j[hit]]
-    keep = (count >= min_points) & (nb_n >= min_support)
-    mu = sum_xyz[keep] / n_all[keep][:, None]
-    nbn = nb_n[keep][:, None]
-    nbmu = nb_xyz[keep] / nbn
-    s = nb_sq[keep] / nbn
-    cov = np.empty((len(mu), 3, 3))
-    for a, b, c in ((0, 0, 0), (0, 1, 1), (0, 2, 2), (1, 1, 3), (1, 2, 4), (2, 2, 5)):
-        cov[:, a, b] = cov[:, b, a] = s[:, c] - nbmu[:, a] * nbmu[:, b]
-    _, vec = np.linalg.eigh(cov)
-    return mu, np.ascontiguousarray(vec[:, :, 0])
+    ids = np.ascontiguousarray(ids, np.uint64)
+    if len(ids) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    centres, normals, support = kn.neighbourhood_surfels(
+        ids, unpack_voxel_ids(ids), np.ascontiguousarray(count, np.float64), np.ascontiguousarray(sum_xyz, np.float64),
+        np.ascontiguousarray(sum_sq, np.float64), _OFFSET, _BITS)
+    keep = (count >= min_points) & (support >= min_support)
+    return np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep])
 
 
 @dataclass
