@@ -24,7 +24,7 @@ import yaml
 from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import PipelineConfig, load_profile, project_root
 from atlas_pipeline.errors import AtlasError, ConfigError
-from atlas_pipeline.geometry import pose_from_tq
+from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.sensors.camera import TUM_CAMERAS
 from atlas_pipeline.sensors.registry import (
     DatasetEntry,
@@ -131,6 +131,61 @@ def _start_pose(args: argparse.Namespace, bundle_meta: dict[str, Any], dataset: 
             dataset, bundle_meta.get("dataset", {}).get("name"))
         return None, 0
     return np.asarray(anchor["T_world_cam"], np.float64), int(anchor["frame_index"])
+
+
+def cmd_relocalize(args: argparse.Namespace) -> int:
+    """Place single frames in a saved world with no initial pose; print pose, confidence and, where
+    the dataset has ground truth, the error (meaningful when the world shares its frame)."""
+    from atlas_pipeline.localization.relocalize import Relocalizer
+    from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, pose_change
+    from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+
+    cfg = _config(args)
+    bundle = load_world_bundle(args.world)
+    manifest = lib.load_dataset(_dataset(args.input, args.camera), cfg)
+    frames = args.frame if args.frame else list(range(manifest.n_frames))
+    bad = [i for i in frames if not 0 <= i < manifest.n_frames]
+    if bad:
+        raise ConfigError(f"--frame {bad[0]} is outside 0..{manifest.n_frames - 1}")
+    voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
+    tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
+    reloc = Relocalizer(tracker, SurfelModel.from_field(bundle.field.positions, voxel),
+                        bundle_keyframe_poses(bundle.metadata))
+    rows = []
+    for i in frames:
+        fp = tracker.prepare(read_rgb(manifest.rgb_path(i), manifest.camera),
+                             read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True))
+        r = reloc.relocalize(fp)
+        row: dict[str, Any] = {"frame": i, "timestamp_s": float(manifest.timestamps_s[i]), "ok": bool(r.ok),
+                               "confidence": round(r.confidence, 4), "source": r.source,
+                               "inlier_fraction": round(r.inlier_fraction, 4)}
+        if np.isfinite(r.T_world_cam).all():
+            t, q = tq_from_pose(r.T_world_cam)
+            row.update({"position_xyz": [round(float(v), 6) for v in t], "quat_xyzw": [round(float(v), 6) for v in q]})
+            if manifest.has_gt[i]:
+                dt_m, dr_deg = pose_change(manifest.T_world_cam_gt[i], r.T_world_cam)
+                row.update({"error_t_m": round(dt_m, 4), "error_rot_deg": round(dr_deg, 3)})
+        rows.append(row)
+        logger.info("frame %d: %s (confidence %.2f, from %s hypothesis)", i, "placed" if r.ok else "not placed",
+                    r.confidence, r.source)
+    print(json.dumps({"world": str(Path(args.world).resolve()), "frames": rows,
+                      "n_placed": sum(r["ok"] for r in rows)}, indent=2))
+    return 0
+
+
+def cmd_evaluate_trajectory(args: argparse.Namespace) -> int:
+    """ATE and RPE of a TUM-format trajectory against ground truth (TUM's conventions)."""
+    from atlas_pipeline.localization.metrics import evaluate_trajectories, read_tum_trajectory
+
+    t_e, P = read_tum_trajectory(Path(args.estimated))
+    t_g, G = read_tum_trajectory(Path(args.groundtruth))
+    res = evaluate_trajectories(t_e, P, t_g, G, max_dt_s=args.max_dt, rpe_delta_s=args.delta)
+    if res["n_matched"] < 3:
+        raise ConfigError(f"only {res['n_matched']} poses of {args.estimated} have a ground-truth pose within "
+                          f"{args.max_dt} s in {args.groundtruth}: nothing to evaluate")
+    print(json.dumps(res, indent=2))
+    return 0
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
@@ -385,6 +440,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "the first frame is relocalized in it, then frames are tracked and keyframes merged "
                         "(with mapping.pose_source ground_truth: merged at their ground-truth poses)")
     b.set_defaults(func=cmd_build)
+
+    rl = sub.add_parser("relocalize", help="place frames in a saved world with no initial pose")
+    common(rl)
+    rl.add_argument("--world", required=True)
+    rl.add_argument("--input", required=True)
+    rl.add_argument("--frame", type=int, action="append", default=[], help="frame index (repeatable; default: all)")
+    rl.set_defaults(func=cmd_relocalize)
+
+    ev = sub.add_parser("evaluate-trajectory", help="ATE and RPE of a TUM trajectory file against ground truth")
+    ev.add_argument("estimated", help="TUM file: timestamp tx ty tz qx qy qz qw")
+    ev.add_argument("groundtruth", help="TUM file, e.g. a dataset's groundtruth.txt")
+    ev.add_argument("--max-dt", type=float, default=0.02, help="timestamp association tolerance (s), TUM's 0.02")
+    ev.add_argument("--delta", type=float, default=1.0, help="RPE interval in seconds")
+    ev.set_defaults(func=cmd_evaluate_trajectory)
 
     lo = sub.add_parser("localize", help="localize a dataset's frames against a world bundle")
     common(lo)
