@@ -7,24 +7,31 @@ import pytest
 from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.geometry import pose_from_tq, so3_exp
-from atlas_pipeline.localization.icp import PointModel, estimate_normals, icp_point_to_plane
 from atlas_pipeline.localization.metrics import ate_rmse
 from atlas_pipeline.transition_log.transitions import TRANSITIONS_SCHEMA, build_transitions, read_transitions, write_transitions
 
 
-def test_icp_recovers_a_known_offset():
-    rng = np.random.default_rng(0)
-    # Three perpendicular planes: a well-constrained target.
-    g = rng.uniform(0, 1, size=(3000, 2))
-    pts = np.concatenate([np.c_[g, np.zeros(3000)], np.c_[g[:, :1], np.zeros(3000), g[:, 1:]],
-                          np.c_[np.zeros(3000), g]])
-    model = PointModel(pts, estimate_normals(pts, 0.05))
-    T_true = np.eye(4)
-    T_true[:3, :3] = so3_exp(np.array([0.02, -0.01, 0.03]))
-    T_true[:3, 3] = [0.02, -0.015, 0.01]
-    src = (pts[::3] - T_true[:3, 3]) @ T_true[:3, :3]  # source such that T_true maps it onto the model
-    res = icp_point_to_plane(model, src, np.eye(4), 0.05, 40)
-    assert np.allclose(res.T, T_true, atol=1e-4) and res.fitness > 0.99
+def test_tracker_recovers_a_known_offset(small_manifest):
+    """Coarse to fine from 3 cm / 2 degrees off, against a map made of the same frame."""
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+    from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, pose_change
+    from atlas_pipeline.perception.rgbd import backproject
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+
+    m = small_manifest
+    rgb, depth = read_rgb(m.rgb_path(0), m.camera), read_depth_m(m.depth_path(0), m.camera)
+    b = VoxelGaussianBuilder(0.02)
+    pts, cols = backproject(depth, rgb, m.camera, 1, 0.1, 4.0)
+    b.integrate(pts.astype(np.float64), cols)
+    tracker = RGBDTracker(m.camera, load_profile("default").localization, (0.1, 4.0))
+    frame = tracker.prepare(rgb, depth)
+    T0 = np.eye(4)
+    T0[:3, :3] = so3_exp(np.radians([1.2, -1.0, 1.2]))
+    T0[:3, 3] = [0.02, -0.015, 0.015]
+    res = tracker.align(frame, SurfelModel.from_builder(b), T0, (frame, np.eye(4)))
+    dt, dr = pose_change(res.T_world_cam, np.eye(4))
+    assert res.ok and dt < 0.003 and dr < 0.2, (dt, dr)
+    assert np.allclose(res.T_world_cam[:3, :3].T @ res.T_world_cam[:3, :3], np.eye(3), atol=1e-12)
 
 
 def test_ate_is_invariant_to_a_rigid_offset():
