@@ -16,7 +16,7 @@ from dagster import AssetCheckResult, AssetCheckSeverity, AssetCheckSpec, Metada
 
 from assets.versioning import AtlasCheck
 from atlas_pipeline.gaussian_world.field import GaussianField
-from atlas_pipeline.scene_memory.binary import read_atlasgs1, write_atlasgs1
+from atlas_pipeline.scene_memory.binary import read_gaussian_binary, write_gaussian_binary
 from atlas_pipeline.scene_memory.ply import read_gaussian_ply, write_gaussian_ply
 from atlas_pipeline.transition_log.transitions import TRANSITIONS_SCHEMA
 
@@ -49,7 +49,7 @@ def check_bundle_roundtrip(field: GaussianField) -> AssetCheckResult:
     """Write both encodings and read them back; the bundle writer uses the same functions."""
     with tempfile.TemporaryDirectory(prefix="atlas_roundtrip.") as tmp:
         ply = read_gaussian_ply(write_gaussian_ply(field, Path(tmp) / "g.ply"))
-        binf = read_atlasgs1(write_atlasgs1(field, Path(tmp) / "g.bin"))
+        binf = read_gaussian_binary(write_gaussian_binary(field, Path(tmp) / "g.bin"))
     ok_ply, ok_bin = ply.equals(field), binf.equals(field)
     return AssetCheckResult(check_name=BUNDLE_ROUNDTRIP.name, passed=ok_ply and ok_bin,
                             severity=AssetCheckSeverity.ERROR,

@@ -47,7 +47,7 @@ def test_failed_rewrite_keeps_the_old_bundle(field, tmp_path, monkeypatch):
     def boom(*a, **k):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(B, "write_atlasgs1", boom)
+    monkeypatch.setattr(B, "write_gaussian_binary", boom)
     with pytest.raises(RuntimeError):
         write_world_bundle(d, field, {"name": "new"})
     assert {p.name: p.read_bytes() for p in d.iterdir()} == before

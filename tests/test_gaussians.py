@@ -1,4 +1,4 @@
-"""Voxel Gaussian merge, stable ids, and exact PLY / ATLASGS1 round trips."""
+"""Voxel Gaussian merge (anisotropic), stable ids, and exact PLY / ATLASGS1 / ATLASGS2 round trips."""
 
 import struct
 
@@ -8,7 +8,14 @@ import pytest
 from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder, pack_voxel_ids, unpack_voxel_ids
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
-from atlas_pipeline.scene_memory.binary import read_atlasgs1, write_atlasgs1
+from atlas_pipeline.scene_memory.binary import (
+    read_atlasgs1,
+    read_atlasgs2,
+    read_gaussian_binary,
+    write_atlasgs1,
+    write_atlasgs2,
+    write_gaussian_binary,
+)
 from atlas_pipeline.scene_memory.ply import read_gaussian_ply, write_gaussian_ply
 
 
@@ -33,7 +40,8 @@ def test_voxel_statistics_are_exact_means():
     assert len(f) == 2
     i = int(np.flatnonzero(f.ids == pack_voxel_ids(np.array([[0, 0, 0]])))[0])
     assert np.allclose(f.positions[i], [0.3, 0.4, 0.5]) and f.colors[i].tolist() == [50, 100, 25]
-    assert np.allclose(f.scales, 0.5)
+    # Too few points for a shape of their own: a disk of half a voxel, thin along its normal.
+    assert np.allclose(f.scales[:, :2], 0.5) and np.allclose(f.scales[:, 2], 0.05)
 
 
 def test_incremental_merge_equals_one_batch_and_keeps_ids():
@@ -67,15 +75,86 @@ def field():
     return b.to_field()
 
 
-def test_ply_and_binary_roundtrip_bit_for_bit(field, tmp_path):
+@pytest.fixture
+def iso_field(field):
+    n = len(field)
+    return GaussianField(field.positions, np.full((n, 3), 0.01, np.float32), np.tile([0, 0, 0, 1.0], (n, 1)),
+                         field.colors, field.opacities, field.ids)
+
+
+def test_ply_and_binary_roundtrip_bit_for_bit(field, iso_field, tmp_path):
+    assert not field.is_isotropic
     ply = read_gaussian_ply(write_gaussian_ply(field, tmp_path / "g.ply"))
-    binf = read_atlasgs1(write_atlasgs1(field, tmp_path / "g.bin"))
+    binf = read_gaussian_binary(write_gaussian_binary(field, tmp_path / "g.bin"))
     for f in (ply, binf):
         assert np.array_equal(f.ids, field.ids)
         assert np.array_equal(f.positions, field.positions)
         assert np.array_equal(f.colors, field.colors)
         assert f.equals(field)
-    assert (tmp_path / "g.bin").stat().st_size == 16 + 31 * len(field)
+    assert (tmp_path / "g.bin").read_bytes()[:8] == b"ATLASGS2"
+    assert (tmp_path / "g.bin").stat().st_size == 24 + 55 * len(field)
+    # The paper's format still reads and writes isotropic fields, bit for bit.
+    v1 = write_gaussian_binary(iso_field, tmp_path / "iso.bin")
+    assert v1.read_bytes()[:8] == b"ATLASGS1" and v1.stat().st_size == 16 + 31 * len(iso_field)
+    assert read_gaussian_binary(v1).equals(iso_field)
+
+
+def test_anisotropic_gaussians_are_thin_along_the_surface_normal():
+    rng = np.random.default_rng(3)
+    # A tilted plane sampled densely, with 1 mm noise along its normal.
+    normal = np.array([0.2, -0.3, 0.93])
+    normal /= np.linalg.norm(normal)
+    u = np.cross(normal, [1.0, 0, 0])
+    u /= np.linalg.norm(u)
+    w = np.cross(normal, u)
+    ab = rng.uniform(-0.2, 0.2, (40000, 2))
+    pts = ab[:, :1] * u + ab[:, 1:] * w + rng.normal(scale=0.001, size=(40000, 1)) * normal
+    b = VoxelGaussianBuilder(0.02)
+    b.integrate(pts, np.full((len(pts), 3), 100))
+    f = b.to_field()
+    from atlas_pipeline.geometry import quat_xyzw_to_rotmat
+
+    R = quat_xyzw_to_rotmat(f.rotations_xyzw.astype(np.float64))
+    dense = b.count >= 20
+    z_axis = R[dense, :, 2]
+    assert np.median(np.abs(z_axis @ normal)) > 0.99  # local z = the normal
+    assert np.median(f.scales[dense, 2]) < 0.003 < np.median(f.scales[dense, 0])  # thin along it
+    assert np.allclose(np.linalg.det(R), 1.0, atol=1e-5)
+    # Same input, same world, bit for bit.
+    b2 = VoxelGaussianBuilder(0.02)
+    b2.integrate(pts, np.full((len(pts), 3), 100))
+    assert b2.to_field().equals(f)
+
+
+def test_standard_3dgs_ply_with_sh_rest_imports(tmp_path):
+    """A file as the reference implementation writes it: normals, DC and 45 f_rest properties."""
+    props = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] \
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    vals = np.zeros((3, len(props)), np.float32)
+    vals[:, :3] = [[0, 0, 1], [1, 0, 1], [0, 1, 2]]
+    vals[:, props.index("f_dc_0")] = (1.0 - 0.5) / 0.28209479  # red
+    vals[:, props.index("opacity")] = 2.0
+    vals[:, props.index("scale_0"):props.index("scale_2") + 1] = np.log([0.01, 0.02, 0.001])
+    vals[:, props.index("rot_0")] = 1.0
+    f = read_gaussian_ply(_ply_with(tmp_path, props, 3, 3, vals))
+    assert len(f) == 3 and f.colors[0].tolist() == [255, 128, 128]
+    assert np.allclose(f.scales[0], [0.01, 0.02, 0.001], rtol=1e-5) and np.allclose(f.opacities, 1 / (1 + np.exp(-2.0)))
+
+
+def test_atlasgs2_truncated_wrong_version_or_nan(field, tmp_path):
+    p = write_atlasgs2(field, tmp_path / "g2.bin")
+    data = p.read_bytes()
+    p.write_bytes(data[:-5])
+    with pytest.raises(BundleFormatError, match="needs .* bytes"):
+        read_atlasgs2(p)
+    p.write_bytes(data[:8] + struct.pack("<IIQ", 3, 0, 0))
+    with pytest.raises(BundleFormatError, match="version 3 is not supported"):
+        read_gaussian_binary(p)
+    bad = bytearray(data)
+    bad[24:28] = struct.pack("<f", float("nan"))
+    p.write_bytes(bytes(bad))
+    with pytest.raises(BundleFormatError, match="NaN"):
+        read_atlasgs2(p)
 
 
 def test_canonicalize_is_idempotent_and_tiny():
@@ -134,8 +213,8 @@ def test_foreign_ply_without_ids_gets_ids(tmp_path):
     assert f.ids.tolist() == [0, 1] and np.allclose(f.colors, 128, atol=1)
 
 
-def test_atlasgs1_truncated_or_wrong_magic(field, tmp_path):
-    p = write_atlasgs1(field, tmp_path / "g.bin")
+def test_atlasgs1_truncated_or_wrong_magic(iso_field, tmp_path):
+    p = write_atlasgs1(iso_field, tmp_path / "g.bin")
     data = p.read_bytes()
     p.write_bytes(data[:-5])
     with pytest.raises(BundleFormatError, match="needs .* bytes"):

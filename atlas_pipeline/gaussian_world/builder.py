@@ -42,6 +42,11 @@ def unpack_voxel_ids(ids: np.ndarray) -> np.ndarray:
     return out.astype(np.int64) - _OFFSET
 
 
+_MIN_POINTS_OWN_SHAPE = 5  # fewer points than this: the voxel's own covariance is too noisy
+_MIN_SCALE = 0.05  # voxels: thickness floor along the normal (1 mm at 2 cm voxels)
+_MAX_SCALE = 0.75  # voxels: no Gaussian spreads much past its voxel
+
+
 def _opacity_from_support(count: np.ndarray) -> np.ndarray:
     """More observed points -> more confident surface. Saturates after a handful of samples."""
     return np.clip(1.0 - np.exp(-count / 3.0), 0.05, 0.99).astype(np.float32)
@@ -107,19 +112,67 @@ class VoxelGaussianBuilder:
         return n_new
 
     def to_field(self, min_points: int = 1) -> GaussianField:
-        """The current Gaussians: mean position, mean colour, isotropic scale v/2, support opacity."""
+        """The current Gaussians, one per voxel with at least ``min_points`` points.
+
+        * mean: the mean of the voxel's points; colour: their mean colour;
+        * covariance: the covariance of the voxel's points (a voxel with fewer than
+          ``_MIN_POINTS_OWN_SHAPE`` points, or a degenerate one, takes the plane of its 3x3x3 voxel
+          neighbourhood instead), as a rotation (local x, y = the surface directions, z = the
+          normal) and three scales. The scales are the standard deviations times sqrt(3), so a
+          voxel face evenly covered by points gives a Gaussian of about half a voxel that meets its
+          neighbours without holes; they are clamped to [``_MIN_SCALE``, ``_MAX_SCALE``] voxels, so a
+          Gaussian stays thin along the normal and never bleeds far past its voxel;
+        * opacity: from support (points observed), saturating after a handful.
+
+        Deterministic: the same statistics give the same field bit for bit (sorted ids, float64
+        arithmetic, canonical eigenvector signs).
+        """
+        from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels
+        from atlas_pipeline.geometry import rotmat_to_quat_xyzw
+
         keep = self.count >= min_points
-        cnt = self.count[keep].astype(np.float64)[:, None]
         n = int(keep.sum())
-        pos = self.sum_xyz[keep] / cnt
-        rgb = np.clip(np.rint(self.sum_rgb[keep] / cnt), 0, 255)
-        rot = np.zeros((n, 4), np.float32)
-        rot[:, 3] = 1.0
+        cnt = self.count[keep].astype(np.float64)
+        pos = self.sum_xyz[keep] / cnt[:, None]
+        rgb = np.clip(np.rint(self.sum_rgb[keep] / cnt[:, None]), 0, 255)
+        v = self.voxel_size_m
+        if n == 0:
+            return GaussianField.empty()
+        sq = self.sum_sq[keep] / cnt[:, None]
+        cov = np.empty((n, 3, 3))
+        for a, b, c in ((0, 0, 0), (0, 1, 1), (0, 2, 2), (1, 1, 3), (1, 2, 4), (2, 2, 5)):
+            cov[:, a, b] = cov[:, b, a] = sq[:, c] - pos[:, a] * pos[:, b]
+        w, vec = np.linalg.eigh(cov)  # ascending eigenvalues; columns are eigenvectors
+        w = np.maximum(w, 0.0)
+        # Local axes: x = largest spread, y = middle, z = smallest (the surface normal).
+        R = vec[:, :, ::-1].copy()
+        scales = np.sqrt(w[:, ::-1] * 3.0)
+        # Sparse or line-like voxels: a disk in the plane of the voxel neighbourhood.
+        _, nb_normal, support = neighbourhood_surfels(
+            np.ascontiguousarray(self.ids[keep]), unpack_voxel_ids(self.ids[keep]), cnt,
+            np.ascontiguousarray(self.sum_xyz[keep]), np.ascontiguousarray(self.sum_sq[keep]), _OFFSET, _BITS)
+        weak = (cnt < _MIN_POINTS_OWN_SHAPE) | (scales[:, 1] < _MIN_SCALE * v)
+        if weak.any():
+            nz = nb_normal[weak]
+            # Any unit vector not parallel to the normal completes the frame.
+            helper = np.where(np.abs(nz[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+            ax = np.cross(nz, helper)
+            ax /= np.linalg.norm(ax, axis=1, keepdims=True)
+            ay = np.cross(nz, ax)
+            R[weak] = np.stack([ax, ay, nz], axis=2)
+            scales[weak] = [0.5 * v, 0.5 * v, _MIN_SCALE * v]
+        # Canonical signs: x and z axes point to their largest-magnitude component's positive side,
+        # y completes a right-handed frame (det +1) -- independent of the eigen solver's choices.
+        for k in (0, 2):
+            col = R[:, :, k]
+            big = np.take_along_axis(col, np.abs(col).argmax(axis=1)[:, None], axis=1)
+            R[:, :, k] *= np.where(big < 0, -1.0, 1.0)
+        R[:, :, 1] = np.cross(R[:, :, 2], R[:, :, 0])
+        scales = np.clip(scales, _MIN_SCALE * v, _MAX_SCALE * v)
         # Canonical values survive the PLY's log/logit encoding bit for bit.
         return canonicalize(GaussianField(
-            positions=pos, scales=np.full((n, 3), self.voxel_size_m / 2.0, np.float32),
-            rotations_xyzw=rot, colors=rgb, opacities=_opacity_from_support(self.count[keep]),
-            ids=self.ids[keep],
+            positions=pos, scales=scales.astype(np.float32), rotations_xyzw=rotmat_to_quat_xyzw(R).astype(np.float32),
+            colors=rgb, opacities=_opacity_from_support(self.count[keep]), ids=self.ids[keep],
         ))
 
 

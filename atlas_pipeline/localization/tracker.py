@@ -136,12 +136,13 @@ def surfels_from_voxels(ids: np.ndarray, count: np.ndarray, sum_xyz: np.ndarray,
         handful of noisy points, too few for a stable plane). Voxels with fewer than
         ``min_points`` points or a neighbourhood of fewer than ``min_support`` are left out.
     """
+    from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels
     from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, unpack_voxel_ids
 
     ids = np.ascontiguousarray(ids, np.uint64)
     if len(ids) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    centres, normals, support = kn.neighbourhood_surfels(
+    centres, normals, support = neighbourhood_surfels(
         ids, unpack_voxel_ids(ids), np.ascontiguousarray(count, np.float64), np.ascontiguousarray(sum_xyz, np.float64),
         np.ascontiguousarray(sum_sq, np.float64), _OFFSET, _BITS)
     keep = (count >= min_points) & (support >= min_support)

@@ -1,4 +1,6 @@
-"""ATLASGS1 binary world format (paper Appendix B), little endian::
+"""Binary world formats, little endian.
+
+ATLASGS1 (the paper's Appendix B; isotropic fields)::
 
     magic     8 bytes  b"ATLASGS1"
     count     uint64
@@ -7,6 +9,21 @@
     colors    count x 3 x uint8
     opacity   count x float32
     ids       count x uint64
+
+ATLASGS2 (its versioned successor; any field, anisotropic included)::
+
+    magic     8 bytes  b"ATLASGS2"
+    version   uint32   (2)
+    flags     uint32   (0; reserved)
+    count     uint64
+    positions count x 3 x float32      (metres)
+    scales    count x 3 x float32      (standard deviations along the local axes, metres)
+    rotations count x 4 x float32      (unit quaternion x y z w, local -> world)
+    colors    count x 3 x uint8
+    opacity   count x float32
+    ids       count x uint64
+
+55 bytes per Gaussian (ATLASGS1: 31). :func:`read_gaussian_binary` reads either, by magic.
 """
 
 from __future__ import annotations
@@ -20,10 +37,15 @@ from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.io_utils import atomic_path
 
-__all__ = ["MAGIC_V1", "write_atlasgs1", "read_atlasgs1"]
+__all__ = ["MAGIC_V1", "MAGIC_V2", "write_atlasgs1", "read_atlasgs1", "write_atlasgs2", "read_atlasgs2",
+           "write_gaussian_binary", "read_gaussian_binary", "BYTES_PER_GAUSSIAN"]
 
 MAGIC_V1 = b"ATLASGS1"
+MAGIC_V2 = b"ATLASGS2"
 _BYTES_PER_GAUSSIAN_V1 = 12 + 4 + 3 + 4 + 8
+_BYTES_PER_GAUSSIAN_V2 = 12 + 12 + 16 + 3 + 4 + 8
+_HEADER_V2 = 24
+BYTES_PER_GAUSSIAN = {1: _BYTES_PER_GAUSSIAN_V1, 2: _BYTES_PER_GAUSSIAN_V2}
 
 
 def write_atlasgs1(field: GaussianField, path: str | Path) -> Path:
@@ -76,3 +98,77 @@ def read_atlasgs1(path: str | Path) -> GaussianField:
     rot = np.zeros((n, 4), np.float32)
     rot[:, 3] = 1.0
     return GaussianField(pos, np.repeat(scale[:, None], 3, axis=1), rot, col, opa, ids)
+
+
+def write_atlasgs2(field: GaussianField, path: str | Path) -> Path:
+    """Write any field as ATLASGS2 (atomically)."""
+    n = len(field)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(MAGIC_V2)
+            f.write(struct.pack("<IIQ", 2, 0, n))
+            f.write(field.positions.astype("<f4").tobytes())
+            f.write(field.scales.astype("<f4").tobytes())
+            f.write(field.rotations_xyzw.astype("<f4").tobytes())
+            f.write(field.colors.astype("u1").tobytes())
+            f.write(field.opacities.astype("<f4").tobytes())
+            f.write(field.ids.astype("<u8").tobytes())
+    return Path(path)
+
+
+def read_atlasgs2(path: str | Path) -> GaussianField:
+    """Read an ATLASGS2 file; version, size and values are checked before arrays are built."""
+    path = Path(path)
+    if not path.is_file():
+        raise BundleFormatError(path, "file not found")
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(_HEADER_V2)
+        if len(head) < _HEADER_V2 or head[:8] != MAGIC_V2:
+            raise BundleFormatError(path, f"not an ATLASGS2 file (magic {head[:8]!r})")
+        version, flags, n = struct.unpack("<IIQ", head[8:24])
+        if version != 2:
+            raise BundleFormatError(path, f"ATLASGS2 version {version} is not supported (this reader knows 2)")
+        expected = _HEADER_V2 + n * _BYTES_PER_GAUSSIAN_V2
+        if size != expected:
+            raise BundleFormatError(path, f"count {n} needs {expected} bytes, file has {size}")
+        buf = f.read()
+    off = 0
+
+    def take(dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+        nonlocal off
+        a = np.frombuffer(buf, dtype=dtype, count=int(np.prod(shape)), offset=off).reshape(shape)
+        off += a.nbytes
+        return a
+
+    pos, scl, rot = take("<f4", (n, 3)), take("<f4", (n, 3)), take("<f4", (n, 4))
+    col, opa, ids = take("u1", (n, 3)), take("<f4", (n,)), take("<u8", (n,))
+    if not all(np.isfinite(a).all() for a in (pos, scl, rot, opa)):
+        raise BundleFormatError(path, "NaN or infinite values")
+    if n and (scl.min() < 0 or np.any(np.linalg.norm(rot.astype(np.float64), axis=1) < 1e-12)):
+        raise BundleFormatError(path, "negative scale or zero-norm rotation")
+    return GaussianField(pos, scl, rot, col, opa, ids)
+
+
+def write_gaussian_binary(field: GaussianField, path: str | Path) -> Path:
+    """ATLASGS1 for an isotropic field (the paper's readers open it), ATLASGS2 otherwise."""
+    return write_atlasgs1(field, path) if field.is_isotropic and (len(field) == 0 or _identity_rotations(field)) \
+        else write_atlasgs2(field, path)
+
+
+def _identity_rotations(field: GaussianField) -> bool:
+    return bool(np.all(field.rotations_xyzw[:, :3] == 0) and np.all(field.rotations_xyzw[:, 3] == 1))
+
+
+def read_gaussian_binary(path: str | Path) -> GaussianField:
+    """Read ATLASGS1 or ATLASGS2, chosen by the file's magic."""
+    path = Path(path)
+    if not path.is_file():
+        raise BundleFormatError(path, "file not found")
+    with open(path, "rb") as f:
+        magic = f.read(8)
+    if magic == MAGIC_V1:
+        return read_atlasgs1(path)
+    if magic == MAGIC_V2:
+        return read_atlasgs2(path)
+    raise BundleFormatError(path, f"not an ATLASGS binary (magic {magic!r})")

@@ -5,7 +5,7 @@
     <bundle>/
       metadata.json        what, from where, how (lineage, config, file checksums)
       gaussians.ply        3DGS-layout PLY for other tools
-      gaussians.bin        ATLASGS1 binary for fast reload
+      gaussians.bin        ATLASGS1 (isotropic) or ATLASGS2 binary for fast reload
       localization.json    per-frame poses and errors (optional)
       transitions.parquet  state-action-state log (optional)
 
@@ -31,7 +31,7 @@ from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.io_utils import atomic_dir, sha256_file, write_json_atomic
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.localization.metrics import write_tum_trajectory
-from atlas_pipeline.scene_memory.binary import read_atlasgs1, write_atlasgs1
+from atlas_pipeline.scene_memory.binary import read_gaussian_binary, write_gaussian_binary
 from atlas_pipeline.scene_memory.ply import read_gaussian_ply, write_gaussian_ply
 from atlas_pipeline.transition_log.transitions import write_transitions
 
@@ -78,7 +78,7 @@ def write_bundle_files(
     ``GaussianWorld`` with its voxel statistics, so the world can be extended later).
     """
     write_gaussian_ply(field, directory / "gaussians.ply")
-    write_atlasgs1(field, directory / "gaussians.bin")
+    write_gaussian_binary(field, directory / "gaussians.bin")
     _write_parts(directory, localization, transitions)
     for extra in extras:
         extra.save(directory)
@@ -181,7 +181,7 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
             raise BundleFormatError(path, "file listed in metadata.json is missing")
         if sha256_file(path) != rec["sha256"]:
             raise BundleFormatError(path, "checksum does not match metadata.json (file changed or truncated)")
-    field = read_atlasgs1(path) if source == "bin" else read_gaussian_ply(path)
+    field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
     return WorldBundle(directory, field, meta)
 
 

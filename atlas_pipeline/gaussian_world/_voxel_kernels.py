@@ -1,0 +1,110 @@
+"""Compiled per-voxel statistics (Numba): least-variance axes over voxel neighbourhoods.
+
+Shared by the Gaussian builder (orientation of sparse voxels) and the tracker (surfel normals).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = ["neighbourhood_surfels"]
+
+
+@njit(cache=True)
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form:
+    trigonometric eigenvalues, then the best-conditioned cross product of two rows of A - l I)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
+    if p2 <= 1e-30:
+        return 0.0, 0.0, 1.0  # isotropic: any direction
+    p = math.sqrt(p2 / 6.0)
+    c00, c11, c22 = b00 / p, b11 / p, b22 / p
+    c01, c02, c12 = a01 / p, a02 / p, a12 / p
+    detb = (c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02) + c02 * (c01 * c12 - c11 * c02))
+    r = min(max(detb / 2.0, -1.0), 1.0)
+    phi = math.acos(r) / 3.0
+    lam = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)  # the smallest of the three
+    m00, m11, m22 = a00 - lam, a11 - lam, a22 - lam
+    # rows r0 = (m00, a01, a02), r1 = (a01, m11, a12), r2 = (a02, a12, m22)
+    x0 = a01 * a12 - a02 * m11
+    y0 = a02 * a01 - m00 * a12
+    z0 = m00 * m11 - a01 * a01
+    x1 = a01 * m22 - a02 * a12
+    y1 = a02 * a02 - m00 * m22
+    z1 = m00 * a12 - a01 * a02
+    x2 = m11 * m22 - a12 * a12
+    y2 = a12 * a02 - a01 * m22
+    z2 = a01 * a12 - m11 * a02
+    n0 = x0 * x0 + y0 * y0 + z0 * z0
+    n1 = x1 * x1 + y1 * y1 + z1 * z1
+    n2 = x2 * x2 + y2 * y2 + z2 * z2
+    if n0 >= n1 and n0 >= n2 and n0 > 0:
+        s = 1.0 / math.sqrt(n0)
+        return x0 * s, y0 * s, z0 * s
+    if n1 >= n2 and n1 > 0:
+        s = 1.0 / math.sqrt(n1)
+        return x1 * s, y1 * s, z1 * s
+    if n2 > 0:
+        s = 1.0 / math.sqrt(n2)
+        return x2 * s, y2 * s, z2 * s
+    return 0.0, 0.0, 1.0
+
+
+@njit(cache=True, parallel=True)
+def neighbourhood_surfels(ids, ijk, count, sum_xyz, sum_sq, offset, bits):
+    """Per voxel: the mean of its points and the least-variance axis of the points of the voxel and
+    its 26 neighbours, with the neighbourhood's point count.
+
+    Args:
+        ids: ``[N]`` sorted uint64 voxel ids (``bits`` per axis, coordinates shifted by ``offset``);
+        ijk: ``[N, 3]`` int64 voxel coordinates; count ``[N]``; sum_xyz ``[N, 3]``; sum_sq ``[N, 6]``.
+    Returns:
+        ``(centres [N, 3], normals [N, 3], support [N])``.
+    """
+    n = ids.shape[0]
+    centres = np.empty((n, 3))
+    normals = np.empty((n, 3))
+    support = np.zeros(n, np.int64)
+    lim = (1 << (bits - 1))
+    for k in prange(n):
+        s_n = 0.0
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        q = np.zeros(6)
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    a = ijk[k, 0] + di
+                    b = ijk[k, 1] + dj
+                    c = ijk[k, 2] + dk
+                    if a < -lim or a >= lim or b < -lim or b >= lim or c < -lim or c >= lim:
+                        continue
+                    nid = ((np.uint64(a + offset) << np.uint64(2 * bits)) | (np.uint64(b + offset) << np.uint64(bits))
+                           | np.uint64(c + offset))
+                    j = np.searchsorted(ids, nid)
+                    if j < n and ids[j] == nid:
+                        s_n += count[j]
+                        s0 += sum_xyz[j, 0]
+                        s1 += sum_xyz[j, 1]
+                        s2 += sum_xyz[j, 2]
+                        for t in range(6):
+                            q[t] += sum_sq[j, t]
+        cnt = count[k]
+        centres[k, 0] = sum_xyz[k, 0] / cnt
+        centres[k, 1] = sum_xyz[k, 1] / cnt
+        centres[k, 2] = sum_xyz[k, 2] / cnt
+        support[k] = int(s_n)
+        m0, m1, m2 = s0 / s_n, s1 / s_n, s2 / s_n
+        nx, ny, nz = _smallest_eigenvector(q[0] / s_n - m0 * m0, q[1] / s_n - m0 * m1, q[2] / s_n - m0 * m2,
+                                           q[3] / s_n - m1 * m1, q[4] / s_n - m1 * m2, q[5] / s_n - m2 * m2)
+        normals[k, 0] = nx
+        normals[k, 1] = ny
+        normals[k, 2] = nz
+    return centres, normals, support
