@@ -38,7 +38,7 @@ from atlas_pipeline.sensors.registry import (
 logger = logging.getLogger("atlas_gs.cli")
 
 ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
-               "transitions", "demo_videos", "world_bundle"]
+               "transitions", "demo_videos", "render_evaluation", "world_bundle"]
 
 
 def _config(args: argparse.Namespace) -> PipelineConfig:

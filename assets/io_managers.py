@@ -30,6 +30,7 @@ from dagster import ConfigurableIOManager, InputContext, MetadataValue, OutputCo
 from atlas_pipeline.config import project_root
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
+from atlas_pipeline.gaussian_world.evaluation import PhotometricReport
 from atlas_pipeline.io_utils import atomic_path, sha256_file, write_json_atomic
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
@@ -68,6 +69,7 @@ ARTIFACT_TYPES: dict[str, Any] = {
     "Table": ParquetTable,
     "DemoVideos": DemoVideos,
     "WorldBundleArtifact": WorldBundleArtifact,
+    "PhotometricReport": PhotometricReport,
 }
 
 

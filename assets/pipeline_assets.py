@@ -28,6 +28,7 @@ from assets.versioning import atlas_asset, current_asset_info, upstream_lineage
 from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
+from atlas_pipeline.gaussian_world.evaluation import PhotometricReport
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
@@ -111,7 +112,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         return kf
 
     @atlas_asset(description="Gaussian world: voxel merge of the keyframes, incremental, stable uint64 ids.",
-                 code_version="1", checks=[GAUSSIANS_CHECK], **common)
+                 code_version="2", checks=[GAUSSIANS_CHECK], **common)
     def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, fused_frames: FusedFrames,
                        keyframes: KeyframeSet) -> GaussianWorld:
         world = lib.build_gaussian_world(fused_frames, keyframes, atlas.load(), log=context.log.info)
@@ -162,8 +163,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         })
         return table
 
-    @atlas_asset(description="Orbit and trajectory MP4s (H.264) from the CPU Gaussian rasterizer.",
-                 code_version="1", **common)
+    @atlas_asset(description="Orbit, trajectory and side-by-side (real | render) MP4s (H.264, yuv420p) from the CPU "
+                             "Gaussian rasterizer.",
+                 code_version="2", **common)
     def demo_videos(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                     gaussian_world: GaussianWorld, localization_report: LocalizationReport) -> lib.DemoVideos:
         cfg = atlas.load()
@@ -171,7 +173,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         # Render into a staging folder beside the artifacts; the IO manager moves the files into place.
         staging = Path(tempfile.mkdtemp(prefix="atlas_demo_videos."))
         videos = lib.render_demo_videos(gaussian_world.field, localization_report.T_world_cam, cam.K, cam.width,
-                                        cam.height, cfg, staging, context.partition_key, log=context.log.info)
+                                        cam.height, cfg, staging, context.partition_key, log=context.log.info,
+                                        manifest=raw_dataset)
         context.add_output_metadata({
             "orbit_frames": videos.n_orbit_frames,
             "trajectory_frames": videos.n_trajectory_frames,
@@ -179,8 +182,22 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         })
         return videos
 
+    @atlas_asset(description="The world rendered at held-out (non-keyframe) frames from their estimated poses: PSNR, "
+                             "SSIM and depth L1 against the real images, and a preview (real | rendered | depth error).",
+                 code_version="1", **common)
+    def render_evaluation(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
+                          gaussian_world: GaussianWorld, localization_report: LocalizationReport) -> PhotometricReport:
+        rep = lib.evaluate_rendering(raw_dataset, gaussian_world, localization_report, atlas.load(), log=context.log.info)
+        s = rep.summary
+        md = {k: (_num(s[k]) if isinstance(s[k], float) else s[k]) for k in
+              ("n_views", "mean_psnr_db", "mean_psnr_masked_db", "mean_ssim", "mean_depth_l1_m", "mean_depth_coverage")}
+        if rep.preview_png:
+            md["preview"] = MetadataValue.md(markdown_image(rep.preview_png, "real | rendered | depth error"))
+        context.add_output_metadata(md)
+        return rep
+
     @atlas_asset(description="World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, localization.json, transitions.parquet.",
-                 code_version="3", checks=[BUNDLE_CHECK], **common)
+                 code_version="4", checks=[BUNDLE_CHECK], **common)
     def world_bundle(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                      gaussian_world: GaussianWorld, localization_report: LocalizationReport,
                      transitions: pa.Table):
@@ -207,5 +224,5 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
                                     {a: u["data_version"] for a, u in upstream.items()})})
 
     return [raw_dataset, fused_frames, keyframes, gaussian_world, localization_report, transitions,
-            demo_videos, world_bundle]
+            demo_videos, render_evaluation, world_bundle]
 

@@ -90,6 +90,12 @@ class VideoConfig:
 
 
 @dataclass(frozen=True)
+class EvaluationConfig:
+    view_stride: int = 2  # evaluate every n-th held-out (non-keyframe) frame
+    max_views: int | None = None  # cap on the number of views; None = all selected
+
+
+@dataclass(frozen=True)
 class PipelineConfig:
     """A whole resolved profile."""
 
@@ -100,6 +106,7 @@ class PipelineConfig:
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
     transitions: TransitionsConfig = field(default_factory=TransitionsConfig)
     video: VideoConfig = field(default_factory=VideoConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -220,6 +227,9 @@ def _validate(obj: Any, source: str) -> None:
             raise bad("localization.min_fitness and min_agreement must lie in [0, 1]")
         if not obj.max_ate_m > 0:
             raise bad("localization.max_ate_m must be positive")
+    if isinstance(obj, EvaluationConfig):
+        if obj.view_stride < 1 or (obj.max_views is not None and obj.max_views < 1):
+            raise bad("evaluation needs view_stride >= 1 and max_views >= 1 (or null)")
     if isinstance(obj, VideoConfig):
         if obj.fps <= 0 or obj.orbit_frames < 1 or not 0 < obj.scale <= 4:
             raise bad("video needs fps > 0, orbit_frames >= 1 and 0 < scale <= 4")

@@ -41,6 +41,7 @@ __all__ = [
     "build_gaussian_world",
     "localize",
     "log_transitions",
+    "evaluate_rendering",
     "DemoVideos",
     "WorldBundleArtifact",
     "render_demo_videos",
@@ -92,6 +93,20 @@ def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
     )
 
 
+def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: LocalizationReport,
+                       cfg: PipelineConfig, log: LogFn | None = None):
+    """Render the world at the estimated pose of held-out frames (not keyframes: they never fed the
+    map) and compare with the real images (:mod:`atlas_pipeline.gaussian_world.evaluation`)."""
+    from atlas_pipeline.gaussian_world.evaluation import evaluate_views
+
+    held = np.setdiff1d(np.arange(manifest.n_frames), world.keyframe_indices)
+    held = held[np.isfinite(report.T_world_cam[held]).all(axis=(1, 2))][:: cfg.evaluation.view_stride]
+    if cfg.evaluation.max_views is not None:
+        held = held[: cfg.evaluation.max_views]
+    return evaluate_views(world.field, manifest, report.T_world_cam, held, "estimated", world.map_id,
+                          (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log)
+
+
 def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int,
                     cfg: PipelineConfig) -> pa.Table:
     """Transitions from the estimated (default) or ground-truth trajectory of ``report``."""
@@ -105,19 +120,22 @@ def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int
 
 @dataclass
 class DemoVideos:
-    """The rendered demo videos (orbit and trajectory MP4s) and how they were made."""
+    """The rendered demo videos (orbit, trajectory, and real | render side by side) and how they were made."""
 
     orbit: Path
     trajectory: Path
     n_orbit_frames: int
     n_trajectory_frames: int
     size: tuple[int, int]
+    side_by_side: Path | None = None
 
     def save(self, directory: Path) -> list[Path]:
         """Move the videos into ``directory`` (same file system: a rename) and describe them."""
         out = []
-        for attr in ("orbit", "trajectory"):
+        for attr in ("orbit", "trajectory", "side_by_side"):
             src = getattr(self, attr)
+            if src is None:
+                continue
             dst = directory / src.name
             if src.resolve() != dst.resolve():
                 shutil.move(str(src), dst)
@@ -125,6 +143,7 @@ class DemoVideos:
             out.append(dst)
         out.append(write_json_atomic(directory / "videos.json", {
             "orbit": self.orbit.name, "trajectory": self.trajectory.name,
+            "side_by_side": self.side_by_side.name if self.side_by_side else None,
             "n_orbit_frames": self.n_orbit_frames, "n_trajectory_frames": self.n_trajectory_frames,
             "size": list(self.size), "codec": "h264", "pixel_format": "yuv420p",
         }))
@@ -136,8 +155,9 @@ class DemoVideos:
         if not path.is_file():
             raise ArtifactError(f"{directory}: videos.json missing")
         d = json.loads(path.read_text())
+        sbs = d.get("side_by_side")
         return cls(directory / d["orbit"], directory / d["trajectory"], int(d["n_orbit_frames"]),
-                   int(d["n_trajectory_frames"]), tuple(d["size"]))
+                   int(d["n_trajectory_frames"]), tuple(d["size"]), directory / sbs if sbs else None)
 
 
 @dataclass
@@ -202,15 +222,46 @@ def render_video(field: GaussianField, poses_se3: np.ndarray, camera_K: np.ndarr
     return write_mp4(frames(), path, fps=cfg.video.fps), (w, h)
 
 
+def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, poses_se3: np.ndarray,
+                              cfg: PipelineConfig, path: Path, log: LogFn | None = None) -> int:
+    """MP4 of real frame | render from its estimated pose, for every frame with a finite pose,
+    at the dataset's frame size (frames read one at a time)."""
+    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.progress import Progress
+    from atlas_pipeline.sensors.images import read_rgb
+    from atlas_pipeline.viz.video import side_by_side, write_mp4
+
+    if len(field) == 0:
+        raise ValueError("cannot render an empty world")
+    cam = manifest.camera
+    idx = np.flatnonzero(np.isfinite(poses_se3).all(axis=(1, 2)))
+
+    def frames():
+        progress = Progress("rendering side-by-side video", len(idx), log)
+        for i in idx:
+            r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
+                                 poses_se3[i], cam.K, cam.width, cam.height)
+            progress.update()
+            yield side_by_side(read_rgb(manifest.rgb_path(int(i)), cam), r.rgb)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_mp4(frames(), path, fps=cfg.video.fps)
+
+
 def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_K: np.ndarray,
                        width: int, height: int, cfg: PipelineConfig, out_dir: Path, name: str,
-                       log: LogFn | None = None) -> DemoVideos:
-    """Orbit (360 degrees around the world centroid) and trajectory (replay of the estimated poses)."""
+                       log: LogFn | None = None, manifest: FrameManifest | None = None) -> DemoVideos:
+    """Orbit (360 degrees around the world centroid), trajectory (replay of the estimated poses)
+    and, given the sequence's ``manifest``, real | render side by side along the trajectory."""
     orbit_path = out_dir / f"{name}_orbit.mp4"
     traj_path = out_dir / f"{name}_trajectory.mp4"
     n_orbit, size = render_video(field, orbit_trajectory(field, cfg), camera_K, width, height, cfg, orbit_path, "orbit", log)
     n_traj, _ = render_video(field, trajectory_se3, camera_K, width, height, cfg, traj_path, "trajectory", log)
-    return DemoVideos(orbit_path, traj_path, n_orbit, n_traj, size)
+    sbs_path = None
+    if manifest is not None:
+        sbs_path = out_dir / f"{name}_side_by_side.mp4"
+        render_side_by_side_video(field, manifest, trajectory_se3, cfg, sbs_path, log)
+    return DemoVideos(orbit_path, traj_path, n_orbit, n_traj, size, sbs_path)
 
 
 def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: FrameManifest,

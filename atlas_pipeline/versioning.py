@@ -36,7 +36,7 @@ __all__ = [
     "files_intact",
 ]
 
-ALL_SECTIONS: tuple[str, ...] = ("dataset", "fusion", "mapping", "localization", "transitions", "video")
+ALL_SECTIONS: tuple[str, ...] = ("dataset", "fusion", "mapping", "localization", "transitions", "video", "evaluation")
 
 # The one place that says which config sections shape which stage's artifact. A stage also depends
 # on its upstream artifacts, so e.g. keyframes follow a fusion change through fused_frames' data
@@ -48,7 +48,8 @@ STAGE_CONFIG_SECTIONS: dict[str, tuple[str, ...]] = {
     "gaussian_world": ("mapping",),
     "localization_report": ("localization", "fusion"),  # the depth range of the frames tracked
     "transitions": ("transitions",),
-    "demo_videos": ("video",),
+    "demo_videos": ("video", "fusion"),  # the side-by-side video shows the real frames
+    "render_evaluation": ("evaluation", "fusion"),  # the sensor depth range compared
     "world_bundle": ALL_SECTIONS,  # metadata.json carries the whole resolved config
 }
 

@@ -16,7 +16,7 @@ from assets.resources import AtlasConfig
 from atlas_pipeline.scene_memory.bundle import load_world_bundle
 
 ASSETS = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
-          "transitions", "demo_videos", "world_bundle"]
+          "transitions", "demo_videos", "render_evaluation", "world_bundle"]
 
 
 def _materialize(root: Path, partition: str, profile: str = "default", overrides=None, raise_on_error=True,
@@ -73,7 +73,13 @@ def test_full_graph_materializes_on_synthetic(isolated):
         f = load_world_bundle(bundle, source).field
         assert len(f) == meta["n_gaussians"]
     videos = sorted((art / "demo_videos" / "synth-small").glob("*.mp4"))
-    assert [v.name for v in videos] == ["synth-small_orbit.mp4", "synth-small_trajectory.mp4"]
+    assert [v.name for v in videos] == ["synth-small_orbit.mp4", "synth-small_side_by_side.mp4",
+                                        "synth-small_trajectory.mp4"]
+    ev = json.loads((art / "render_evaluation" / "synth-small" / "photometric.json").read_text())
+    held = set(range(12)) - set(meta["keyframes"]["indices"])
+    assert ev["summary"]["n_views"] >= 1 and {v["frame"] for v in ev["views"]} <= held
+    assert ev["summary"]["mean_psnr_masked_db"] > 15 and ev["summary"]["mean_depth_l1_m"] < 0.05
+    assert (art / "render_evaluation" / "synth-small" / "preview.png").stat().st_size > 0
     checks = {e.asset_check_evaluation_data.check_name: e.asset_check_evaluation_data.passed
               for e in result.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"}
     assert checks == {"gaussians_finite_and_nonempty": True, "bundle_reload_identical": True,

@@ -28,7 +28,7 @@ def test_paper_commands_build_localize_log_video(isolated, capsys):
 def test_run_materializes_through_dagster(isolated, capsys):
     assert main(["run", "synth-small"]) == 0
     out = _json_out(capsys)
-    assert out["success"] and len(out["videos"]) == 2
+    assert out["success"] and len(out["videos"]) == 3
     assert (isolated / "artifacts" / "world_bundle" / "synth-small" / "metadata.json").is_file()
     # Recorded in the persistent instance, so the web UI shows the run.
     from dagster import DagsterInstance

@@ -14,7 +14,7 @@ from assets.staleness import dagster_status, stale_assets
 
 PART = "synth-small"
 UPSTREAM = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world"]
-DOWNSTREAM_OF_LOCALIZATION = ["localization_report", "transitions", "demo_videos", "world_bundle"]
+DOWNSTREAM_OF_LOCALIZATION = ["localization_report", "transitions", "demo_videos", "render_evaluation", "world_bundle"]
 
 
 def _run(root: Path, instance, overrides=None, raise_on_error=True):

@@ -19,7 +19,7 @@ pytest.importorskip("dagster_webserver", reason="dagster-webserver is not instal
 ROOT = Path(__file__).resolve().parents[1]
 PART = "synth-small"
 ASSETS = {"raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
-          "transitions", "demo_videos", "world_bundle"}
+          "transitions", "demo_videos", "render_evaluation", "world_bundle"}
 
 
 def _free_port() -> int:

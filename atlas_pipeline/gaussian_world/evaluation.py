@@ -3,7 +3,9 @@
 The world is rendered from the estimated pose of every held-out frame (a frame that is not a
 keyframe, so it never contributed points to the map) and compared with what the sensor saw:
 
-* PSNR (dB) of the colour image, over the whole frame, 8-bit peak;
+* PSNR (dB) of the colour image, 8-bit peak, over the whole frame and over the pixels with a sensor
+  depth reading in range (``psnr_masked_db``: the part of the scene a depth-built map can hold;
+  far walls beyond the depth range cannot be mapped and stay background);
 * SSIM of the luma image, the standard 11x11 Gaussian window (sigma 1.5), constants
   ``(0.01 L)^2`` and ``(0.03 L)^2`` (Wang et al. 2004), averaged over the frame;
 * depth L1 (m): mean absolute difference between rendered and sensor depth over pixels where both
@@ -82,7 +84,8 @@ class PhotometricReport:
     """Per-view figures of a world rendered at held-out frames.
 
     Attributes:
-        frames: ``[V]`` frame indices evaluated; psnr_db, ssim, depth_l1_m, depth_coverage ``[V]``.
+        frames: ``[V]`` frame indices evaluated; psnr_db, psnr_masked_db, ssim, depth_l1_m,
+            depth_coverage ``[V]``.
         pose_source: which poses the renders used (``estimated`` or ``ground_truth``).
         preview_png: PNG bytes of the median-PSNR view: real | rendered | depth error.
     """
@@ -92,6 +95,7 @@ class PhotometricReport:
     pose_source: str
     frames: np.ndarray
     psnr_db: np.ndarray
+    psnr_masked_db: np.ndarray
     ssim: np.ndarray
     depth_l1_m: np.ndarray
     depth_coverage: np.ndarray
@@ -104,15 +108,20 @@ class PhotometricReport:
             return float(x.mean()) if len(x) else None
 
         self.summary = {"n_views": int(len(self.frames)), "pose_source": self.pose_source,
-                        "mean_psnr_db": m(self.psnr_db), "mean_ssim": m(self.ssim),
+                        "mean_psnr_db": m(self.psnr_db), "mean_psnr_masked_db": m(self.psnr_masked_db),
+                        "mean_ssim": m(self.ssim),
                         "mean_depth_l1_m": m(self.depth_l1_m), "mean_depth_coverage": m(self.depth_coverage)}
         return self.summary
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
-        rows = [{"frame": int(f), "psnr_db": float(p), "ssim": float(s),
-                 "depth_l1_m": None if not np.isfinite(d) else float(d), "depth_coverage": float(c)}
-                for f, p, s, d, c in zip(self.frames, self.psnr_db, self.ssim, self.depth_l1_m, self.depth_coverage)]
+        def num(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        rows = [{"frame": int(f), "psnr_db": num(p), "psnr_masked_db": num(pm), "ssim": num(s),
+                 "depth_l1_m": num(d), "depth_coverage": num(c)}
+                for f, p, pm, s, d, c in zip(self.frames, self.psnr_db, self.psnr_masked_db, self.ssim,
+                                             self.depth_l1_m, self.depth_coverage)]
         js = write_json_atomic(directory / "photometric.json", {
             "dataset": self.dataset, "map_id": self.map_id, "summary": self.summarize(), "views": rows})
         out = [js]
@@ -136,7 +145,8 @@ class PhotometricReport:
 
         prev = (directory / "preview.png").read_bytes() if (directory / "preview.png").is_file() else b""
         rep = cls(d["dataset"], d["map_id"], d["summary"].get("pose_source", "estimated"),
-                  np.array([r["frame"] for r in v], np.int64), col("psnr_db"), col("ssim"), col("depth_l1_m"),
+                  np.array([r["frame"] for r in v], np.int64), col("psnr_db"), col("psnr_masked_db"), col("ssim"),
+                  col("depth_l1_m"),
                   col("depth_coverage"), prev)
         rep.summarize()
         return rep
@@ -170,7 +180,7 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
 
     cam = manifest.camera
     idx = [int(i) for i in frame_indices if np.isfinite(T_world_cam[int(i)]).all()]
-    out = {k: np.full(len(idx), np.nan) for k in ("psnr", "ssim", "l1", "cov")}
+    out = {k: np.full(len(idx), np.nan) for k in ("psnr", "psnr_m", "ssim", "l1", "cov")}
     progress = Progress("evaluating views", len(idx), log)
     keep_for_preview: list[tuple[float, int]] = []
     for k, i in enumerate(idx):
@@ -180,12 +190,14 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
         r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
                              T_world_cam[i], cam.K, cam.width, cam.height, background=background)
         out["psnr"][k] = psnr(real, r.rgb)
+        seen = depth > 0
+        out["psnr_m"][k] = psnr(real[seen], r.rgb[seen]) if seen.any() else np.nan
         out["ssim"][k] = ssim(real, r.rgb)
         out["l1"][k], out["cov"][k] = depth_l1(r.depth_m, depth)
-        keep_for_preview.append((out["psnr"][k], i))
+        keep_for_preview.append((out["psnr_m"][k], i))
         progress.update()
-    rep = PhotometricReport(manifest.dataset, map_id, pose_source, np.array(idx, np.int64), out["psnr"], out["ssim"],
-                            out["l1"], out["cov"])
+    rep = PhotometricReport(manifest.dataset, map_id, pose_source, np.array(idx, np.int64), out["psnr"],
+                            out["psnr_m"], out["ssim"], out["l1"], out["cov"])
     if idx:
         # Preview: the view with the median PSNR (a typical one, neither the best nor the worst).
         _, i = sorted(keep_for_preview)[len(keep_for_preview) // 2]
