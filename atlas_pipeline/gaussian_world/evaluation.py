@@ -9,7 +9,8 @@ keyframe, so it never contributed points to the map) and compared with what the 
 * SSIM of the luma image, the standard 11x11 Gaussian window (sigma 1.5), constants
   ``(0.01 L)^2`` and ``(0.03 L)^2`` (Wang et al. 2004), averaged over the frame;
 * depth L1 (m): mean absolute difference between rendered and sensor depth over pixels where both
-  exist (the rendered depth is the alpha-weighted mean depth, normalised by coverage).
+  exist; the rendered depth is the median depth (where the accumulated opacity crosses 0.5, the
+  first opaque surface), not the alpha-weighted mean that blends fore- and background at edges.
 
 Frames are read and rendered one at a time.
 """
@@ -193,7 +194,7 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
         seen = depth > 0
         out["psnr_m"][k] = psnr(real[seen], r.rgb[seen]) if seen.any() else np.nan
         out["ssim"][k] = ssim(real, r.rgb)
-        out["l1"][k], out["cov"][k] = depth_l1(r.depth_m, depth)
+        out["l1"][k], out["cov"][k] = depth_l1(r.depth_median_m, depth)
         keep_for_preview.append((out["psnr_m"][k], i))
         progress.update()
     rep = PhotometricReport(manifest.dataset, map_id, pose_source, np.array(idx, np.int64), out["psnr"],
@@ -205,7 +206,7 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
         depth = read_depth_m(manifest.depth_path(i), cam, allow_empty=True)
         r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
                              T_world_cam[i], cam.K, cam.width, cam.height, background=background)
-        img = preview_image(real, r.rgb, r.depth_m, depth)
+        img = preview_image(real, r.rgb, r.depth_median_m, depth)
         rep.preview_png = png_bytes(img[::2, ::2])  # half size: it travels in run metadata
     rep.summarize()
     logger.info("photometric evaluation of %s: %s", manifest.dataset, rep.summary)

@@ -64,11 +64,16 @@ class RenderResult:
         depth_m: ``[H, W]`` float32 expected depth (alpha-weighted camera z, normalised by the
             accumulated alpha); 0 where ``alpha < 0.5``.
         alpha: ``[H, W]`` float32 accumulated opacity in ``[0, 1]``.
+        depth_median_m: ``[H, W]`` float32 depth at which the accumulated opacity crosses 0.5
+            (the first surface that hides what lies behind it; not pulled towards the background
+            at silhouettes or through half-transparent Gaussians as the expected depth is); 0
+            where it never does. None from the reference renderer.
     """
 
     rgb: np.ndarray
     depth_m: np.ndarray
     alpha: np.ndarray
+    depth_median_m: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -156,6 +161,7 @@ def _empty_result(width: int, height: int, bg: np.ndarray) -> RenderResult:
         rgb=rgb,
         depth_m=np.zeros((height, width), dtype=np.float32),
         alpha=np.zeros((height, width), dtype=np.float32),
+        depth_median_m=np.zeros((height, width), dtype=np.float32),
     )
 
 
@@ -411,7 +417,7 @@ def _to_u8(x):
 @njit(cache=True)
 def _rasterize_tiles(
     worker, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg,
-    rgb, depth_out, alpha_out,
+    rgb, depth_out, alpha_out, median_out,
 ):
     """Composite tiles ``worker, worker + n_workers, ...`` front to back into the output images.
 
@@ -436,6 +442,8 @@ def _rasterize_tiles(
     Cg = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     Cb = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     D = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    Dm = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    half = np.float32(0.5)
     for t in range(worker, n_tiles, n_workers):
         px0 = (t % tiles_x) * TILE_SIZE
         py0 = (t // tiles_x) * TILE_SIZE
@@ -446,6 +454,7 @@ def _rasterize_tiles(
         Cg[:] = 0.0
         Cb[:] = 0.0
         D[:] = 0.0
+        Dm[:] = 0.0
         n_active = (px1 - px0 + 1) * (py1 - py0 + 1)
         for k in range(tile_start[t], tile_start[t + 1]):
             if n_active <= 0:  # every pixel of the tile has terminated
@@ -473,6 +482,7 @@ def _rasterize_tiles(
                 Cgv = Cg[r]
                 Cbv = Cb[r]
                 Dv = D[r]
+                Dmv = Dm[r]
                 done = np.uint64(0)
                 for j in range(lanes):
                     lj = np.float32(j)
@@ -490,6 +500,7 @@ def _rasterize_tiles(
                     Cbv[j] += wgt * cbl
                     Dv[j] += wgt * z
                     Tn = Tl * (one - a)
+                    Dmv[j] = z if (Tl > half) & (Tn <= half) else Dmv[j]
                     Tv[j] = Tn
                     done += np.uint64(ok & (Tn < t_min))
                 n_active -= np.int64(done)
@@ -504,6 +515,7 @@ def _rasterize_tiles(
                 acc = one - Tl
                 alpha_out[py, px] = acc
                 depth_out[py, px] = D[r, c] / acc if acc >= DEPTH_MIN_ALPHA else 0.0
+                median_out[py, px] = Dm[r, c]
 
 
 @njit(cache=True, parallel=True)
@@ -512,13 +524,14 @@ def _rasterize(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles,
     rgb = np.empty((height, width, 3), dtype=np.uint8)
     depth_out = np.empty((height, width), dtype=np.float32)
     alpha_out = np.empty((height, width), dtype=np.float32)
+    median_out = np.empty((height, width), dtype=np.float32)
     # Worker w takes tiles w, w + n_workers, ...: interleaving balances busy and empty regions.
     for w in prange(n_workers):
         _rasterize_tiles(
             w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg,
-            rgb, depth_out, alpha_out,
+            rgb, depth_out, alpha_out, median_out,
         )
-    return rgb, depth_out, alpha_out
+    return rgb, depth_out, alpha_out, median_out
 
 
 def render_gaussians(
@@ -576,11 +589,11 @@ def render_gaussians(
     n_tiles = tiles_x * tiles_y
     tile_start, tile_ids = _bin_tiles(box, tiles_x, n_tiles)
     n_workers = min(n_tiles, max(1, numba.get_num_threads()))
-    rgb, depth_m, alpha = _rasterize(
+    rgb, depth_m, alpha, depth_median_m = _rasterize(
         tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles,
         bg.astype(np.float32), n_workers,
     )
-    return RenderResult(rgb=rgb, depth_m=depth_m, alpha=alpha)
+    return RenderResult(rgb=rgb, depth_m=depth_m, alpha=alpha, depth_median_m=depth_median_m)
 
 
 # --------------------------------------------------------------------------------------------

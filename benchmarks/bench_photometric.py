@@ -1,0 +1,93 @@
+"""How the Gaussian world looks against the real images, and what it costs on disk (issue 4).
+
+    python benchmarks/bench_photometric.py                 # TUM teddy (when present) and synthetic
+    python benchmarks/bench_photometric.py --json out.json
+
+For each dataset and each way of mapping (ground-truth poses, and the tracker's own poses with no
+ground truth), the world is built with the default profile, every frame is localized against it,
+and every held-out frame (not a keyframe: it never fed the map) is rendered from its *estimated*
+pose and compared with the real image: PSNR over the whole frame, PSNR over the pixels with a
+sensor depth reading (what a depth-built map can hold), SSIM, depth L1. The world bundle is then
+written, and its size and bytes per Gaussian reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+
+def run(manifest, cfg) -> dict:
+    from atlas_pipeline import pipeline as lib
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.scene_memory.binary import BYTES_PER_GAUSSIAN
+    from atlas_pipeline.scene_memory.bundle import write_world_bundle
+
+    assert isinstance(cfg, PipelineConfig)
+    fused = lib.fuse(manifest, cfg)
+    kf = lib.select_keyframes_stage(manifest, fused, cfg)
+    world = lib.build_gaussian_world(fused, kf, cfg)
+    report = lib.localize(manifest, world, cfg)
+    t0 = time.perf_counter()
+    ev = lib.evaluate_rendering(manifest, world, report, cfg)
+    dt = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        meta = lib.bundle_metadata(manifest.dataset, manifest.dataset, world, manifest, cfg)
+        b = write_world_bundle(Path(tmp) / "bundle", world.field, meta, localization=report)
+        sizes = {p.name: p.stat().st_size for p in Path(b).iterdir() if p.is_file()}
+        magic = (Path(b) / "gaussians.bin").read_bytes()[:8].decode()
+    version = 2 if magic == "ATLASGS2" else 1
+    s = ev.summary
+    return {"pose_source": kf.pose_source, "n_gaussians": len(world.field), "anisotropic": not world.field.is_isotropic,
+            "n_keyframes": int(len(world.keyframe_indices)), "n_views": s["n_views"],
+            "psnr_db": s["mean_psnr_db"], "psnr_masked_db": s["mean_psnr_masked_db"], "ssim": s["mean_ssim"],
+            "depth_l1_m": s["mean_depth_l1_m"], "depth_coverage": s["mean_depth_coverage"],
+            "localization_ate_m": report.summary.get("ate_rmse_m"), "eval_seconds_per_view": dt / max(s["n_views"], 1),
+            "bin_format": magic, "bytes_per_gaussian_bin": BYTES_PER_GAUSSIAN[version],
+            "gaussians_bin_bytes": sizes.get("gaussians.bin"), "gaussians_ply_bytes": sizes.get("gaussians.ply"),
+            "bundle_bytes": int(sum(sizes.values()))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bench_tracking import _load
+
+    from atlas_pipeline.config import load_profile
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--datasets", nargs="+", default=["teddy", "synthetic"], choices=["synthetic", "teddy"])
+    ap.add_argument("--view-stride", type=int, default=1, help="evaluate every n-th held-out frame")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args(argv)
+    results = {}
+    for name in args.datasets:
+        m = _load(name)
+        if m is None:
+            print(f"{name}: skipped (TUM frames not found)")
+            continue
+        results[name] = {}
+        for source in ("ground_truth", "estimated"):
+            cfg = load_profile("default").with_overrides({"mapping.pose_source": source,
+                                                          "evaluation.view_stride": args.view_stride})
+            results[name][source] = r = run(m, cfg)
+            print(f"{name:10} mapped from {source:12}: {r['n_views']} held-out views  PSNR {r['psnr_db']:.2f} dB "
+                  f"(pixels with depth {r['psnr_masked_db']:.2f} dB)  SSIM {r['ssim']:.3f}  depth L1 "
+                  f"{100 * r['depth_l1_m']:.2f} cm (coverage {100 * r['depth_coverage']:.0f} %)  | "
+                  f"{r['n_gaussians']:,} Gaussians, {r['bin_format']} {r['bytes_per_gaussian_bin']} B/Gaussian, "
+                  f"bundle {r['bundle_bytes'] / 1e6:.1f} MB | {r['eval_seconds_per_view']:.2f} s/view")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
