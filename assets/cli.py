@@ -359,6 +359,33 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_import_ply(args: argparse.Namespace) -> int:
+    """A Gaussian-splat PLY made elsewhere (3DGS layout) as a world bundle this pipeline can
+    localize in, relocalize against, render and extend."""
+    from datetime import datetime, timezone
+
+    from atlas_pipeline.scene_memory.bundle import write_world_bundle
+    from atlas_pipeline.scene_memory.ply import read_gaussian_ply
+
+    if args.voxel <= 0:
+        raise ConfigError("--voxel must be positive")
+    src = Path(args.ply)
+    field = read_gaussian_ply(src)  # refuses missing properties, NaN/inf, short files
+    meta = {
+        "name": src.stem, "partition": None,
+        "dataset": None,
+        "gaussians": {"voxel_size_m": float(args.voxel), "isotropic": field.is_isotropic, "n_keyframes": 0,
+                      "pose_source": "imported"},
+        "imported_from": {"path": str(src.resolve()), "bytes": src.stat().st_size},
+        "lineage": {"created_by": "atlas-gs import-ply", "parent": None,
+                    "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")},
+    }
+    out = write_world_bundle(args.output, field, meta)
+    print(json.dumps({"world": str(Path(out).resolve()), "n_gaussians": len(field),
+                      "anisotropic": not field.is_isotropic}, indent=2))
+    return 0
+
+
 def cmd_lineage(args: argparse.Namespace) -> int:
     """Print the lineage of a world bundle (a folder, or a partition's Dagster bundle)."""
     from atlas_pipeline.scene_memory.bundle import format_lineage, read_lineage
@@ -440,6 +467,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "the first frame is relocalized in it, then frames are tracked and keyframes merged "
                         "(with mapping.pose_source ground_truth: merged at their ground-truth poses)")
     b.set_defaults(func=cmd_build)
+
+    ip = sub.add_parser("import-ply", help="make a world bundle from a Gaussian-splat PLY (3DGS layout)")
+    ip.add_argument("ply")
+    ip.add_argument("--output", required=True, help="bundle folder to write")
+    ip.add_argument("--voxel", type=float, default=0.02,
+                    help="map resolution assumed when tracking against it (m), default 0.02")
+    ip.set_defaults(func=cmd_import_ply)
 
     rl = sub.add_parser("relocalize", help="place frames in a saved world with no initial pose")
     common(rl)

@@ -72,3 +72,22 @@ def test_relocalize_and_evaluate_trajectory(isolated, small_synthetic, capsys):
     bad = isolated / "bad.tum"
     bad.write_text("1.0 0 0\n")
     assert main(["evaluate-trajectory", str(bad), str(small_synthetic / "groundtruth.txt")]) == 2
+
+
+def test_import_ply_makes_a_world_to_relocalize_in(isolated, capsys):
+    world = isolated / "world"
+    assert main(["build", "--input", "synth-small", "--output", str(world)]) == 0
+    capsys.readouterr()
+    imported = isolated / "imported"
+    assert main(["import-ply", str(world / "gaussians.ply"), "--output", str(imported)]) == 0
+    out = _json_out(capsys)
+    assert out["n_gaussians"] > 0 and out["anisotropic"]
+    from atlas_pipeline.scene_memory.bundle import load_world_bundle
+
+    assert load_world_bundle(imported, "bin").field.equals(load_world_bundle(world, "bin").field)
+    assert main(["relocalize", "--world", str(imported), "--input", "synth-small", "--frame", "5"]) == 0
+    assert _json_out(capsys)["frames"][0]["error_t_m"] < 0.02
+    bad = isolated / "bad.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nend_header\n")
+    assert main(["import-ply", str(bad), "--output", str(isolated / "nope")]) == 2
+    assert not (isolated / "nope").exists()
