@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         sr, lc = out["second_run"], out["localization_change"]
         print(f"partition {args.partition}")
-        print(f"{'step':22s} {'first (s)':>10s} {'second (s)':>11s} {'icp change (s)':>15s}")
+        print(f"{'step':22s} {'first (s)':>10s} {'second (s)':>11s} {'loc. change (s)':>15s}")
         for k in s1:
             print(f"{k:22s} {s1[k]:10.3f} {s2.get(k, float('nan')):11.3f} {s3.get(k, float('nan')):15.3f}")
         print(f"{'sum of step times':22s} {first:10.3f} {second:11.3f} {lc['step_s']:15.3f}")

@@ -202,7 +202,7 @@ def run_once(entry: DatasetEntry, cfg: PipelineConfig, work: Path) -> dict[str, 
             "n_tracked": int(s["n_tracked"]),
             "n_lost": int(s["n_lost"]),
             "n_graded": int(s.get("n_graded", 0)),
-            "icp_frames_per_s": num(s.get("frames_per_s")),
+            "tracking_frames_per_s": num(s.get("frames_per_s")),
         },
         "transitions_rows": int(table.num_rows),
         "videos": {"orbit_frames": videos.n_orbit_frames, "trajectory_frames": videos.n_trajectory_frames,
@@ -242,7 +242,7 @@ def print_dataset(name: str, entry: DatasetEntry, notes: dict[str, Any], runs: l
     loc = last["localization"]
     print(f"   localization: rpe_m_per_s {_fmt(loc['rpe_trans_rmse_m_per_s'], '.4f')}  ate_rmse_m {_fmt(loc['ate_rmse_m'], '.4f')}  "
           f"n_relocalized {loc['n_relocalized']}  n_tracked {loc['n_tracked']}  n_lost {loc['n_lost']}  "
-          f"(tracking alone {_fmt(loc['icp_frames_per_s'], '.1f')} frames/s)")
+          f"(tracking alone {_fmt(loc['tracking_frames_per_s'], '.1f')} frames/s)")
     b = last["bundle"]
     print(f"   world: {last['n_gaussians']} Gaussians from {last['n_keyframes']} keyframes "
           f"({last['mapping_pose_source']} poses, {last['n_fused_points']} fused points)")
