@@ -171,6 +171,20 @@ def _bilinear(img, x, y):
             + (1 - a) * b * img[i + 1, j] + a * b * img[i + 1, j + 1])
 
 
+@njit(cache=True, inline="always")
+def _add_residual(H, g, J, px, py, pz, ax, ay, az, wgt, r):
+    """Add one weighted residual ``r`` whose gradient w.r.t. a world-frame point is ``a`` to the
+    normal equations: for ``T <- exp(xi) T``, ``dr/dv = a`` and ``dr/domega = p x a``."""
+    J[0], J[1], J[2] = ax, ay, az
+    J[3] = py * az - pz * ay
+    J[4] = pz * ax - px * az
+    J[5] = px * ay - py * ax
+    for a in range(6):
+        g[a] += wgt * J[a] * r
+        for b in range(a, 6):
+            H[a, b] += wgt * J[a] * J[b]
+
+
 @njit(cache=True)
 def _accumulate_range(
     lo, hi, H, g, stats,
@@ -217,14 +231,7 @@ def _accumulate_range(
                     nwz = Rr[2, 0] * nrx + Rr[2, 1] * nry + Rr[2, 2] * nrz
                     ar = abs(r)
                     wgt = 1.0 if ar <= delta_g else delta_g / ar
-                    J[0], J[1], J[2] = nwx, nwy, nwz
-                    J[3] = py * nwz - pz * nwy
-                    J[4] = pz * nwx - px * nwz
-                    J[5] = px * nwy - py * nwx
-                    for a in range(6):
-                        g[a] += wgt * J[a] * r
-                        for b in range(a, 6):
-                            H[a, b] += wgt * J[a] * J[b]
+                    _add_residual(H, g, J, px, py, pz, nwx, nwy, nwz, wgt, r)
                     stats[0] += wgt * r * r
                     stats[1] += 1
                     stats[4] += r * r
@@ -267,14 +274,7 @@ def _accumulate_range(
                     awx = Rp[0, 0] * d0 + Rp[0, 1] * d1 + Rp[0, 2] * d2
                     awy = Rp[1, 0] * d0 + Rp[1, 1] * d1 + Rp[1, 2] * d2
                     awz = Rp[2, 0] * d0 + Rp[2, 1] * d1 + Rp[2, 2] * d2
-                    J[0], J[1], J[2] = awx, awy, awz
-                    J[3] = py * awz - pz * awy
-                    J[4] = pz * awx - px * awz
-                    J[5] = px * awy - py * awx
-                    for a in range(6):
-                        g[a] += wgt * J[a] * r
-                        for b in range(a, 6):
-                            H[a, b] += wgt * J[a] * J[b]
+                    _add_residual(H, g, J, px, py, pz, awx, awy, awz, wgt, r)
                     stats[2] += wgt * r * r
                     stats[3] += 1
 

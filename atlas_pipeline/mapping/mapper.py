@@ -92,7 +92,8 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
         rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
         depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
         est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]))
-        poses[i], _ = est.T_world_cam, status.append(est.status)
+        poses[i] = est.T_world_cam
+        status.append(est.status)
         if est.keyframe:
             history.append(len(builder))
         progress.update(extra=est.status)

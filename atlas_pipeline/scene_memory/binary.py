@@ -48,6 +48,36 @@ _HEADER_V2 = 24
 BYTES_PER_GAUSSIAN = {1: _BYTES_PER_GAUSSIAN_V1, 2: _BYTES_PER_GAUSSIAN_V2}
 
 
+def _read_checked(path: Path, magic: bytes, header_len: int, bytes_per: int, parse_header) -> tuple[tuple, bytes, int]:
+    """Read a binary world file: check the magic, let ``parse_header(head)`` return
+    ``(header_fields, count)``, check the file size against the count *before* reading the
+    arrays, and return ``(header_fields, body, count)``."""
+    if not path.is_file():
+        raise BundleFormatError(path, "file not found")
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(header_len)
+        if len(head) < header_len or head[:8] != magic:
+            raise BundleFormatError(path, f"not an {magic.decode()} file (magic {head[:8]!r})")
+        fields, n = parse_header(head)
+        expected = header_len + n * bytes_per
+        if size != expected:
+            raise BundleFormatError(path, f"count {n} needs {expected} bytes, file has {size}")
+        return fields, f.read(), n
+
+
+class _Columns:
+    """Consecutive little-endian arrays of a buffer, read without copying."""
+
+    def __init__(self, buf: bytes):
+        self.buf, self.off = buf, 0
+
+    def take(self, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+        a = np.frombuffer(self.buf, dtype=dtype, count=int(np.prod(shape)), offset=self.off).reshape(shape)
+        self.off += a.nbytes
+        return a
+
+
 def write_atlasgs1(field: GaussianField, path: str | Path) -> Path:
     """Write an isotropic field as ATLASGS1 (atomically). Anisotropic fields are refused."""
     if not field.is_isotropic:
@@ -68,26 +98,8 @@ def write_atlasgs1(field: GaussianField, path: str | Path) -> Path:
 def read_atlasgs1(path: str | Path) -> GaussianField:
     """Read an ATLASGS1 file; the size must match the count exactly and values must be finite."""
     path = Path(path)
-    if not path.is_file():
-        raise BundleFormatError(path, "file not found")
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(16)
-        if len(head) < 16 or head[:8] != MAGIC_V1:
-            raise BundleFormatError(path, f"not an ATLASGS1 file (magic {head[:8]!r})")
-        (n,) = struct.unpack("<Q", head[8:16])
-        expected = 16 + n * _BYTES_PER_GAUSSIAN_V1
-        if size != expected:
-            raise BundleFormatError(path, f"count {n} needs {expected} bytes, file has {size}")
-        buf = f.read()
-    off = 0
-
-    def take(dtype: str, shape: tuple[int, ...]) -> np.ndarray:
-        nonlocal off
-        a = np.frombuffer(buf, dtype=dtype, count=int(np.prod(shape)), offset=off).reshape(shape)
-        off += a.nbytes
-        return a
-
+    _, buf, n = _read_checked(path, MAGIC_V1, 16, _BYTES_PER_GAUSSIAN_V1, lambda h: ((), struct.unpack("<Q", h[8:16])[0]))
+    take = _Columns(buf).take
     pos = take("<f4", (n, 3))
     scale = take("<f4", (n,))
     col = take("u1", (n, 3))
@@ -119,28 +131,15 @@ def write_atlasgs2(field: GaussianField, path: str | Path) -> Path:
 def read_atlasgs2(path: str | Path) -> GaussianField:
     """Read an ATLASGS2 file; version, size and values are checked before arrays are built."""
     path = Path(path)
-    if not path.is_file():
-        raise BundleFormatError(path, "file not found")
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(_HEADER_V2)
-        if len(head) < _HEADER_V2 or head[:8] != MAGIC_V2:
-            raise BundleFormatError(path, f"not an ATLASGS2 file (magic {head[:8]!r})")
-        version, flags, n = struct.unpack("<IIQ", head[8:24])
+
+    def header(h: bytes) -> tuple[tuple, int]:
+        version, flags, count = struct.unpack("<IIQ", h[8:24])
         if version != 2:
             raise BundleFormatError(path, f"ATLASGS2 version {version} is not supported (this reader knows 2)")
-        expected = _HEADER_V2 + n * _BYTES_PER_GAUSSIAN_V2
-        if size != expected:
-            raise BundleFormatError(path, f"count {n} needs {expected} bytes, file has {size}")
-        buf = f.read()
-    off = 0
+        return (version, flags), count
 
-    def take(dtype: str, shape: tuple[int, ...]) -> np.ndarray:
-        nonlocal off
-        a = np.frombuffer(buf, dtype=dtype, count=int(np.prod(shape)), offset=off).reshape(shape)
-        off += a.nbytes
-        return a
-
+    _, buf, n = _read_checked(path, MAGIC_V2, _HEADER_V2, _BYTES_PER_GAUSSIAN_V2, header)
+    take = _Columns(buf).take
     pos, scl, rot = take("<f4", (n, 3)), take("<f4", (n, 3)), take("<f4", (n, 4))
     col, opa, ids = take("u1", (n, 3)), take("<f4", (n,)), take("<u8", (n,))
     if not all(np.isfinite(a).all() for a in (pos, scl, rot, opa)):
