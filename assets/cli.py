@@ -100,7 +100,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         n_new_keyframes = len(world.keyframe_indices) - len(previous.keyframe_indices)
     else:
         keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
-        world = lib.build_gaussian_world(fused, keyframes, cfg)
+        world = lib.build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
         n_new_keyframes = len(keyframes.indices)
     from datetime import datetime, timezone
 

@@ -111,11 +111,12 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         })
         return kf
 
-    @atlas_asset(description="Gaussian world: voxel merge of the keyframes, incremental, stable uint64 ids.",
-                 code_version="2", checks=[GAUSSIANS_CHECK], **common)
-    def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, fused_frames: FusedFrames,
-                       keyframes: KeyframeSet) -> GaussianWorld:
-        world = lib.build_gaussian_world(fused_frames, keyframes, atlas.load(), log=context.log.info)
+    @atlas_asset(description="Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 ids), colours fitted to the keyframe images.",
+                 code_version="3", checks=[GAUSSIANS_CHECK], **common)
+    def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
+                       fused_frames: FusedFrames, keyframes: KeyframeSet) -> GaussianWorld:
+        world = lib.build_gaussian_world(fused_frames, keyframes, atlas.load(), log=context.log.info,
+                                         manifest=raw_dataset)
         lo, hi = world.field.bounds()
         preview = render_preview_png(world.field, world.T_world_cam_keyframes[0])
         return Output(world, metadata={

@@ -55,6 +55,8 @@ class MappingConfig:
     voxel_size_m: float = 0.02
     keyframe_translation_m: float = 0.08
     keyframe_rotation_deg: float = 8.0
+    colour_refinement_iterations: int = 3  # fit Gaussian colours to the keyframe images; 0 = mean colours
+    colour_refinement_scale: float = 0.5  # image scale of that fit
 
 
 @dataclass(frozen=True)
@@ -214,6 +216,8 @@ def _validate(obj: Any, source: str) -> None:
             raise bad("mapping.voxel_size_m must be positive")
         if obj.keyframe_translation_m < 0 or obj.keyframe_rotation_deg < 0:
             raise bad("mapping keyframe thresholds must be non-negative")
+        if obj.colour_refinement_iterations < 0 or not 0 < obj.colour_refinement_scale <= 1:
+            raise bad("mapping needs colour_refinement_iterations >= 0 and 0 < colour_refinement_scale <= 1")
     if isinstance(obj, LocalizationConfig):
         if not obj.iterations or min(obj.iterations) < 0 or max(obj.iterations) < 1:
             raise bad("localization.iterations needs one non-negative count per pyramid level, at least one > 0")

@@ -74,8 +74,20 @@ def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: Pip
 
 
 def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
-                         log: LogFn | None = None) -> GaussianWorld:
-    return build_world(fused, keyframes, cfg.mapping, log)
+                         log: LogFn | None = None, manifest: FrameManifest | None = None) -> GaussianWorld:
+    """Merge the keyframes into a world; with the sequence's ``manifest``, then fit the Gaussians'
+    colours to the keyframe images (``mapping.colour_refinement_iterations``)."""
+    world = build_world(fused, keyframes, cfg.mapping, log)
+    mc = cfg.mapping
+    if manifest is not None and mc.colour_refinement_iterations > 0 and len(world.field):
+        from atlas_pipeline.gaussian_world.refine import refine_colours
+        from atlas_pipeline.sensors.images import read_rgb
+
+        idx = [int(i) for i in world.keyframe_indices]
+        images = [read_rgb(manifest.rgb_path(i), manifest.camera) for i in idx]
+        world.field = refine_colours(world.field, images, world.T_world_cam_keyframes, manifest.camera.K,
+                                     mc.colour_refinement_iterations, mc.colour_refinement_scale, log)
+    return world
 
 
 def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,

@@ -35,7 +35,7 @@ def run(manifest, cfg) -> dict:
     assert isinstance(cfg, PipelineConfig)
     fused = lib.fuse(manifest, cfg)
     kf = lib.select_keyframes_stage(manifest, fused, cfg)
-    world = lib.build_gaussian_world(fused, kf, cfg)
+    world = lib.build_gaussian_world(fused, kf, cfg, manifest=manifest)
     report = lib.localize(manifest, world, cfg)
     t0 = time.perf_counter()
     ev = lib.evaluate_rendering(manifest, world, report, cfg)
