@@ -54,7 +54,7 @@ TUM_SETS = {
 }
 KNOWN = ["synthetic", *TUM_SETS]
 STAGES = ["load_dataset", "fuse", "keyframes", "gaussian_world", "localization", "transitions",
-          "demo_videos", "world_bundle"]
+          "demo_videos", "render_evaluation", "world_bundle"]
 
 
 class Skip(Exception):
@@ -169,18 +169,20 @@ def run_once(entry: DatasetEntry, cfg: PipelineConfig, work: Path) -> dict[str, 
     n = manifest.n_frames
     fused = timed("fuse", lib.fuse, manifest, cfg, _quiet)
     keyframes = timed("keyframes", lib.select_keyframes_stage, manifest, fused, cfg, _quiet)
-    world = timed("gaussian_world", lib.build_gaussian_world, fused, keyframes, cfg, _quiet)
+    world = timed("gaussian_world", lib.build_gaussian_world, fused, keyframes, cfg, _quiet, manifest=manifest)
     report = timed("localization", lib.localize, manifest, world, cfg, _quiet)
     table = timed("transitions", lib.log_transitions, report, entry.name, len(world.field), cfg)
     cam = manifest.camera
     videos = timed("demo_videos", lib.render_demo_videos, world.field, report.T_world_cam, cam.K, cam.width,
-                   cam.height, cfg, work / "videos", entry.name, _quiet)
+                   cam.height, cfg, work / "videos", entry.name, _quiet, manifest=manifest)
+    evaluation = timed("render_evaluation", lib.evaluate_rendering, manifest, world, report, cfg, _quiet)
     meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg,
                                {"created_by": "benchmarks/bench_pipeline.py"})
     bundle_dir = timed("world_bundle", write_world_bundle, work / "bundle", world.field, meta, report, table)
 
     frames = {s: n for s in STAGES}
-    frames["demo_videos"] = videos.n_orbit_frames + videos.n_trajectory_frames
+    frames["demo_videos"] = videos.n_orbit_frames + 2 * videos.n_trajectory_frames  # orbit, trajectory, side by side
+    frames["render_evaluation"] = max(int(evaluation.summary["n_views"]), 1)
     files = _dir_bytes(bundle_dir)
     n_g = len(world.field)
     s = report.summary
