@@ -108,7 +108,7 @@ def cmd_build(args: argparse.Namespace) -> int:
                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "profile": cfg.profile,
                "config_overrides": _overrides(args)}
     meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage, parent=parent)
-    write_world_bundle(args.output, world.field, meta, extras=(world,))
+    write_world_bundle(args.output, world.field, meta, extras=(world,), surfels=lib.tracking_map(world))
     logger.info("wrote world with %d Gaussians to %s", len(world.field), args.output)
     print(json.dumps({"world": str(Path(args.output).resolve()), "n_gaussians": len(world.field),
                       "n_keyframes": int(n_new_keyframes), "map_id": world.map_id,
@@ -137,7 +137,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
     """Place single frames in a saved world with no initial pose; print pose, confidence and, where
     the dataset has ground truth, the error (meaningful when the world shares its frame)."""
     from atlas_pipeline.localization.relocalize import Relocalizer
-    from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, pose_change
+    from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
     from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 
@@ -150,7 +150,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frame {bad[0]} is outside 0..{manifest.n_frames - 1}")
     voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
     tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
-    reloc = Relocalizer(tracker, SurfelModel.from_field(bundle.field.positions, voxel),
+    reloc = Relocalizer(tracker, bundle.tracking_model(voxel),
                         bundle_keyframe_poses(bundle.metadata))
     rows = []
     for i in frames:
@@ -190,7 +190,6 @@ def cmd_evaluate_trajectory(args: argparse.Namespace) -> int:
 
 def cmd_localize(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.localizer import localize_sequence
-    from atlas_pipeline.localization.tracker import SurfelModel
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle, update_world_bundle
 
     cfg = _config(args)
@@ -201,7 +200,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
     voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
-    report = localize_sequence(manifest, SurfelModel.from_field(bundle.field.positions, voxel), cfg.localization,
+    report = localize_sequence(manifest, bundle.tracking_model(voxel), cfg.localization,
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
                                prior_poses=bundle_keyframe_poses(bundle.metadata))
     update_world_bundle(args.world, localization=report)

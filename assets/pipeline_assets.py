@@ -111,8 +111,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         })
         return kf
 
-    @atlas_asset(description="Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 ids), colours fitted to the keyframe images.",
-                 code_version="3", checks=[GAUSSIANS_CHECK], **common)
+    @atlas_asset(description="Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 ids), "
+                             "then fitted to the keyframe images and depths (positions, scales, rotations, opacities, colours).",
+                 code_version="4", checks=[GAUSSIANS_CHECK], **common)
     def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                        fused_frames: FusedFrames, keyframes: KeyframeSet) -> GaussianWorld:
         world = lib.build_gaussian_world(fused_frames, keyframes, atlas.load(), log=context.log.info,
@@ -125,6 +126,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
             "voxel_size_m": world.builder.voxel_size_m,
             "extent_m": MetadataValue.json([round(float(v), 3) for v in hi - lo]),
             "gaussians_after_each_keyframe": MetadataValue.json([int(h) for h in world.history]),
+            "fit": MetadataValue.json(world.fit),
             "render_preview": MetadataValue.md(markdown_image(preview, "render from the first keyframe")),
         })
 
@@ -197,8 +199,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         context.add_output_metadata(md)
         return rep
 
-    @atlas_asset(description="World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, localization.json, transitions.parquet.",
-                 code_version="4", checks=[BUNDLE_CHECK], **common)
+    @atlas_asset(description="World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, surfels.npz (tracking map), localization.json, transitions.parquet.",
+                 code_version="5", checks=[BUNDLE_CHECK], **common)
     def world_bundle(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                      gaussian_world: GaussianWorld, localization_report: LocalizationReport,
                      transitions: pa.Table):
@@ -219,7 +221,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
             "parent": None,  # the pipeline builds every partition's world from scratch
         }
         meta = lib.bundle_metadata(context.partition_key, context.partition_key, gaussian_world, raw_dataset, cfg, lineage)
-        return Output(lib.WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions),
+        return Output(lib.WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions,
+                                              lib.tracking_map(gaussian_world)),
                       metadata={"n_gaussians": len(gaussian_world.field), "map_id": gaussian_world.map_id,
                                 "upstream_data_versions": MetadataValue.json(
                                     {a: u["data_version"] for a, u in upstream.items()})})

@@ -75,30 +75,59 @@ def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: Pip
 
 def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
                          log: LogFn | None = None, manifest: FrameManifest | None = None) -> GaussianWorld:
-    """Merge the keyframes into a world; with the sequence's ``manifest``, then fit the Gaussians'
-    colours to the keyframe images (``mapping.colour_refinement_iterations``)."""
+    """Merge the keyframes into a world; with the sequence's ``manifest``, then fit it to the
+    keyframe images: colours first (``mapping.colour_refinement_iterations``, cheap), then every
+    Gaussian parameter against colour and depth (``mapping.optimization_epochs``)."""
     world = build_world(fused, keyframes, cfg.mapping, log)
     mc = cfg.mapping
-    if manifest is not None and mc.colour_refinement_iterations > 0 and len(world.field):
-        from atlas_pipeline.gaussian_world.refine import refine_colours
-        from atlas_pipeline.sensors.images import read_rgb
+    fit_colours = mc.colour_refinement_iterations > 0
+    optimize = mc.optimization_epochs > 0
+    if manifest is None or not len(world.field) or not (fit_colours or optimize):
+        return world
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 
-        idx = [int(i) for i in world.keyframe_indices]
-        images = [read_rgb(manifest.rgb_path(i), manifest.camera) for i in idx]
+    idx = [int(i) for i in world.keyframe_indices]
+    images = [read_rgb(manifest.rgb_path(i), manifest.camera) for i in idx]
+    if fit_colours:
+        from atlas_pipeline.gaussian_world.refine import refine_colours
+
         world.field = refine_colours(world.field, images, world.T_world_cam_keyframes, manifest.camera.K,
                                      mc.colour_refinement_iterations, mc.colour_refinement_scale, log)
+    if optimize:
+        from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
+
+        lo, hi = cfg.fusion.min_depth_m, cfg.fusion.max_depth_m
+        depths = []
+        for i in idx:  # the depth the map was built from: the fusion range only
+            d = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+            depths.append(np.where((d >= lo) & (d <= hi), d, 0.0))
+        settings = OptimizationSettings(epochs=mc.optimization_epochs, scale=mc.optimization_scale,
+                                        depth_weight=mc.optimization_depth_weight)
+        res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
+                                 settings, log)
+        world.field = res.field
+        world.fit = {"epochs": settings.epochs, "steps": int(len(res.loss)), "scale": settings.scale,
+                     "loss_first_epoch": float(res.loss[: len(idx)].mean()),
+                     "loss_last_epoch": float(res.loss[-len(idx):].mean()),
+                     "n_pruned": res.n_pruned, "seconds": round(res.seconds, 2)}
     return world
+
+
+def tracking_map(world: GaussianWorld):
+    """The ``SurfelModel`` localization tracks against: surfels from the voxel statistics (the
+    fitted Gaussians render the images better but no longer mark the surface exactly)."""
+    from atlas_pipeline.localization.tracker import SurfelModel
+
+    return SurfelModel.from_builder(world.builder)
 
 
 def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
              log: LogFn | None = None) -> LocalizationReport:
     """Track the sequence against its own world, starting at the world's first keyframe (whose
     pose the world defines), with the world's keyframe poses as relocalization priors."""
-    from atlas_pipeline.localization.tracker import SurfelModel
-
     anchor = int(world.keyframe_indices[0])
     return localize_sequence(
-        manifest, SurfelModel.from_builder(world.builder), cfg.localization,
+        manifest, tracking_map(world), cfg.localization,
         T_world_cam_start=world.T_world_cam_keyframes[0], anchor_index=anchor, map_id=world.map_id,
         depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
         prior_poses=world.T_world_cam_keyframes, log=log,
@@ -180,9 +209,11 @@ class WorldBundleArtifact:
     metadata: dict[str, Any]
     localization: LocalizationReport | None = None
     transitions: pa.Table | None = None
+    surfels: Any = None  # SurfelModel: the tracking map saved beside the Gaussians
 
     def save(self, directory: Path) -> list[Path]:
-        return write_bundle_files(directory, self.field, self.metadata, self.localization, self.transitions)
+        return write_bundle_files(directory, self.field, self.metadata, self.localization, self.transitions,
+                                  surfels=self.surfels)
 
     @classmethod
     def load(cls, directory: Path) -> "WorldBundleArtifact":

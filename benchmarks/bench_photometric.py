@@ -2,9 +2,11 @@
 
     python benchmarks/bench_photometric.py                 # TUM teddy (when present) and synthetic
     python benchmarks/bench_photometric.py --json out.json
+    python benchmarks/bench_photometric.py --datasets teddy --unfitted   # also without the keyframe fit
 
 For each dataset and each way of mapping (ground-truth poses, and the tracker's own poses with no
-ground truth), the world is built with the default profile, every frame is localized against it,
+ground truth), the world is built with the default profile (voxel Gaussians, then fitted to the
+keyframe images and depths: mapping.optimization_epochs), every frame is localized against it,
 and every held-out frame (not a keyframe: it never fed the map) is rendered from its *estimated*
 pose and compared with the real image: PSNR over the whole frame, PSNR over the pixels with a
 sensor depth reading (what a depth-built map can hold), SSIM, depth L1. The world bundle is then
@@ -35,14 +37,17 @@ def run(manifest, cfg) -> dict:
     assert isinstance(cfg, PipelineConfig)
     fused = lib.fuse(manifest, cfg)
     kf = lib.select_keyframes_stage(manifest, fused, cfg)
+    t_build = time.perf_counter()
     world = lib.build_gaussian_world(fused, kf, cfg, manifest=manifest)
+    t_build = time.perf_counter() - t_build
     report = lib.localize(manifest, world, cfg)
     t0 = time.perf_counter()
     ev = lib.evaluate_rendering(manifest, world, report, cfg)
     dt = time.perf_counter() - t0
     with tempfile.TemporaryDirectory() as tmp:
         meta = lib.bundle_metadata(manifest.dataset, manifest.dataset, world, manifest, cfg)
-        b = write_world_bundle(Path(tmp) / "bundle", world.field, meta, localization=report)
+        b = write_world_bundle(Path(tmp) / "bundle", world.field, meta, localization=report,
+                               surfels=lib.tracking_map(world))
         sizes = {p.name: p.stat().st_size for p in Path(b).iterdir() if p.is_file()}
         magic = (Path(b) / "gaussians.bin").read_bytes()[:8].decode()
     version = 2 if magic == "ATLASGS2" else 1
@@ -54,7 +59,7 @@ def run(manifest, cfg) -> dict:
             "localization_ate_m": report.summary.get("ate_rmse_m"), "eval_seconds_per_view": dt / max(s["n_views"], 1),
             "bin_format": magic, "bytes_per_gaussian_bin": BYTES_PER_GAUSSIAN[version],
             "gaussians_bin_bytes": sizes.get("gaussians.bin"), "gaussians_ply_bytes": sizes.get("gaussians.ply"),
-            "bundle_bytes": int(sum(sizes.values()))}
+            "bundle_bytes": int(sum(sizes.values())), "build_seconds": t_build, "fit": world.fit}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--datasets", nargs="+", default=["teddy", "synthetic"], choices=["synthetic", "teddy"])
     ap.add_argument("--view-stride", type=int, default=1, help="evaluate every n-th held-out frame")
+    ap.add_argument("--unfitted", action="store_true",
+                    help="also run with mapping.optimization_epochs 0 (the voxel field with fitted colours only)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     results = {}
@@ -74,11 +81,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: skipped (TUM frames not found)")
             continue
         results[name] = {}
-        for source in ("ground_truth", "estimated"):
+        epochs = load_profile("default").mapping.optimization_epochs
+        variants = [("ground_truth", epochs), ("estimated", epochs)] + ([("ground_truth", 0)] if args.unfitted else [])
+        for source, n_epochs in variants:
             cfg = load_profile("default").with_overrides({"mapping.pose_source": source,
+                                                          "mapping.optimization_epochs": n_epochs,
                                                           "evaluation.view_stride": args.view_stride})
-            results[name][source] = r = run(m, cfg)
-            print(f"{name:10} mapped from {source:12}: {r['n_views']} held-out views  PSNR {r['psnr_db']:.2f} dB "
+            label = source if n_epochs else f"{source}, unfitted"
+            results[name][label] = r = run(m, cfg)
+            print(f"{name:10} mapped from {label:12}: build {r['build_seconds']:.1f} s, {r['n_views']} held-out views  PSNR {r['psnr_db']:.2f} dB "
                   f"(pixels with depth {r['psnr_masked_db']:.2f} dB)  SSIM {r['ssim']:.3f}  depth L1 "
                   f"{100 * r['depth_l1_m']:.2f} cm (coverage {100 * r['depth_coverage']:.0f} %)  | "
                   f"{r['n_gaussians']:,} Gaussians, {r['bin_format']} {r['bytes_per_gaussian_bin']} B/Gaussian, "

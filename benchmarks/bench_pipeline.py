@@ -178,7 +178,8 @@ def run_once(entry: DatasetEntry, cfg: PipelineConfig, work: Path) -> dict[str, 
     evaluation = timed("render_evaluation", lib.evaluate_rendering, manifest, world, report, cfg, _quiet)
     meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg,
                                {"created_by": "benchmarks/bench_pipeline.py"})
-    bundle_dir = timed("world_bundle", write_world_bundle, work / "bundle", world.field, meta, report, table)
+    bundle_dir = timed("world_bundle", write_world_bundle, work / "bundle", world.field, meta, report, table,
+                       surfels=lib.tracking_map(world))
 
     frames = {s: n for s in STAGES}
     frames["demo_videos"] = videos.n_orbit_frames + 2 * videos.n_trajectory_frames  # orbit, trajectory, side by side

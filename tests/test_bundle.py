@@ -59,3 +59,42 @@ def test_not_a_bundle(tmp_path):
         load_world_bundle(tmp_path)
     with pytest.raises(BundleFormatError):
         update_world_bundle(tmp_path)
+
+
+def test_tracking_map_travels_with_the_bundle(tmp_path):
+    """The surfels the tracker uses are saved beside the Gaussians and reloaded exactly; a bundle
+    without them (an imported PLY) still gets a map from its Gaussian centres."""
+    from atlas_pipeline.localization.tracker import SurfelModel
+
+    rng = np.random.default_rng(1)
+    b = VoxelGaussianBuilder(0.02)
+    # a noisy plane: surfels need a neighbourhood to get a normal
+    xy = rng.uniform(-0.5, 0.5, (40000, 2))
+    b.integrate(np.c_[xy, 0.002 * rng.normal(size=len(xy))], rng.integers(0, 256, (len(xy), 3)))
+    model = SurfelModel.from_builder(b)
+    d = write_world_bundle(tmp_path / "w", b.to_field(), {}, surfels=model)
+    loaded = load_world_bundle(d).tracking_model()
+    assert np.allclose(loaded.centres, model.centres, atol=1e-6) and loaded.radius_m == model.radius_m
+    assert np.allclose(loaded.normals, model.normals, atol=1e-6)
+    d2 = write_world_bundle(tmp_path / "w2", b.to_field(), {"gaussians": {"voxel_size_m": 0.02}})
+    derived = load_world_bundle(d2).tracking_model()
+    assert len(derived) > 0.9 * len(model) and np.abs(derived.normals[:, 2]).min() > 0.9
+    # a tampered map is refused, naming the file
+    (d / "surfels.npz").write_bytes(b"junk")
+    with pytest.raises(BundleFormatError, match="surfels.npz.*checksum"):
+        load_world_bundle(d).tracking_model()
+
+
+def test_malformed_surfel_file_is_refused(tmp_path):
+    from atlas_pipeline.localization.tracker import SurfelModel
+
+    p = tmp_path / "surfels.npz"
+    np.savez(p, centres=np.zeros((4, 3)), normals=np.zeros((5, 3)), radius_m=0.016)
+    with pytest.raises(BundleFormatError, match="must both be"):
+        SurfelModel.load(p)
+    np.savez(p, centres=np.full((4, 3), np.nan), normals=np.zeros((4, 3)), radius_m=0.016)
+    with pytest.raises(BundleFormatError, match="non-finite"):
+        SurfelModel.load(p)
+    p.write_bytes(b"not a zip")
+    with pytest.raises(BundleFormatError, match="not a surfel map"):
+        SurfelModel.load(p)

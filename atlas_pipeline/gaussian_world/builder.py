@@ -187,6 +187,7 @@ class GaussianWorld:
         T_world_cam_keyframes: ``[K, 4, 4]`` the poses they were merged with.
         pose_source: ``ground_truth`` or ``estimated``.
         history: ``[K]`` number of Gaussians after each merge.
+        fit: how the field was fitted to the keyframe images (JSON-ready; empty when it was not).
     """
 
     field: GaussianField
@@ -195,6 +196,7 @@ class GaussianWorld:
     T_world_cam_keyframes: np.ndarray
     pose_source: str
     history: np.ndarray
+    fit: dict = field(default_factory=dict)
 
     @property
     def map_id(self) -> str:
@@ -217,7 +219,7 @@ class GaussianWorld:
             )
         meta = write_json_atomic(directory / "world.json", {
             "map_id": self.map_id, "n_gaussians": len(self.field), "voxel_size_m": b.voxel_size_m,
-            "n_keyframes": int(len(self.keyframe_indices)), "pose_source": self.pose_source,
+            "n_keyframes": int(len(self.keyframe_indices)), "pose_source": self.pose_source, "fit": self.fit,
         })
         return [path, meta]
 
@@ -234,4 +236,4 @@ class GaussianWorld:
                                            z["voxel_sum_xyz"], z["voxel_sum_rgb"], z["voxel_sum_sq"],
                                            z["voxel_n_keyframes"])
             return cls(fld, builder, z["keyframe_indices"], z["T_world_cam_keyframes"],
-                       str(meta["pose_source"]), z["history"])
+                       str(meta["pose_source"]), z["history"], dict(meta.get("fit", {})))

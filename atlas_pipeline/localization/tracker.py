@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -164,20 +165,53 @@ class SurfelModel:
         return cls(c, n, 0.8 * builder.voxel_size_m)
 
     @classmethod
-    def from_field(cls, positions: np.ndarray, voxel_size_m: float) -> "SurfelModel":
-        """Surfels from Gaussian centres ``[N, 3]`` alone (e.g. a world bundle loaded from disk,
-        which keeps no voxel statistics): each centre is binned into its voxel, and normals come
-        from the centres of the 3x3x3 voxel neighbourhood."""
+    def from_field(cls, positions: np.ndarray, voxel_size_m: float, opacities: np.ndarray | None = None,
+                   min_opacity: float = 0.5) -> "SurfelModel":
+        """Surfels from Gaussian centres ``[N, 3]`` alone (a bundle without ``surfels.npz``, e.g. an
+        imported PLY): each centre is binned into its voxel, and normals come from the centres of
+        the 3x3x3 voxel neighbourhood. With ``opacities [N]``, only Gaussians at least
+        ``min_opacity`` opaque count: fitted fields park faint Gaussians off the surface."""
         from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
 
+        pts = np.asarray(positions, np.float64)
+        if opacities is not None:
+            solid = np.asarray(opacities) >= min_opacity
+            if solid.sum() >= 0.25 * len(pts):  # not a field of faint Gaussians only
+                pts = pts[solid]
         b = VoxelGaussianBuilder(voxel_size_m)
-        if len(positions):
-            b.integrate(np.asarray(positions, np.float64), np.zeros((len(positions), 3)))
+        if len(pts):
+            b.integrate(pts, np.zeros((len(pts), 3)))
         c, n = surfels_from_voxels(b.ids, b.count, b.sum_xyz, b.sum_sq, 1, min_support=4)
         return cls(c, n, 0.8 * voxel_size_m)
 
     def __len__(self) -> int:
         return len(self.centres)
+
+    def save(self, path: Path) -> Path:
+        """``surfels.npz``: centres and normals ``[M, 3]`` float32, radius_m (no pickled objects)."""
+        from atlas_pipeline.io_utils import atomic_path
+
+        with atomic_path(Path(path)) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, centres=np.asarray(self.centres, np.float32),
+                         normals=np.asarray(self.normals, np.float32), radius_m=np.float64(self.radius_m))
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: Path) -> "SurfelModel":
+        """Read :meth:`save`'s file; a malformed one raises ``BundleFormatError`` naming it."""
+        from atlas_pipeline.errors import BundleFormatError
+
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                c, n, r = z["centres"], z["normals"], float(z["radius_m"])
+        except (OSError, ValueError, KeyError) as exc:
+            raise BundleFormatError(path, f"not a surfel map ({exc})") from exc
+        if c.ndim != 2 or c.shape[1:] != (3,) or n.shape != c.shape:
+            raise BundleFormatError(path, f"centres {list(c.shape)} and normals {list(n.shape)} must both be [M, 3]")
+        if not (np.isfinite(c).all() and np.isfinite(n).all() and np.isfinite(r) and r > 0):
+            raise BundleFormatError(path, "non-finite centres / normals or a non-positive radius_m")
+        return cls(c.astype(np.float64), n.astype(np.float64), r)
 
     def render(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Model view ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` at pyramid ``level`` (NaN = empty)."""

@@ -6,6 +6,8 @@
       metadata.json        what, from where, how (lineage, config, file checksums)
       gaussians.ply        3DGS-layout PLY for other tools
       gaussians.bin        ATLASGS1 (isotropic) or ATLASGS2 binary for fast reload
+      surfels.npz          the tracking map (surfel centres and normals from the voxel statistics;
+                           the Gaussians are fitted to images and no longer mark the surface exactly)
       localization.json    per-frame poses and errors (optional)
       transitions.parquet  state-action-state log (optional)
 
@@ -71,8 +73,12 @@ def write_bundle_files(
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
     extras: tuple[Any, ...] = (),
+    surfels: Any = None,
 ) -> list[Path]:
     """Write a bundle's files into an existing (empty, temporary) folder; returns the paths.
+
+    ``surfels`` (a ``SurfelModel``) is the map localization tracks against; without it a reader
+    derives one from the Gaussian centres.
 
     ``extras`` are objects with ``save(directory)`` stored beside the Gaussians (e.g. the
     ``GaussianWorld`` with its voxel statistics, so the world can be extended later).
@@ -80,6 +86,8 @@ def write_bundle_files(
     write_gaussian_ply(field, directory / "gaussians.ply")
     write_gaussian_binary(field, directory / "gaussians.bin")
     _write_parts(directory, localization, transitions)
+    if surfels is not None:
+        surfels.save(directory / "surfels.npz")
     for extra in extras:
         extra.save(directory)
     meta = {
@@ -102,12 +110,13 @@ def write_world_bundle(
     localization: LocalizationReport | None = None,
     transitions: pa.Table | None = None,
     extras: tuple[Any, ...] = (),
+    surfels: Any = None,
 ) -> Path:
     """Write a complete bundle folder atomically; ``metadata`` (name, lineage, config ...) goes
     into metadata.json."""
     directory = Path(directory)
     with atomic_dir(directory) as tmp:
-        write_bundle_files(tmp, field, metadata, localization, transitions, extras)
+        write_bundle_files(tmp, field, metadata, localization, transitions, extras, surfels)
     return directory
 
 
@@ -147,6 +156,22 @@ class WorldBundle:
     @property
     def map_id(self) -> str:
         return self.metadata.get("map_id", "")
+
+    def tracking_model(self, voxel_size_m: float | None = None):
+        """The ``SurfelModel`` to localize against: ``surfels.npz`` (checksum verified) when the
+        bundle has one, else surfels derived from the Gaussian centres (e.g. an imported PLY)."""
+        from atlas_pipeline.localization.tracker import SurfelModel
+
+        rec = self.metadata.get("files", {}).get("surfels.npz")
+        if rec is not None:
+            path = self.directory / "surfels.npz"
+            if not path.is_file():
+                raise BundleFormatError(path, "file listed in metadata.json is missing")
+            if sha256_file(path) != rec["sha256"]:
+                raise BundleFormatError(path, "checksum does not match metadata.json (file changed or truncated)")
+            return SurfelModel.load(path)
+        voxel = voxel_size_m or float(self.metadata.get("gaussians", {}).get("voxel_size_m", 0.02))
+        return SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
 
 
 def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
