@@ -57,7 +57,8 @@ class MappingConfig:
     keyframe_rotation_deg: float = 8.0
     colour_refinement_iterations: int = 3  # fit Gaussian colours to the keyframe images; 0 = mean colours
     colour_refinement_scale: float = 0.5  # image scale of that fit
-    optimization_epochs: int = 20  # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off
+    optimization_epochs: int = 30  # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off
+    optimization_max_steps: int = 600  # cap on its steps (one keyframe each), whatever the keyframe count
     optimization_scale: float = 0.5  # image scale of that fit (1/n)
     optimization_depth_weight: float = 1.0  # depth L1 (m) against colour L1 ([0, 1]) in its loss
 
@@ -224,6 +225,8 @@ def _validate(obj: Any, source: str) -> None:
         inv = 1.0 / obj.optimization_scale if obj.optimization_scale > 0 else 0.0
         if obj.optimization_epochs < 0 or not (0 < obj.optimization_scale <= 1 and abs(inv - round(inv)) < 1e-9):
             raise bad("mapping needs optimization_epochs >= 0 and optimization_scale = 1/n (1, 0.5, 0.25, ...)")
+        if obj.optimization_max_steps < 1:
+            raise bad("mapping.optimization_max_steps must be at least 1")
         if obj.optimization_depth_weight < 0:
             raise bad("mapping.optimization_depth_weight must be non-negative")
     if isinstance(obj, LocalizationConfig):

@@ -98,3 +98,26 @@ def test_malformed_surfel_file_is_refused(tmp_path):
     p.write_bytes(b"not a zip")
     with pytest.raises(BundleFormatError, match="not a surfel map"):
         SurfelModel.load(p)
+
+
+def test_ply_normals_are_the_shortest_axis(tmp_path):
+    """nx ny nz carry each flat Gaussian's normal (point-cloud viewers shade with it); the
+    Gaussians still reload bit for bit."""
+    from atlas_pipeline.scene_memory import ply as P
+
+    rng = np.random.default_rng(2)
+    b = VoxelGaussianBuilder(0.02)
+    xz = rng.uniform(-0.5, 0.5, (40000, 2))  # a plane y = 0: normals +-y
+    b.integrate(np.c_[xz[:, 0], 0.002 * rng.normal(size=len(xz)), xz[:, 1]], rng.integers(0, 256, (len(xz), 3)))
+    f = b.to_field()
+    path = P.write_gaussian_ply(f, tmp_path / "g.ply")
+    assert P.read_gaussian_ply(path).equals(f)
+    raw = path.read_bytes()
+    body = raw[raw.index(b"end_header\n") + len(b"end_header\n"):]
+    dt = [(p, "<f4") for p in P._FLOAT_PROPS] + [("red", "u1"), ("green", "u1"), ("blue", "u1"),
+                                                 ("id_hi", "<u4"), ("id_lo", "<u4")]
+    v = np.frombuffer(body, dtype=dt)
+    n = np.c_[v["nx"], v["ny"], v["nz"]]
+    set_ = np.linalg.norm(n, axis=1) > 0
+    assert set_.mean() > 0.9 and np.allclose(np.linalg.norm(n[set_], axis=1), 1, atol=1e-5)
+    assert np.median(np.abs(n[set_, 1])) > 0.99

@@ -201,6 +201,13 @@ def test_ply_nan_refused(tmp_path):
         read_gaussian_ply(_ply_with(tmp_path, ALL, 3, 3, vals))
 
 
+def test_ply_overflowing_log_scale_refused(tmp_path):
+    vals = np.ones((3, len(ALL)), np.float32)
+    vals[2, ALL.index("scale_1")] = 500.0  # exp(500) is no float32
+    with pytest.raises(BundleFormatError, match="vertex 2: log scale too large"):
+        read_gaussian_ply(_ply_with(tmp_path, ALL, 3, 3, vals))
+
+
 def test_ply_count_larger_than_data_refused_before_allocating(tmp_path):
     with pytest.raises(BundleFormatError, match="declares 1000000000000 vertices"):
         read_gaussian_ply(_ply_with(tmp_path, ALL, 10**12, 2))

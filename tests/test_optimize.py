@@ -190,3 +190,30 @@ def test_profile_refuses_an_unusable_optimisation_scale():
 
     with pytest.raises(ConfigError, match="optimization_scale"):
         load_profile("default").with_overrides({"mapping.optimization_scale": 0.3})
+
+
+def test_pipeline_fits_the_world_to_its_keyframes_and_records_it(small_manifest, tmp_path):
+    from atlas_pipeline import pipeline as lib
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+
+    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 3})
+    fused = lib.fuse(small_manifest, cfg)
+    kf = lib.select_keyframes_stage(small_manifest, fused, cfg)
+    world = lib.build_gaussian_world(fused, kf, cfg, manifest=small_manifest)
+    fit = world.fit
+    assert fit["steps"] == 3 * len(world.keyframe_indices) and fit["loss_last_epoch"] < fit["loss_first_epoch"]
+    world.save(tmp_path)
+    back = GaussianWorld.load(tmp_path)
+    assert back.fit == fit and back.field.equals(world.field)
+    # the tracking map still comes from the voxel statistics, not from the moved Gaussians
+    assert len(lib.tracking_map(world)) == len(lib.tracking_map(back)) > 0
+
+
+def test_step_cap_bounds_the_work(small_manifest, small_world):
+    train = [0, 3, 6]
+    targets = _views(small_world, small_manifest, train)
+    res = optimize_gaussians(small_world, [t[0] for t in targets], [t[1] for t in targets],
+                             [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
+                             OptimizationSettings(epochs=10, max_steps=7, scale=0.5), log=lambda _: None)
+    assert len(res.loss) == 7  # two full passes and one view of a third

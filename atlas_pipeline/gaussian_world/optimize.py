@@ -59,6 +59,8 @@ class OptimizationSettings:
 
     Attributes:
         epochs: passes over the keyframes (one Adam step per keyframe per pass); 0 = off.
+        max_steps: cap on the steps in all (None: no cap), so a long sequence with many keyframes
+            costs a bounded time (each step renders one keyframe forward and backward).
         scale: image scale of the fit (0.5 = half size: 4x cheaper, enough for 2 cm Gaussians).
         lr_position_m, lr_log_scale, lr_rotation_rad, lr_opacity_logit, lr_color: Adam step sizes
             (colours in [0, 1]).
@@ -66,13 +68,18 @@ class OptimizationSettings:
         coverage_weight: weight of the transparency left at pixels with a sensor reading (a surface
             was measured there, so the render should be opaque).
         max_scale_m, min_scale_m: clamp of the scales after each step.
+        lr_final_ratio: every step size decays exponentially to this fraction of its start over
+            the run (3DGS decays its position step to 0.01 over 30,000 steps). 1 = constant: with a
+            few hundred steps the fit is still improving at the end (decay to 0.1 cost 1 dB on teddy).
         seed: order of the keyframes in each pass.
 
     The step sizes are larger than 3DGS's (which runs 30,000 steps): here a few hundred steps start
-    from a field already close to the images. Tuned on TUM fr3/teddy (benchmarks/bench_photometric.py).
+    from a field already close to the images. Tuned on TUM fr3/teddy (benchmarks/bench_photometric.py):
+    held-out PSNR over pixels with depth was 23.7 dB after 20 epochs and 24.6 dB after 30.
     """
 
-    epochs: int = 20
+    epochs: int = 30
+    max_steps: int | None = 600
     scale: float = 0.5
     lr_position_m: float = 5e-4
     lr_log_scale: float = 2e-2
@@ -81,6 +88,7 @@ class OptimizationSettings:
     lr_color: float = 1e-2
     depth_weight: float = 1.0
     coverage_weight: float = 2.0
+    lr_final_ratio: float = 1.0
     max_scale_m: float = 0.1
     min_scale_m: float = 1e-4
     seed: int = 0
@@ -502,6 +510,7 @@ class _Adam:
         self.m = np.zeros(shape)
         self.v = np.zeros(shape)
         self.lr, self.b1, self.b2, self.eps = lr, beta1, beta2, eps
+        self.lr0 = lr
         self.t = 0
 
     def step(self, grad: np.ndarray) -> np.ndarray:
@@ -603,10 +612,16 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     lo, hi = math.log(settings.min_scale_m), math.log(settings.max_scale_m)
     rng = np.random.default_rng(settings.seed)
     n_steps = settings.epochs * len(imgs)
+    if settings.max_steps is not None:
+        n_steps = min(n_steps, settings.max_steps)
+    n_epochs = -(-n_steps // len(imgs))  # the last pass may be partial
     losses = np.empty(n_steps)
     step = 0
-    for epoch in range(settings.epochs):
-        for v in rng.permutation(len(imgs)):
+    for epoch in range(n_epochs):
+        for v in rng.permutation(len(imgs))[: n_steps - step]:
+            decay = settings.lr_final_ratio ** (step / max(n_steps - 1, 1))
+            for a in adam.values():
+                a.lr = a.lr0 * decay
             opac = 1.0 / (1.0 + np.exp(-logit))
             loss, g = render_loss_and_gradients(pos, np.exp(log_s), quat, col, opac, poses[v], Ks, imgs[v], deps[v],
                                                 1.0, settings.depth_weight, w_cover=settings.coverage_weight)
@@ -618,9 +633,9 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             quat /= np.linalg.norm(quat, axis=1, keepdims=True)
             logit = np.clip(logit + adam["logit"].step(g["logit"]), -12.0, 12.0)
             col = np.clip(col + adam["color"].step(g["color"]), 0.0, 1.0)
-        sl = losses[step - len(imgs): step]
-        msg = (f"Gaussian optimisation epoch {epoch + 1}/{settings.epochs}: mean loss {sl.mean():.5f} "
-               f"({step / (time.perf_counter() - t0):.2f} steps/s at {w0 // f}x{h0 // f})")
+        sl = losses[epoch * len(imgs): step]
+        msg = (f"Gaussian optimisation pass {epoch + 1}/{n_epochs} (step {step}/{n_steps}): mean loss "
+               f"{sl.mean():.5f} ({step / (time.perf_counter() - t0):.2f} steps/s at {w0 // f}x{h0 // f})")
         (log or logger.info)(msg)
     opac = 1.0 / (1.0 + np.exp(-logit))
     keep = opac * 255.0 >= 1.0

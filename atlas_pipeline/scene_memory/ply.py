@@ -3,7 +3,8 @@
 Per vertex (binary little endian, float32 unless noted)::
 
     x y z                 mean
-    nx ny nz              zeros (as the reference writes them)
+    nx ny nz              unit normal: the axis of the smallest scale (zeros where the Gaussian is
+                          not flat; the reference writes zeros, viewers of point clouds shade with it)
     f_dc_0 f_dc_1 f_dc_2  SH degree-0 colour: (rgb - 0.5) / C0, C0 = 0.28209479
     opacity               logit(opacity)
     scale_0 scale_1 scale_2   log(standard deviation)
@@ -49,6 +50,23 @@ _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", 
 _MAX_HEADER_BYTES = 64 * 1024
 
 
+def _normals(field: GaussianField) -> np.ndarray:
+    """``[N, 3]`` float32: each Gaussian's shortest axis in the world frame where it is clearly
+    the shortest (under half the middle scale), else zeros."""
+    from atlas_pipeline.geometry import quat_xyzw_to_rotmat
+
+    out = np.zeros((len(field), 3), np.float32)
+    if not len(field):
+        return out
+    s = np.sort(field.scales, axis=1)
+    flat = s[:, 0] < 0.5 * s[:, 1]
+    if flat.any():
+        R = quat_xyzw_to_rotmat(field.rotations_xyzw[flat].astype(np.float64))  # [M, 3, 3]
+        axis = np.argmin(field.scales[flat], axis=1)
+        out[flat] = R[np.arange(len(axis)), :, axis]
+    return out
+
+
 def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
     """Write ``field`` as a binary little-endian 3DGS PLY (atomically)."""
     path = Path(path)
@@ -57,7 +75,7 @@ def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
                                                   ("id_hi", "<u4"), ("id_lo", "<u4")]
     v = np.empty(n, dtype=dtype)
     v["x"], v["y"], v["z"] = field.positions.T
-    v["nx"] = v["ny"] = v["nz"] = 0.0
+    v["nx"], v["ny"], v["nz"] = _normals(field).T
     dc = ((field.colors.astype(np.float64) / 255.0) - 0.5) / SH_C0
     v["f_dc_0"], v["f_dc_1"], v["f_dc_2"] = dc.astype(np.float32).T
     v["opacity"] = _encode_opacity(field.opacities)
@@ -154,7 +172,11 @@ def read_gaussian_ply(path: str | Path) -> GaussianField:
     else:
         dc = np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], axis=1).astype(np.float64)
         colors = np.clip(np.rint((dc * SH_C0 + 0.5) * 255.0), 0, 255).astype(np.uint8)
-    scales = _decode_scale(np.stack([v["scale_0"], v["scale_1"], v["scale_2"]], axis=1))
+    with np.errstate(over="ignore"):
+        scales = _decode_scale(np.stack([v["scale_0"], v["scale_1"], v["scale_2"]], axis=1))
+    if not np.isfinite(scales).all():
+        bad = int(np.flatnonzero(~np.isfinite(scales).all(axis=1))[0])
+        raise BundleFormatError(path, f"vertex {bad}: log scale too large (exp overflows float32)")
     rot = np.stack([v["rot_1"], v["rot_2"], v["rot_3"], v["rot_0"]], axis=1).astype(np.float32)
     norms = np.linalg.norm(rot.astype(np.float64), axis=1)
     if np.any(norms < 1e-12):
