@@ -182,6 +182,10 @@ def test_bad_settings_and_inputs_are_refused(small_world):
                            OptimizationSettings(scale=0.3))
     with pytest.raises(ValueError, match="one depth image and one pose"):
         optimize_gaussians(small_world, [img], [], [np.eye(4)], K_TINY)
+    with pytest.raises(ValueError, match="view 1: image"):
+        optimize_gaussians(small_world, [img, img[:60]], [np.zeros((120, 160))] * 2, [np.eye(4)] * 2, K_TINY)
+    with pytest.raises(ValueError, match="view 0: pose"):
+        optimize_gaussians(small_world, [img], [np.zeros((120, 160))], [np.full((4, 4), np.nan)], K_TINY)
 
 
 def test_profile_refuses_an_unusable_optimisation_scale():

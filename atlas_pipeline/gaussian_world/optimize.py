@@ -594,6 +594,12 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     if f < 1 or abs(1.0 / f - settings.scale) > 1e-9:
         raise ValueError(f"optimisation scale must be 1/n for an integer n, got {settings.scale}")
     h0, w0 = images[0].shape[:2]
+    for k, (im, d, T) in enumerate(zip(images, depths_m, poses)):
+        if np.shape(im) != (h0, w0, 3) or np.shape(d) != (h0, w0):
+            raise ValueError(f"optimize_gaussians: view {k}: image {list(np.shape(im))} and depth {list(np.shape(d))} "
+                             f"must be [{h0}, {w0}, 3] and [{h0}, {w0}] like view 0")
+        if np.shape(T) != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"optimize_gaussians: view {k}: pose must be a finite 4x4 matrix")
     imgs = [np.ascontiguousarray(_downsample(np.asarray(im, np.float64) / 255.0, f)) for im in images]
     deps = [np.ascontiguousarray(_downsample_depth(np.asarray(d, np.float64), f)) for d in depths_m]
     Ks = scaled_intrinsics(K, 1.0 / f, 1.0 / f)
