@@ -3,6 +3,7 @@
     python benchmarks/bench_photometric.py                 # TUM teddy (when present) and synthetic
     python benchmarks/bench_photometric.py --json out.json
     python benchmarks/bench_photometric.py --datasets teddy --unfitted   # also without the keyframe fit
+    python benchmarks/bench_photometric.py --datasets teddy --sources ground_truth --set fusion.max_depth_m=8
 
 For each dataset and each way of mapping (ground-truth poses, and the tracker's own poses with no
 ground truth), the world is built with the default profile (voxel Gaussians, then fitted to the
@@ -72,8 +73,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--view-stride", type=int, default=1, help="evaluate every n-th held-out frame")
     ap.add_argument("--unfitted", action="store_true",
                     help="also run with mapping.optimization_epochs 0 (the voxel field with fitted colours only)")
+    ap.add_argument("--sources", nargs="+", default=["ground_truth", "estimated"], choices=["ground_truth", "estimated"],
+                    help="mapping pose sources to run")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for every run, e.g. fusion.max_depth_m=8 (the masked PSNR then counts "
+                         "pixels with depth within that range)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    import yaml
+
+    overrides = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--set expects KEY=VALUE, got {item!r}")
+        overrides[key] = yaml.safe_load(value)
     results = {}
     for name in args.datasets:
         m = _load(name)
@@ -82,9 +96,9 @@ def main(argv: list[str] | None = None) -> int:
             continue
         results[name] = {}
         epochs = load_profile("default").mapping.optimization_epochs
-        variants = [("ground_truth", epochs), ("estimated", epochs)] + ([("ground_truth", 0)] if args.unfitted else [])
+        variants = [(src, epochs) for src in args.sources] + ([("ground_truth", 0)] if args.unfitted else [])
         for source, n_epochs in variants:
-            cfg = load_profile("default").with_overrides({"mapping.pose_source": source,
+            cfg = load_profile("default").with_overrides({**overrides, "mapping.pose_source": source,
                                                           "mapping.optimization_epochs": n_epochs,
                                                           "evaluation.view_stride": args.view_stride})
             label = source if n_epochs else f"{source}, unfitted"
@@ -93,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"(pixels with depth {r['psnr_masked_db']:.2f} dB)  SSIM {r['ssim']:.3f}  depth L1 "
                   f"{100 * r['depth_l1_m']:.2f} cm (coverage {100 * r['depth_coverage']:.0f} %)  | "
                   f"{r['n_gaussians']:,} Gaussians, {r['bin_format']} {r['bytes_per_gaussian_bin']} B/Gaussian, "
-                  f"bundle {r['bundle_bytes'] / 1e6:.1f} MB | {r['eval_seconds_per_view']:.2f} s/view")
+                  f"bundle {r['bundle_bytes'] / 1e6:.1f} MB | {r['eval_seconds_per_view']:.2f} s/view | "
+                  f"localization ATE {1000 * (r['localization_ate_m'] or float('nan')):.1f} mm")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2, default=float))
     return 0
