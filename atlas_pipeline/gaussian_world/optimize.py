@@ -125,27 +125,17 @@ def _depth_slopes(order, pos, scl, quat, Rcw, tcw, fx, fy):
         smid = s0 + s1 + s2 - min(s0, min(s1, s2)) - max(s0, max(s1, s2))
         if scl[i, a] > 0.5 * smid:
             continue
-        qx, qy, qz, qw = quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3]
-        qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        qx /= qn
-        qy /= qn
-        qz /= qn
-        qw /= qn
-        if a == 0:
-            n0, n1, n2 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + qz * qw), 2 * (qx * qz - qy * qw)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = R._rotmat_from_quat(quat, i)
+        if a == 0:  # the shortest axis: column a of the rotation
+            n0, n1, n2 = r00, r10, r20
         elif a == 1:
-            n0, n1, n2 = 2 * (qx * qy - qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz + qx * qw)
+            n0, n1, n2 = r01, r11, r21
         else:
-            n0, n1, n2 = 2 * (qx * qz + qy * qw), 2 * (qy * qz - qx * qw), 1 - 2 * (qx * qx + qy * qy)
+            n0, n1, n2 = r02, r12, r22
         nx = Rcw[0, 0] * n0 + Rcw[0, 1] * n1 + Rcw[0, 2] * n2
         ny = Rcw[1, 0] * n0 + Rcw[1, 1] * n1 + Rcw[1, 2] * n2
         nz = Rcw[2, 0] * n0 + Rcw[2, 1] * n1 + Rcw[2, 2] * n2
-        px_ = pos[i, 0] - tcw[0]
-        py_ = pos[i, 1] - tcw[1]
-        pz_ = pos[i, 2] - tcw[2]
-        x = Rcw[0, 0] * px_ + Rcw[0, 1] * py_ + Rcw[0, 2] * pz_
-        y = Rcw[1, 0] * px_ + Rcw[1, 1] * py_ + Rcw[1, 2] * pz_
-        z = Rcw[2, 0] * px_ + Rcw[2, 1] * py_ + Rcw[2, 2] * pz_
+        x, y, z = R._world_to_camera(pos, i, Rcw, tcw)
         c = nx * x + ny * y + nz * z  # n . mu: z(u, v) = c / (n . ray(u, v))
         if abs(c) < 1e-9:
             continue
@@ -163,7 +153,6 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
     ``image [H, W, 3]`` (float64, [0, 1]) and ``depth_obs [H, W]`` (0 = no reading), and add the
     image-space gradient of every Gaussian it saw to ``grad [M, 10]`` (rows in ``feat`` order)."""
     t_min = R.T_MIN
-    a_min = R.ALPHA_MIN
     a_max = R.ALPHA_MAX
     for t in range(worker, n_tiles, n_workers):
         px0 = (t % tiles_x) * R.TILE_SIZE
@@ -183,15 +172,8 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
                 last = k0
                 for k in range(k0, k1):
                     g = tile_ids[k]
-                    if px < box[g, 0] or px > box[g, 1] or py < box[g, 2] or py > box[g, 3]:
-                        continue
-                    dx = px - np.float64(feat[g, R._F_U])
-                    dy = py - np.float64(feat[g, R._F_V])
-                    power = -0.5 * (feat[g, R._F_A] * dx * dx + feat[g, R._F_C] * dy * dy) - feat[g, R._F_B] * dx * dy
-                    if power < -6.0:
-                        continue
-                    alpha = min(feat[g, R._F_OP] * math.exp(power), a_max)
-                    if alpha < a_min:
+                    alpha, _, dx, dy = R._pixel_alpha(feat, box, g, px, py)
+                    if alpha == 0.0:
                         continue
                     w = alpha * T
                     c0 += w * feat[g, R._F_R]
@@ -238,22 +220,13 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
                 pd = 0.0
                 for k in range(k0, last):
                     g = tile_ids[k]
-                    if px < box[g, 0] or px > box[g, 1] or py < box[g, 2] or py > box[g, 3]:
+                    alpha, gauss, dx, dy = R._pixel_alpha(feat, box, g, px, py)
+                    if alpha == 0.0:
                         continue
-                    dx = px - np.float64(feat[g, R._F_U])
-                    dy = py - np.float64(feat[g, R._F_V])
                     ca = np.float64(feat[g, R._F_A])
                     cb = np.float64(feat[g, R._F_B])
                     cc = np.float64(feat[g, R._F_C])
-                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-                    if power < -6.0:
-                        continue
-                    gauss = math.exp(power)
-                    op = np.float64(feat[g, R._F_OP])
-                    raw = op * gauss
-                    alpha = min(raw, a_max)
-                    if alpha < a_min:
-                        continue
+                    raw = np.float64(feat[g, R._F_OP]) * gauss
                     cr = np.float64(feat[g, R._F_R])
                     cg = np.float64(feat[g, R._F_G])
                     cbl = np.float64(feat[g, R._F_BL])
@@ -331,28 +304,10 @@ def _backward_params(ids, pos, scl, quat, opa, Rcw, tcw, fx, fy, cx, cy, width, 
         g_col[i, 0] = g2d[kk, _G_R]
         g_col[i, 1] = g2d[kk, _G_G]
         g_col[i, 2] = g2d[kk, _G_BL]
-        px_ = pos[i, 0] - tcw[0]
-        py_ = pos[i, 1] - tcw[1]
-        pz_ = pos[i, 2] - tcw[2]
-        x = Rcw[0, 0] * px_ + Rcw[0, 1] * py_ + Rcw[0, 2] * pz_
-        y = Rcw[1, 0] * px_ + Rcw[1, 1] * py_ + Rcw[1, 2] * pz_
-        z = Rcw[2, 0] * px_ + Rcw[2, 1] * py_ + Rcw[2, 2] * pz_
-        qx, qy, qz, qw = quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3]
-        qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        qx /= qn
-        qy /= qn
-        qz /= qn
-        qw /= qn
+        x, y, z = R._world_to_camera(pos, i, Rcw, tcw)
         Rg = np.empty((3, 3))
-        Rg[0, 0] = 1 - 2 * (qy * qy + qz * qz)
-        Rg[0, 1] = 2 * (qx * qy - qz * qw)
-        Rg[0, 2] = 2 * (qx * qz + qy * qw)
-        Rg[1, 0] = 2 * (qx * qy + qz * qw)
-        Rg[1, 1] = 1 - 2 * (qx * qx + qz * qz)
-        Rg[1, 2] = 2 * (qy * qz - qx * qw)
-        Rg[2, 0] = 2 * (qx * qz - qy * qw)
-        Rg[2, 1] = 2 * (qy * qz + qx * qw)
-        Rg[2, 2] = 1 - 2 * (qx * qx + qy * qy)
+        (Rg[0, 0], Rg[0, 1], Rg[0, 2], Rg[1, 0], Rg[1, 1], Rg[1, 2],
+         Rg[2, 0], Rg[2, 1], Rg[2, 2]) = R._rotmat_from_quat(quat, i)
         s = np.empty(3)
         for j in range(3):
             s[j] = scl[i, j]

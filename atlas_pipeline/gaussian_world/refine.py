@@ -34,8 +34,6 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, box, width, h
     """Tiles ``worker, worker + n_workers, ...``: ``gsum[k] += w_k(p) residual(p)``, ``wsum[k] += w_k(p)``
     over the pixels ``p`` of each Gaussian row ``k``, with ``w = alpha T`` as in the forward pass."""
     t_min = R.T_MIN
-    a_min = R.ALPHA_MIN
-    a_max = R.ALPHA_MAX
     for t in range(worker, n_tiles, n_workers):
         px0 = (t % tiles_x) * R.TILE_SIZE
         py0 = (t // tiles_x) * R.TILE_SIZE
@@ -47,15 +45,8 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, box, width, h
                 r0, r1, r2 = residual[py, px, 0], residual[py, px, 1], residual[py, px, 2]
                 for k in range(tile_start[t], tile_start[t + 1]):
                     g = tile_ids[k]
-                    if px < box[g, 0] or px > box[g, 1] or py < box[g, 2] or py > box[g, 3]:
-                        continue
-                    dx = px - feat[g, R._F_U]
-                    dy = py - feat[g, R._F_V]
-                    power = -0.5 * (feat[g, R._F_A] * dx * dx + feat[g, R._F_C] * dy * dy) - feat[g, R._F_B] * dx * dy
-                    if power < -6.0:
-                        continue
-                    alpha = min(feat[g, R._F_OP] * np.exp(power), a_max)
-                    if alpha < a_min:
+                    alpha = R._pixel_alpha(feat, box, g, px, py)[0]
+                    if alpha == 0.0:
                         continue
                     w = alpha * T
                     gsum[g, 0] += w * r0

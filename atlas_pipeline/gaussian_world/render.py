@@ -174,6 +174,55 @@ _F_U, _F_V, _F_A, _F_B, _F_C, _F_OP, _F_R, _F_G, _F_BL, _F_Z = range(10)
 _N_FEAT = 10
 
 
+@njit(cache=True, inline="always")
+def _world_to_camera(pos, i, Rcw, tcw):
+    """Camera coordinates ``R_cw (p_i - c)`` of row ``i`` of ``pos`` [N, 3] (``c`` the camera centre)."""
+    px = np.float64(pos[i, 0]) - tcw[0]
+    py = np.float64(pos[i, 1]) - tcw[1]
+    pz = np.float64(pos[i, 2]) - tcw[2]
+    x = Rcw[0, 0] * px + Rcw[0, 1] * py + Rcw[0, 2] * pz
+    y = Rcw[1, 0] * px + Rcw[1, 1] * py + Rcw[1, 2] * pz
+    z = Rcw[2, 0] * px + Rcw[2, 1] * py + Rcw[2, 2] * pz
+    return x, y, z
+
+
+@njit(cache=True, inline="always")
+def _rotmat_from_quat(quat, i):
+    """Row-major entries ``r00 .. r22`` of the rotation of quaternion row ``i`` of ``quat [N, 4]``
+    (x, y, z, w; normalised here): the Gaussian's local axes to world."""
+    qx = np.float64(quat[i, 0])
+    qy = np.float64(quat[i, 1])
+    qz = np.float64(quat[i, 2])
+    qw = np.float64(quat[i, 3])
+    qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    qx /= qn
+    qy /= qn
+    qz /= qn
+    qw /= qn
+    return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw),
+            2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw),
+            2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy))
+
+
+@njit(cache=True, inline="always")
+def _pixel_alpha(feat, box, g, px, py):
+    """``(alpha, gauss, dx, dy)`` of sorted Gaussian row ``g`` at pixel ``(px, py)``, the scalar form
+    of the rasteriser's test: alpha 0 where the pixel is outside the box, beyond the ``power < -6``
+    cut or below 1/255; ``gauss = exp(power)``, so ``alpha = min(opacity gauss, 0.99)``."""
+    if px < box[g, 0] or px > box[g, 1] or py < box[g, 2] or py > box[g, 3]:
+        return 0.0, 0.0, 0.0, 0.0
+    dx = px - np.float64(feat[g, _F_U])
+    dy = py - np.float64(feat[g, _F_V])
+    power = -0.5 * (feat[g, _F_A] * dx * dx + feat[g, _F_C] * dy * dy) - feat[g, _F_B] * dx * dy
+    if power < -6.0:
+        return 0.0, 0.0, dx, dy
+    gauss = math.exp(power)
+    alpha = min(feat[g, _F_OP] * gauss, ALPHA_MAX)
+    if alpha < ALPHA_MIN:
+        return 0.0, gauss, dx, dy
+    return alpha, gauss, dx, dy
+
+
 @njit(cache=True, parallel=True)
 def _preprocess(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, height, near):
     """Project every Gaussian. Inputs ``[N, ...]`` float32, camera float64.
@@ -197,34 +246,11 @@ def _preprocess(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, heigh
         o = np.float64(opa[i])
         if o * 255.0 < 1.0:  # can never reach alpha >= 1/255
             continue
-        px = np.float64(pos[i, 0]) - tcw[0]
-        py = np.float64(pos[i, 1]) - tcw[1]
-        pz = np.float64(pos[i, 2]) - tcw[2]
-        # camera coordinates p_cam = R_cw (p_world - c), c the camera centre
-        x = Rcw[0, 0] * px + Rcw[0, 1] * py + Rcw[0, 2] * pz
-        y = Rcw[1, 0] * px + Rcw[1, 1] * py + Rcw[1, 2] * pz
-        z = Rcw[2, 0] * px + Rcw[2, 1] * py + Rcw[2, 2] * pz
+        x, y, z = _world_to_camera(pos, i, Rcw, tcw)  # p_cam = R_cw (p_world - c)
         if not (z >= near):
             continue
         # local->world rotation of the Gaussian from its (normalised) quaternion
-        qx = np.float64(quat[i, 0])
-        qy = np.float64(quat[i, 1])
-        qz = np.float64(quat[i, 2])
-        qw = np.float64(quat[i, 3])
-        qn = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        qx /= qn
-        qy /= qn
-        qz /= qn
-        qw /= qn
-        r00 = 1 - 2 * (qy * qy + qz * qz)
-        r01 = 2 * (qx * qy - qz * qw)
-        r02 = 2 * (qx * qz + qy * qw)
-        r10 = 2 * (qx * qy + qz * qw)
-        r11 = 1 - 2 * (qx * qx + qz * qz)
-        r12 = 2 * (qy * qz - qx * qw)
-        r20 = 2 * (qx * qz - qy * qw)
-        r21 = 2 * (qy * qz + qx * qw)
-        r22 = 1 - 2 * (qx * qx + qy * qy)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotmat_from_quat(quat, i)
         sx = np.float64(scl[i, 0])
         sy = np.float64(scl[i, 1])
         sz = np.float64(scl[i, 2])
