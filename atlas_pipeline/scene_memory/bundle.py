@@ -162,14 +162,8 @@ class WorldBundle:
         bundle has one, else surfels derived from the Gaussian centres (e.g. an imported PLY)."""
         from atlas_pipeline.localization.tracker import SurfelModel
 
-        rec = self.metadata.get("files", {}).get("surfels.npz")
-        if rec is not None:
-            path = self.directory / "surfels.npz"
-            if not path.is_file():
-                raise BundleFormatError(path, "file listed in metadata.json is missing")
-            if sha256_file(path) != rec["sha256"]:
-                raise BundleFormatError(path, "checksum does not match metadata.json (file changed or truncated)")
-            return SurfelModel.load(path)
+        if "surfels.npz" in self.metadata.get("files", {}):
+            return SurfelModel.load(_verified_file(self.directory, self.metadata, "surfels.npz"))
         voxel = voxel_size_m or float(self.metadata.get("gaussians", {}).get("voxel_size_m", 0.02))
         return SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
 
@@ -186,6 +180,19 @@ def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
     return poses
 
 
+def _verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
+    """``directory / name`` after checking it is listed in metadata.json, present, and unchanged."""
+    rec = meta.get("files", {}).get(name)
+    if rec is None:
+        raise BundleFormatError(directory / "metadata.json", f"no checksum recorded for {name}")
+    path = directory / name
+    if not path.is_file():
+        raise BundleFormatError(path, "file listed in metadata.json is missing")
+    if sha256_file(path) != rec["sha256"]:
+        raise BundleFormatError(path, "checksum does not match metadata.json (file changed or truncated)")
+    return path
+
+
 def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool = True) -> WorldBundle:
     """Load a bundle's Gaussians from ``gaussians.bin`` (``source='bin'``) or ``gaussians.ply``.
 
@@ -197,15 +204,7 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
     name = {"bin": "gaussians.bin", "ply": "gaussians.ply"}.get(source)
     if name is None:
         raise ValueError(f"source must be 'bin' or 'ply', got {source!r}")
-    path = directory / name
-    if verify:
-        rec = meta.get("files", {}).get(name)
-        if rec is None:
-            raise BundleFormatError(directory / "metadata.json", f"no checksum recorded for {name}")
-        if not path.is_file():
-            raise BundleFormatError(path, "file listed in metadata.json is missing")
-        if sha256_file(path) != rec["sha256"]:
-            raise BundleFormatError(path, "checksum does not match metadata.json (file changed or truncated)")
+    path = _verified_file(directory, meta, name) if verify else directory / name
     field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
     return WorldBundle(directory, field, meta)
 
