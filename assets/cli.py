@@ -24,6 +24,7 @@ import yaml
 from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import PipelineConfig, load_profile, project_root
 from atlas_pipeline.errors import AtlasError, ConfigError
+from atlas_pipeline.io_utils import check_output_dir, check_output_file, check_writable
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.sensors.camera import TUM_CAMERAS
 from atlas_pipeline.sensors.registry import (
@@ -36,6 +37,9 @@ from atlas_pipeline.sensors.registry import (
 )
 
 logger = logging.getLogger("atlas_gs.cli")
+
+EXIT_ERROR = 2  # a clear error (bad input, refused output, failed write): nothing half-done was left
+EXIT_INCOMPLETE = 3  # the command wrote its report but could not finish (e.g. frames not in this world)
 
 ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
                "transitions", "demo_videos", "render_evaluation", "world_bundle"]
@@ -70,12 +74,25 @@ def _default_dagster_home() -> Path:
 # ---- commands ---------------------------------------------------------------------------------
 
 
+def _prepare_output_dir(output: str, kind: str, inputs: list[Any], force: bool) -> Path:
+    """Apply the output policy and check writability before any expensive work."""
+    out = Path(output).expanduser()
+    check_output_dir(out, kind, inputs, force)
+    check_writable(out.parent)
+    return out
+
+
 def cmd_build(args: argparse.Namespace) -> int:
+    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
+
     cfg = _config(args)
     entry = _dataset(args.input, args.camera)
+    inputs = [entry.path, args.extend]
+    out = _prepare_output_dir(args.output, BUNDLE_KIND, inputs, args.force)
+    if args.extend:
+        load_world_bundle(args.extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
     manifest = lib.load_dataset(entry, cfg)
     fused = lib.fuse(manifest, cfg)
-    from atlas_pipeline.scene_memory.bundle import parent_reference, write_world_bundle
 
     parent = None
     if args.extend:
@@ -108,9 +125,9 @@ def cmd_build(args: argparse.Namespace) -> int:
                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "profile": cfg.profile,
                "config_overrides": _overrides(args)}
     meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage, parent=parent)
-    write_world_bundle(args.output, world.field, meta, extras=(world,), surfels=lib.tracking_map(world))
-    logger.info("wrote world with %d Gaussians to %s", len(world.field), args.output)
-    print(json.dumps({"world": str(Path(args.output).resolve()), "n_gaussians": len(world.field),
+    write_world_bundle(out, world.field, meta, extras=(world,), surfels=lib.tracking_map(world), inputs=inputs)
+    logger.info("wrote world with %d Gaussians to %s", len(world.field), out)
+    print(json.dumps({"world": str(out.resolve()), "n_gaussians": len(world.field),
                       "n_keyframes": int(n_new_keyframes), "map_id": world.map_id,
                       "parent": parent}, indent=2, default=str))
     return 0
@@ -120,9 +137,9 @@ def _start_pose(args: argparse.Namespace, bundle_meta: dict[str, Any], dataset: 
     """Where localization starts: ``--start-pose``, the bundle's own anchor (same dataset), or
     nowhere (None): the first frame is then relocalized in the world with no initial pose."""
     if args.start_pose:
-        vals = [float(x) for x in args.start_pose.split()]
-        if len(vals) != 7:
-            raise ConfigError("--start-pose needs 7 numbers: tx ty tz qx qy qz qw")
+        vals = _numbers(args.start_pose, 7, "--start-pose", "tx ty tz qx qy qz qw")
+        if np.linalg.norm(vals[3:]) < 1e-9:
+            raise ConfigError("--start-pose: the quaternion qx qy qz qw has zero length")
         return pose_from_tq(np.array(vals[:3]), np.array(vals[3:])), 0
     anchor = bundle_meta.get("anchor")
     if getattr(args, "relocalize", False) or bundle_meta.get("dataset", {}).get("name") != dataset or anchor is None:
@@ -193,8 +210,9 @@ def cmd_localize(args: argparse.Namespace) -> int:
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle, update_world_bundle
 
     cfg = _config(args)
-    bundle = load_world_bundle(args.world)
+    bundle = load_world_bundle(args.world)  # verifies every file the bundle lists
     entry = _dataset(args.input, args.camera)
+    check_writable(Path(args.world).parent)
     manifest = lib.load_dataset(entry, cfg)
     T0, anchor = _start_pose(args, bundle.metadata, entry.name)
     if anchor >= manifest.n_frames:
@@ -205,17 +223,22 @@ def cmd_localize(args: argparse.Namespace) -> int:
                                prior_poses=bundle_keyframe_poses(bundle.metadata))
     update_world_bundle(args.world, localization=report)
     print(json.dumps({"world": str(Path(args.world).resolve()), **{
-        k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.summary.items()}}, indent=2))
+        k: (round(v, 6) if isinstance(v, float) and np.isfinite(v) else (None if isinstance(v, float) else v))
+        for k, v in report.summary.items()}}, indent=2))
+    if report.summary.get("outcome", "complete") != "complete":
+        # The report (what was tried, what failed) is in the bundle; the command itself failed.
+        logger.error("%s", report.summary.get("stopped_reason") or "localization stopped early")
+        return EXIT_INCOMPLETE
     return 0
 
 
 def cmd_log_transitions(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.localizer import LocalizationReport
-    from atlas_pipeline.scene_memory.bundle import read_metadata, update_world_bundle
+    from atlas_pipeline.scene_memory.bundle import update_world_bundle, verify_bundle_files
 
     cfg = _config(args)
     world = Path(args.world)
-    meta = read_metadata(world)
+    meta = verify_bundle_files(world)
     if not (world / "localization.json").is_file():
         raise ConfigError(f"{world}: no localization.json; run `atlas-gs localize --world {world} --input {args.input}` first")
     report = LocalizationReport.load(world)
@@ -236,10 +259,17 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
     from atlas_pipeline.scene_memory.bundle import load_world_bundle
     from atlas_pipeline.sensors.camera import CameraIntrinsics
 
+    from atlas_pipeline.viz.video import is_atlas_video
+
     cfg = _config(args)
+    out = Path(args.output).expanduser()
+    if out.suffix.lower() != ".mp4":
+        raise ConfigError(f"--output {args.output}: demo videos are MP4 files; give a name ending in .mp4")
+    check_output_file(out, [args.world], args.force, is_ours=is_atlas_video)
+    check_writable(out.parent)
     bundle = load_world_bundle(args.world)
-    cam = CameraIntrinsics.from_dict(bundle.metadata["dataset"]["camera"]) if "dataset" in bundle.metadata else TUM_CAMERAS["default"]
-    out = Path(args.output)
+    dataset = bundle.metadata.get("dataset") or {}
+    cam = CameraIntrinsics.from_dict(dataset["camera"]) if "camera" in dataset else TUM_CAMERAS["default"]
     if args.mode == "trajectory":
         if not (Path(args.world) / "localization.json").is_file():
             raise ConfigError(f"{args.world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
@@ -251,13 +281,30 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
     return 0
 
 
+def _numbers(text: str, n: int, option: str, names: str) -> list[float]:
+    """``n`` finite numbers from a space-separated option value, or a ConfigError naming the option."""
+    parts = str(text).replace(",", " ").split()
+    if len(parts) != n:
+        raise ConfigError(f"{option} needs {n} numbers ({names}), got {len(parts)}: {text!r}")
+    try:
+        vals = [float(x) for x in parts]
+    except ValueError:
+        raise ConfigError(f"{option} needs {n} numbers ({names}), got {text!r}") from None
+    if not all(np.isfinite(vals)):
+        raise ConfigError(f"{option}: every number must be finite, got {text!r}")
+    return vals
+
+
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     overrides: dict[str, Any] = {}
     for item in getattr(args, "set", None) or []:
         if "=" not in item:
             raise ConfigError(f"--set expects key=value, got {item!r}")
         k, v = item.split("=", 1)
-        overrides[k.strip()] = yaml.safe_load(v)
+        try:
+            overrides[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML ({getattr(exc, 'problem', exc)})") from None
     return overrides
 
 
@@ -270,6 +317,7 @@ def _dagster_setup(args: argparse.Namespace):
     from dagster import DagsterInstance
 
     from assets.definitions import build_definitions, sync_dataset_partitions
+    from assets.runs import reap_dead_runs
 
     overrides = _overrides(args)
     profile = getattr(args, "profile", None) or "default"
@@ -281,6 +329,7 @@ def _dagster_setup(args: argparse.Namespace):
             raise ConfigError(f"dataset '{p}' is not registered; known: {', '.join(registry)}")
     defs = build_definitions(profile=profile, overrides=overrides)
     instance = DagsterInstance.get()
+    reap_dead_runs(instance)  # runs left STARTED by a killed process are marked failed
     sync_dataset_partitions(instance, partitions)
     return defs, instance, partitions
 
@@ -307,8 +356,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             from dagster import AssetKey
 
             selection = [AssetKey(a) for a in stale]
-        result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False,
-                                        asset_selection=selection)
+        try:
+            result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False,
+                                            asset_selection=selection)
+        finally:
+            defs.resources["artifact_io"].unlock_partition(p)
         reused = sorted({ev.asset_key.path[-1] for ev in result.all_events
                          if ev.event_type_value == "ASSET_MATERIALIZATION"
                          and ev.event_specific_data.materialization.metadata.get("reused") is not None
@@ -321,10 +373,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             "run_id": result.run_id,
             "recomputed": [a for a in materialized if a not in reused],
             "reused": reused,
-            "world_bundle": str(root / "world_bundle" / p),
-            "transitions": str(root / "world_bundle" / p / "transitions.parquet"),
-            "videos": [str(x) for x in sorted((root / "demo_videos" / p).glob("*.mp4"))],
         }
+        # Only paths that exist (a failed run must not point at output it did not write).
+        bundle_dir = root / "world_bundle" / p
+        if (bundle_dir / "metadata.json").is_file():
+            summary["world_bundle"] = str(bundle_dir)
+        if (bundle_dir / "transitions.parquet").is_file():
+            summary["transitions"] = str(bundle_dir / "transitions.parquet")
+        summary["videos"] = [str(x) for x in sorted((root / "demo_videos" / p).glob("*.mp4"))]
         if args.stale_only:
             summary["stale"] = sorted(a.path[-1] for a in selection)
         loc_path = root / "localization_report" / p / "localization.json"
@@ -366,9 +422,12 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
     from atlas_pipeline.scene_memory.bundle import write_world_bundle
     from atlas_pipeline.scene_memory.ply import read_gaussian_ply
 
-    if args.voxel <= 0:
-        raise ConfigError("--voxel must be positive")
+    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND
+
+    if not (np.isfinite(args.voxel) and args.voxel > 0):
+        raise ConfigError(f"--voxel must be a finite number > 0, got {args.voxel}")
     src = Path(args.ply)
+    _prepare_output_dir(args.output, BUNDLE_KIND, [src], args.force)
     field = read_gaussian_ply(src)  # refuses missing properties, NaN/inf, short files
     meta = {
         "name": src.stem, "partition": None,
@@ -379,7 +438,7 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
         "lineage": {"created_by": "atlas-gs import-ply", "parent": None,
                     "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")},
     }
-    out = write_world_bundle(args.output, field, meta)
+    out = write_world_bundle(args.output, field, meta, inputs=[src])
     print(json.dumps({"world": str(Path(out).resolve()), "n_gaussians": len(field),
                       "anisotropic": not field.is_isotropic}, indent=2))
     return 0
@@ -415,10 +474,10 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     if args.dataset_cmd == "add":
         camera: Any = args.camera
         if args.intrinsics:
-            fx, fy, cx, cy = (float(x) for x in args.intrinsics.split())
+            fx, fy, cx, cy = _numbers(args.intrinsics, 4, "--intrinsics", "fx fy cx cy")
             camera = {"width": args.width, "height": args.height, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
                       "depth_scale": args.depth_scale}
-        entry = register_local_dataset(args.name, args.path, camera)
+        entry = register_local_dataset(args.name, args.path, camera, replace=args.replace)
         _default_dagster_home()
         from dagster import DagsterInstance
 
@@ -460,7 +519,9 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("build", help="build a world bundle from a dataset")
     common(b)
     b.add_argument("--input", required=True, help="registered dataset name or TUM-layout folder")
-    b.add_argument("--output", required=True, help="world bundle folder to write")
+    b.add_argument("--output", required=True, help="world bundle folder to write (new, empty, or an earlier bundle)")
+    b.add_argument("--force", action="store_true",
+                   help="if --output is a folder atlas-gs did not write, move it aside (never deleted) instead of refusing")
     b.add_argument("--extend", default=None, metavar="BUNDLE",
                    help="keep mapping into the world of this earlier bundle, recorded as the lineage parent: "
                         "the first frame is relocalized in it, then frames are tracked and keyframes merged "
@@ -469,7 +530,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     ip = sub.add_parser("import-ply", help="make a world bundle from a Gaussian-splat PLY (3DGS layout)")
     ip.add_argument("ply")
-    ip.add_argument("--output", required=True, help="bundle folder to write")
+    ip.add_argument("--output", required=True, help="bundle folder to write (new, empty, or an earlier bundle)")
+    ip.add_argument("--force", action="store_true", help="move a foreign --output folder aside instead of refusing")
     ip.add_argument("--voxel", type=float, default=0.02,
                     help="map resolution assumed when tracking against it (m), default 0.02")
     ip.set_defaults(func=cmd_import_ply)
@@ -506,7 +568,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo-video", help="render an orbit or trajectory MP4 of a world bundle")
     common(d)
     d.add_argument("--world", required=True)
-    d.add_argument("--output", required=True)
+    d.add_argument("--output", required=True, help="MP4 file to write (new, or a video atlas-gs wrote)")
+    d.add_argument("--force", action="store_true", help="move a foreign --output file aside instead of refusing")
     d.add_argument("--mode", choices=["orbit", "trajectory"], default="orbit")
     d.set_defaults(func=cmd_demo_video)
 
@@ -546,6 +609,8 @@ def build_parser() -> argparse.ArgumentParser:
     add.add_argument("--width", type=int, default=640)
     add.add_argument("--height", type=int, default=480)
     add.add_argument("--depth-scale", type=float, default=5000.0)
+    add.add_argument("--replace", action="store_true",
+                     help="re-point an already registered name (a preset or a local entry) at this folder")
     ds.set_defaults(func=cmd_dataset)
 
     ui = sub.add_parser("ui", help="start the Dagster web UI (dagster dev) with the project's DAGSTER_HOME")
@@ -563,7 +628,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except AtlasError as exc:
         logger.error("%s", exc)
-        return 2
+        return EXIT_ERROR
+    except OSError as exc:  # an OS error the library did not wrap: still name the path
+        where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f) or "(no path given by the OS)"
+        logger.error("%s: %s", where, exc.strerror or exc)
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -32,6 +32,7 @@ from dagster import (
     SensorResult,
     SkipReason,
     define_asset_job,
+    in_process_executor,
     job,
     op,
     sensor,
@@ -40,6 +41,7 @@ from dagster import (
 from assets.io_managers import ArtifactIOManager, artifacts_root
 from assets.pipeline_assets import build_pipeline_assets
 from assets.resources import AtlasConfig
+from assets.runs import reap_dead_runs
 from atlas_pipeline.sensors.registry import load_registry, register_local_dataset, validate_dataset_name
 
 logger = logging.getLogger("atlas_gs.definitions")
@@ -73,6 +75,7 @@ def sync_dataset_partitions(instance: DagsterInstance, names: list[str] | None =
         description="Adds a dynamic partition for every dataset in the registry (configs/datasets.yaml and "
                     "the local registry) that is not one yet.")
 def dataset_registry_sensor(context: SensorEvaluationContext):
+    reap_dead_runs(context.instance)  # runs whose process died are marked failed (assets.runs)
     try:
         names = registered_partition_names()
     except Exception as exc:  # a broken registry file: say which and what, do not crash the daemon
@@ -90,11 +93,12 @@ class RegisterDatasetConfig(Config):
     name: str
     path: str
     camera: str = "default"
+    replace: bool = False  # re-point a name that is already registered
 
 
 @op(description="Validate the name and the TUM layout, write the local registry, add the partition.")
 def register_dataset_op(context: OpExecutionContext, config: RegisterDatasetConfig) -> None:
-    entry = register_local_dataset(config.name, config.path, config.camera)
+    entry = register_local_dataset(config.name, config.path, config.camera, replace=config.replace)
     sync_dataset_partitions(context.instance, [entry.name])
     context.log.info(f"registered dataset {entry.name} -> {entry.path}; partition added")
 
@@ -114,11 +118,15 @@ def build_definitions(artifacts_dir: str | Path | None = None, profile: str = "d
     everything = define_asset_job(
         "atlas_gs_all", selection=AssetSelection.all(),
         description="Materialize every Atlas-GS asset of one dataset partition (current artifacts are reused).",
+        executor_def=in_process_executor,
     )
     return Definitions(
         assets=pipeline_assets,
         jobs=[everything, register_dataset],
         sensors=[dataset_registry_sensor],
+        # One process per run: the partition lock (ArtifactIOManager.lock_partition) is held by the
+        # run's process, and the numba kernels use the cores themselves.
+        executor=in_process_executor,
         resources={
             "artifact_io": ArtifactIOManager(root=root),
             "atlas": atlas,

@@ -16,9 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
-import tempfile
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,10 +25,23 @@ import pyarrow.parquet as pq
 from dagster import ConfigurableIOManager, InputContext, MetadataValue, OutputContext
 
 from atlas_pipeline.config import project_root
-from atlas_pipeline.errors import ArtifactError
+from atlas_pipeline.errors import ArtifactError, AtlasError, WriteError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.evaluation import PhotometricReport
-from atlas_pipeline.io_utils import atomic_path, sha256_file, write_json_atomic
+from atlas_pipeline.io_utils import (
+    MIN_FREE_BYTES,
+    LockedError,
+    ProcessLock,
+    atomic_path,
+    check_output_dir,
+    check_writable,
+    commit_dir,
+    discard_dir,
+    recover_dir,
+    sha256_file,
+    stage_dir,
+    write_json_atomic,
+)
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
@@ -83,6 +93,16 @@ def artifact_dir(root: str | Path, asset: str, partition: str) -> Path:
     """``<root>/<asset>/<partition>``; the partition name is validated before it becomes a path."""
     validate_dataset_name(partition)
     return Path(root) / asset / partition
+
+
+ARTIFACT_KIND = "artifact"  # output-policy kind of every folder this IO manager writes
+LOCKS_DIR = ".locks"  # under the root: one lock file per partition
+# Free space asked before computing an asset, as a multiple of its previous version's size.
+FREE_SPACE_FACTOR = 2
+
+
+class PartitionBusyError(AtlasError):
+    """Another live run is materializing the same partition."""
 
 
 def read_artifact_record(directory: Path) -> dict[str, Any]:
@@ -176,6 +196,7 @@ class ArtifactIOManager(ConfigurableIOManager):
     def lazy(self, asset: str, partition: str, needed_by: str) -> LazyArtifact:
         """The upstream artifact ``asset`` of ``partition`` as a LazyArtifact (record read, data not)."""
         directory = self.directory(asset, partition)
+        recover_dir(directory)
         try:
             return LazyArtifact(directory, read_artifact_record(directory))
         except ArtifactError as exc:
@@ -184,6 +205,7 @@ class ArtifactIOManager(ConfigurableIOManager):
     def record(self, asset: str, partition: str) -> dict[str, Any] | None:
         """The artifact record of ``asset``/``partition``, None when there is none (or unreadable)."""
         try:
+            recover_dir(self.directory(asset, partition))
             return read_artifact_record(self.directory(asset, partition))
         except ArtifactError:
             return None
@@ -200,9 +222,7 @@ class ArtifactIOManager(ConfigurableIOManager):
         if handler is None:
             raise TypeError(f"ArtifactIOManager cannot store a {type_name}; known: {sorted(ARTIFACT_TYPES)}")
         target = self.directory(asset, partition)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
-        tmp.chmod(0o755)
+        tmp = stage_dir(target)
         try:
             files = handler.save(obj, tmp) if handler is ParquetTable else obj.save(tmp)
             record_files = _file_records(list(files))
@@ -218,25 +238,52 @@ class ArtifactIOManager(ConfigurableIOManager):
                 **(record_extra or {}),
             }
             write_json_atomic(tmp / "_artifact.json", record)
+        except OSError as exc:
+            discard_dir(tmp)
+            where = exc.filename or tmp
+            raise WriteError(target, f"cannot write the {asset} artifact ({where}): {exc.strerror or exc}", exc.errno) from exc
         except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
+            discard_dir(tmp)
             raise
         return StagedArtifact(tmp, target, record)
 
+    def staging_folder(self, asset: str, partition: str) -> Path:
+        """An empty scratch folder beside the artifact's target (same file system, so its files
+        move into the artifact by rename); left-overs of dead runs are removed by the next run."""
+        return stage_dir(self.directory(asset, partition))
+
+    def prepare(self, asset: str, partition: str) -> None:
+        """Before computing: repair interrupted swaps, refuse a target that is not ours, and make
+        sure the folder is writable with room for the new version (fails in milliseconds, not
+        after the work)."""
+        target = self.directory(asset, partition)
+        recover_dir(target)
+        check_output_dir(target, ARTIFACT_KIND, what=f"artifact folder of {asset}")
+        previous = sum(p.stat().st_size for p in target.iterdir() if p.is_file()) if target.is_dir() else 0
+        check_writable(target.parent, max(MIN_FREE_BYTES, FREE_SPACE_FACTOR * previous))
+
+    def lock_partition(self, partition: str, run_id: str) -> bool:
+        """Hold this partition for the current process (and so its run); True when newly taken.
+
+        Raises PartitionBusyError when another live process holds it: two runs of one partition
+        would otherwise interleave and the loser would report success for output that is gone.
+        """
+        lock = ProcessLock(Path(self.root) / LOCKS_DIR / f"{validate_dataset_name(partition)}.lock")
+        try:
+            return lock.acquire({"what": f"Dagster run {run_id}", "run_id": run_id, "partition": partition})
+        except LockedError as exc:
+            raise PartitionBusyError(
+                f"partition '{partition}' is being materialized by another run ({exc}); this run stops before "
+                "computing or writing anything: wait for that run to finish, then run again") from None
+
+    def unlock_partition(self, partition: str) -> None:
+        ProcessLock(Path(self.root) / LOCKS_DIR / f"{validate_dataset_name(partition)}.lock").release()
+
     @staticmethod
     def commit(staged: StagedArtifact) -> Path:
-        """Swap a staged folder into place; the previous version is removed only afterwards."""
-        target = staged.target
-        if not staged.staging.is_dir():
-            raise ArtifactError(f"{staged.staging}: staged artifact folder vanished before commit")
-        if target.exists():
-            old = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.old")
-            os.replace(target, old)
-            os.replace(staged.staging, target)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(staged.staging, target)
-        return target
+        """Swap a staged folder into place (crash-consistent: see :func:`atlas_pipeline.io_utils.commit_dir`)."""
+        check_output_dir(staged.target, ARTIFACT_KIND, what="artifact folder")
+        return commit_dir(staged.staging, staged.target, ARTIFACT_KIND)
 
     # -- Dagster IO manager protocol ------------------------------------------------------------
 
@@ -258,4 +305,5 @@ class ArtifactIOManager(ConfigurableIOManager):
 
     def load_input(self, context: InputContext) -> Any:
         directory = self._dir(context)
+        recover_dir(directory)
         return _load_typed(directory, read_artifact_record(directory))

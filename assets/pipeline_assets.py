@@ -7,7 +7,6 @@ reuses an artifact whose inputs, config and code are unchanged (see ``assets/ver
 """
 
 
-import tempfile
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -29,6 +28,7 @@ from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.evaluation import PhotometricReport
+from atlas_pipeline.io_utils import discard_dir
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
@@ -174,10 +174,14 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         cfg = atlas.load()
         cam = raw_dataset.camera
         # Render into a staging folder beside the artifacts; the IO manager moves the files into place.
-        staging = Path(tempfile.mkdtemp(prefix="atlas_demo_videos."))
-        videos = lib.render_demo_videos(gaussian_world.field, localization_report.T_world_cam, cam.K, cam.width,
-                                        cam.height, cfg, staging, context.partition_key, log=context.log.info,
-                                        manifest=raw_dataset)
+        staging = context.resources.artifact_io.staging_folder("demo_videos", context.partition_key)
+        try:
+            videos = lib.render_demo_videos(gaussian_world.field, localization_report.T_world_cam, cam.K, cam.width,
+                                            cam.height, cfg, staging, context.partition_key, log=context.log.info,
+                                            manifest=raw_dataset)
+        except BaseException:
+            discard_dir(staging)
+            raise
         context.add_output_metadata({
             "orbit_frames": videos.n_orbit_frames,
             "trajectory_frames": videos.n_trajectory_frames,

@@ -48,6 +48,7 @@ from dagster import (
 
 from assets.io_managers import ArtifactIOManager, CachedArtifact, LazyArtifact
 from assets.resources import AtlasConfig
+from assets.runs import tag_run_process
 from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.versioning import (
     combined_config_hash,
@@ -225,6 +226,10 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
             atlas: AtlasConfig = kwargs["atlas"]
             store: ArtifactIOManager = getattr(context.resources, IO_KEY)
             partition = context.partition_key
+            # One run per partition at a time; the run's process is recorded so a killed run can
+            # be marked failed later (assets.runs).
+            store.lock_partition(partition, context.run.run_id)
+            tag_run_process(context.instance, context.run.run_id)
             cfg = atlas.load()
             sections = stage_config_hashes(cfg, name, partition, atlas)
             config_hash = combined_config_hash(sections)
@@ -258,6 +263,7 @@ def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
                        "cached artifact's files changed" if record.get("fingerprint") == fp else
                        "inputs, config or code changed")
                 context.log.info(f"computing {name} [{partition}]: {why} (fingerprint {fp[:12]})")
+                store.prepare(name, partition)  # a read-only, full or foreign target fails now, not after the work
                 t0 = time.perf_counter()
                 call = {n: lz.get() for n, lz in lazies.items()}
                 t_load = time.perf_counter() - t0

@@ -42,3 +42,20 @@ class BundleFormatError(AtlasError):
 
 class ArtifactError(AtlasError):
     """An artifact written by an earlier stage is missing or does not match its record."""
+
+
+class OutputPolicyError(AtlasError):
+    """An output path may not be replaced (a user's folder, an input of the same command, a link)."""
+
+    def __init__(self, path: str | Path, message: str):
+        self.path = Path(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+class WriteError(AtlasError):
+    """Writing an output failed (read-only folder, full disk ...); names the path."""
+
+    def __init__(self, path: str | Path, message: str, errno_: int | None = None):
+        self.path = Path(path)
+        self.errno = errno_
+        super().__init__(f"{self.path}: {message}")

@@ -39,7 +39,10 @@ def test_run_materializes_through_dagster(isolated, capsys):
 def test_dataset_add_validates_name_and_layout(isolated, small_synthetic, capsys):
     assert main(["dataset", "add", "Bad Name!", str(small_synthetic)]) == 2
     assert main(["dataset", "add", "mine", str(isolated)]) == 2  # not a TUM folder
-    assert main(["dataset", "add", "mine", str(small_synthetic), "--camera", "freiburg3"]) == 0
+    # validated whole before registering: 160x120 frames do not fit the 640x480 freiburg3 camera
+    assert main(["dataset", "add", "mine", str(small_synthetic), "--camera", "freiburg3"]) == 2
+    assert main(["dataset", "add", "mine", str(small_synthetic), "--intrinsics", "131.25 131.25 79.5 59.5",
+                 "--width", "160", "--height", "120"]) == 0
     capsys.readouterr()
     assert main(["dataset", "list"]) == 0
     assert "mine" in capsys.readouterr().out

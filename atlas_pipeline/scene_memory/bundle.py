@@ -12,25 +12,40 @@
       transitions.parquet  state-action-state log (optional)
 
 The folder is written under a temporary name and swapped into place whole, so a reader never sees
-a bundle whose files disagree with each other.
+a bundle whose files disagree with each other. Adding a localization or transitions to a bundle
+verifies every file it lists first, then swaps in a new whole folder: a corrupt file is reported,
+never re-hashed into a new metadata.json. ``metadata.json`` is validated against
+:class:`BundleMetadataSchema` on every read.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import pyarrow as pa
+from typing import Any, Iterable
 
 import numpy as np
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.field import GaussianField
-from atlas_pipeline.io_utils import atomic_dir, sha256_file, write_json_atomic
+from atlas_pipeline.io_utils import (
+    MARKER_NAME,
+    atomic_dir,
+    check_output_dir,
+    commit_dir,
+    discard_dir,
+    foreign_entries,
+    sha256_file,
+    stage_dir,
+    write_json_atomic,
+)
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.localization.metrics import write_tum_trajectory
 from atlas_pipeline.scene_memory.binary import read_gaussian_binary, write_gaussian_binary
@@ -40,10 +55,72 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
     "read_metadata", "copy_bundle", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
+    "verify_bundle_files", "BundleMetadataSchema", "BUNDLE_KIND",
 ]
 
 BUNDLE_FORMAT = "atlas-gs-world-bundle"
 BUNDLE_VERSION = 1
+BUNDLE_KIND = "world_bundle"  # output-policy kind (io_utils marker)
+# metadata.json is a few hundred kB even with thousands of keyframe poses; refuse absurd ones
+# before parsing (json.loads of a huge file would take the memory of several copies of it).
+MAX_METADATA_BYTES = 256 * 1024 * 1024
+_SHA256_HEX = r"^[0-9a-f]{64}$"
+# Files a bundle may list: plain names in the bundle folder (never a path, never hidden).
+_FILE_NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$"
+
+logger = logging.getLogger(__name__)
+
+
+class FileRecord(BaseModel):
+    """One listed file: its size and sha256."""
+
+    model_config = ConfigDict(extra="allow", strict=True)
+    bytes: int = Field(ge=0)
+    sha256: str = Field(pattern=_SHA256_HEX)
+
+
+class GaussiansInfo(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    voxel_size_m: float | None = Field(default=None, gt=0)
+
+    @field_validator("voxel_size_m")
+    @classmethod
+    def _finite(cls, v: float | None) -> float | None:
+        if v is not None and not math.isfinite(v):
+            raise ValueError("must be a finite number > 0")
+        return v
+
+
+class BundleMetadataSchema(BaseModel):
+    """What ``metadata.json`` must hold; other keys (lineage, config, dataset ...) are free-form."""
+
+    model_config = ConfigDict(extra="allow")
+    format: str
+    version: int = Field(ge=1, le=BUNDLE_VERSION, strict=True)
+    map_id: str = Field(default="", max_length=128)
+    n_gaussians: int = Field(default=0, ge=0, strict=True)
+    files: dict[str, FileRecord]
+    gaussians: GaussiansInfo | None = None
+    dataset: dict[str, Any] | None = None
+    lineage: dict[str, Any] | None = None
+    keyframes: dict[str, Any] | None = None
+
+    @field_validator("format")
+    @classmethod
+    def _format(cls, v: str) -> str:
+        if v != BUNDLE_FORMAT:
+            raise ValueError(f"is {v!r}, expected {BUNDLE_FORMAT!r}")
+        return v
+
+    @field_validator("files")
+    @classmethod
+    def _names(cls, v: dict[str, FileRecord]) -> dict[str, FileRecord]:
+        import re
+
+        for name in v:
+            if not re.match(_FILE_NAME, name) or name in ("metadata.json", MARKER_NAME):
+                raise ValueError(f"lists {name!r}, which is not a plain file name of a bundle")
+        return v
 
 
 def _utc_now() -> str:
@@ -111,37 +188,118 @@ def write_world_bundle(
     transitions: pa.Table | None = None,
     extras: tuple[Any, ...] = (),
     surfels: Any = None,
+    inputs: Iterable[str | Path] = (),
+    force: bool = False,
 ) -> Path:
     """Write a complete bundle folder atomically; ``metadata`` (name, lineage, config ...) goes
-    into metadata.json."""
+    into metadata.json.
+
+    ``directory`` may only be new, empty, or an earlier bundle holding nothing but its own files
+    (:func:`atlas_pipeline.io_utils.check_output_dir`); ``inputs`` are folders the caller read,
+    which are never replaced; ``force`` moves a foreign folder aside instead of refusing.
+    """
     directory = Path(directory)
-    with atomic_dir(directory) as tmp:
+    check_output_dir(directory, BUNDLE_KIND, inputs, force)
+    with atomic_dir(directory, kind=BUNDLE_KIND) as tmp:
         write_bundle_files(tmp, field, metadata, localization, transitions, extras, surfels)
     return directory
 
 
+# Files update_world_bundle rewrites for each part (everything else is carried over, verified).
+_PART_FILES = {"localization": ("localization.json", "trajectory_estimated.tum"),
+               "transitions": ("transitions.parquet",)}
+
+
+def verify_bundle_files(directory: str | Path, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Check every file ``metadata.json`` lists: present, same size, same sha256. Returns the metadata.
+
+    Raises BundleFormatError naming the first file that is missing, truncated or changed.
+    """
+    directory = Path(directory)
+    meta = read_metadata(directory) if meta is None else meta
+    for name in meta["files"]:
+        _verified_file(directory, meta, name)
+    return meta
+
+
 def update_world_bundle(directory: str | Path, localization: LocalizationReport | None = None,
                         transitions: pa.Table | None = None) -> Path:
-    """Add or replace the localization or transitions of an existing bundle (CLI sessions)."""
+    """Add or replace the localization or transitions of an existing bundle (CLI sessions).
+
+    Every file the bundle lists is verified first (a corrupt file stops the update, so it is never
+    re-hashed into a new metadata.json); a bundle holding files atlas-gs did not write is refused
+    (the swap would drop them). The new bundle is assembled in a folder beside it (verified
+    copies of the unchanged files, the new parts) and swapped in whole.
+    """
     directory = Path(directory)
-    meta = read_metadata(directory)
-    _write_parts(directory, localization, transitions)
-    meta["files"] = _file_table(directory)
-    meta["updated_at"] = _utc_now()
-    write_json_atomic(directory / "metadata.json", meta)
+    meta = verify_bundle_files(directory)
+    foreign = [n for n in foreign_entries(directory) if n not in meta["files"] and n not in ("metadata.json", "_artifact.json")]
+    if foreign:
+        raise BundleFormatError(directory, f"holds files this bundle does not list ({', '.join(foreign[:5])}); "
+                                           "move them out of the bundle folder first, nothing was changed")
+    replaced = set()
+    if localization is not None:
+        replaced.update(_PART_FILES["localization"])
+    if transitions is not None:
+        replaced.update(_PART_FILES["transitions"])
+    tmp = stage_dir(directory)
+    try:
+        files: dict[str, Any] = {}
+        for name, rec in meta["files"].items():
+            if name in replaced:
+                continue
+            shutil.copy2(directory / name, tmp / name)
+            if sha256_file(tmp / name) != rec["sha256"]:  # the copy, not the source, goes into the bundle
+                raise BundleFormatError(directory / name, "copy does not match its checksum (disk error?)")
+            files[name] = dict(rec)
+        _write_parts(tmp, localization, transitions)
+        for name in sorted(replaced):
+            if (tmp / name).is_file():
+                files[name] = {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name)}
+        meta = {**meta, "files": dict(sorted(files.items())), "updated_at": _utc_now()}
+        write_json_atomic(tmp / "metadata.json", meta)
+        commit_dir(tmp, directory, BUNDLE_KIND)
+    finally:
+        if tmp.exists():
+            discard_dir(tmp)
     return directory
 
 
+def _schema_error(path: Path, exc: ValidationError) -> BundleFormatError:
+    first = exc.errors()[0]
+    where = ".".join(str(x) for x in first.get("loc", ())) or "(top level)"
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return BundleFormatError(path, f"metadata field {where}: {first.get('msg')}{more}")
+
+
 def read_metadata(directory: Path) -> dict[str, Any]:
+    """``metadata.json`` of the bundle at ``directory``, validated against :class:`BundleMetadataSchema`."""
+    directory = Path(directory)
     path = directory / "metadata.json"
     if not path.is_file():
         raise BundleFormatError(directory, "not a world bundle (metadata.json missing)")
     try:
-        meta = json.loads(path.read_text())
+        size = path.stat().st_size
+        if size > MAX_METADATA_BYTES:
+            raise BundleFormatError(path, f"is {size} bytes, more than any bundle's metadata ({MAX_METADATA_BYTES})")
+        text = path.read_bytes().decode("utf-8")
+        meta = json.loads(text)
+    except UnicodeDecodeError as exc:
+        raise BundleFormatError(path, f"not UTF-8 text (byte {exc.start})") from exc
     except json.JSONDecodeError as exc:
         raise BundleFormatError(path, f"invalid JSON at line {exc.lineno}: {exc.msg}") from exc
+    except RecursionError as exc:
+        raise BundleFormatError(path, "JSON nested too deeply") from exc
+    except OSError as exc:
+        raise BundleFormatError(path, f"cannot read: {exc.strerror or exc}") from exc
+    if not isinstance(meta, dict):
+        raise BundleFormatError(path, f"must hold a JSON object, found {type(meta).__name__}")
     if meta.get("format") != BUNDLE_FORMAT:
         raise BundleFormatError(path, f"format is {meta.get('format')!r}, expected {BUNDLE_FORMAT!r}")
+    try:
+        BundleMetadataSchema.model_validate(meta)
+    except ValidationError as exc:
+        raise _schema_error(path, exc) from exc
     return meta
 
 
@@ -188,34 +346,41 @@ def _verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
     path = directory / name
     if not path.is_file():
         raise BundleFormatError(path, "file listed in metadata.json is missing")
+    size = path.stat().st_size
+    if size != rec["bytes"]:
+        raise BundleFormatError(path, f"is {size} bytes, metadata.json records {rec['bytes']} (file changed or truncated)")
     if sha256_file(path) != rec["sha256"]:
-        raise BundleFormatError(path, "checksum does not match metadata.json (file changed or truncated)")
+        raise BundleFormatError(path, "checksum does not match metadata.json (file changed or corrupted)")
     return path
 
 
 def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool = True) -> WorldBundle:
     """Load a bundle's Gaussians from ``gaussians.bin`` (``source='bin'``) or ``gaussians.ply``.
 
-    With ``verify`` the file's checksum must match metadata.json, so a truncated or edited file is
-    reported instead of silently loaded.
+    With ``verify`` every file metadata.json lists (Gaussians, PLY, tracking map, world.npz,
+    reports) must match its size and checksum, so a truncated or edited file is reported instead of
+    silently loaded, and later written back as if it were good.
     """
     directory = Path(directory)
     meta = read_metadata(directory)
     name = {"bin": "gaussians.bin", "ply": "gaussians.ply"}.get(source)
     if name is None:
         raise ValueError(f"source must be 'bin' or 'ply', got {source!r}")
+    if verify:
+        verify_bundle_files(directory, meta)
     path = _verified_file(directory, meta, name) if verify else directory / name
     field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
     return WorldBundle(directory, field, meta)
 
 
-def copy_bundle(src: Path, dst: Path) -> Path:
-    """Copy a bundle folder atomically (e.g. to export the Dagster artifact to a user path)."""
-    read_metadata(src)
-    with atomic_dir(dst) as tmp:
-        for p in src.iterdir():
-            if p.is_file() and not p.name.startswith("."):
-                shutil.copy2(p, tmp / p.name)
+def copy_bundle(src: Path, dst: Path, force: bool = False) -> Path:
+    """Copy a bundle folder atomically (e.g. to export the Dagster artifact to a user path): the
+    listed files, verified, and its metadata; ``dst`` obeys the output policy."""
+    meta = verify_bundle_files(src)
+    check_output_dir(dst, BUNDLE_KIND, [src], force)
+    with atomic_dir(dst, kind=BUNDLE_KIND) as tmp:
+        for name in [*meta["files"], "metadata.json"]:
+            shutil.copy2(src / name, tmp / name)
     return dst
 
 

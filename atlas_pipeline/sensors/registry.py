@@ -34,6 +34,7 @@ __all__ = [
     "data_dir",
     "load_registry",
     "register_local_dataset",
+    "check_dataset_folder",
     "resolve_camera",
 ]
 
@@ -171,32 +172,54 @@ def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
     return entries
 
 
+def check_dataset_folder(folder: Path, camera: CameraIntrinsics, name: str = "dataset") -> None:
+    """Check a TUM-layout folder whole before it is registered: the list files parse, every listed
+    image exists with the camera's size and type (headers), and the first RGB-D pair decodes.
+
+    Raises DatasetError naming the file (and list line) at fault.
+    """
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    manifest = load_tum_sequence(folder, camera, name)
+    read_rgb(manifest.rgb_path(0), camera)
+    read_depth_m(manifest.depth_path(0), camera, allow_empty=True)
+
+
 def register_local_dataset(
     name: str,
     path: str | Path,
     camera: str | dict[str, Any] = "default",
     registry_path: Path | None = None,
-    check: Callable[[Path], None] | None = None,
+    check: Callable[[Path, CameraIntrinsics], None] | None = None,
+    replace: bool = False,
 ) -> DatasetEntry:
-    """Add (or replace) a TUM-layout folder in the local registry file.
+    """Add a TUM-layout folder to the local registry file.
 
-    The folder is checked first (``check``, by default the TUM layout check) so a typo never
-    becomes a partition that fails later. The file is rewritten atomically.
+    A name that is already registered (a preset of ``configs/datasets.yaml`` or a local entry) is
+    refused unless ``replace``. The whole folder is checked first (``check``, by default
+    :func:`check_dataset_folder`) so a typo or a broken recording never becomes a partition that
+    fails later. The registry file is rewritten atomically.
     """
-    from atlas_pipeline.sensors.tum import check_tum_layout
-
     validate_dataset_name(name)
-    folder = Path(path).expanduser().resolve()
-    (check or check_tum_layout)(folder)
     reg = registry_path or local_registry_path()
+    existing = load_registry([p for p in registry_files() if p != reg] + ([reg] if reg.is_file() else []))
+    if name in existing and not replace:
+        e = existing[name]
+        raise ConfigError(f"dataset '{name}' is already registered ({e.kind} at {e.path}, from {e.source_file}); "
+                          "choose another name, or pass --replace to re-point it")
+    folder = Path(path).expanduser().resolve()
+    entry_raw = {"kind": "tum", "path": str(folder), "camera": camera}
+    entry = _parse_entry(name, entry_raw, reg)  # validates the camera before any frame is read
+    (check or check_dataset_folder)(folder, entry.camera)
     data: dict[str, Any] = {"datasets": {}}
     if reg.is_file():
         loaded = load_yaml_file(reg) or {}
-        if not isinstance(loaded, dict):
+        if not isinstance(loaded, dict) or not isinstance(loaded.get("datasets") or {}, dict):
             raise ConfigError(f"{reg}: expected a top-level 'datasets:' mapping")
         data = {"datasets": dict(loaded.get("datasets") or {})}
-    entry_raw = {"kind": "tum", "path": str(folder), "camera": camera}
-    entry = _parse_entry(name, entry_raw, reg)  # validates the camera before anything is written
+    if name in existing:
+        logger.warning("dataset '%s' re-pointed from %s to %s (--replace)", name, existing[name].path, folder)
     data["datasets"][name] = entry_raw
     header = "# Local datasets registered with `atlas-gs dataset add` (not tracked by git).\n"
     write_text_atomic(reg, header + yaml.safe_dump(data, sort_keys=False))

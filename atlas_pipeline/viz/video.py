@@ -20,6 +20,10 @@ __all__ = ["orbit_poses", "write_mp4", "side_by_side"]
 
 logger = logging.getLogger(__name__)
 
+# Written into every MP4's comment tag, so the output policy can tell our videos from a user's.
+VIDEO_MARKER = "atlas-gs demo video"
+_MARKER_SEARCH_BYTES = 1 << 20  # the moov box of a few-thousand-frame video fits well within this
+
 
 def orbit_poses(
     center: np.ndarray,
@@ -158,7 +162,8 @@ def write_mp4(
         pixelformat="yuv420p",
         macro_block_size=1,  # we pad to even ourselves; imageio would otherwise resize to x16
         quality=None,  # rate control given explicitly below
-        ffmpeg_params=["-movflags", "+faststart", "-crf", str(int(crf)), "-preset", "medium"],
+        ffmpeg_params=["-movflags", "+faststart", "-crf", str(int(crf)), "-preset", "medium",
+                       "-metadata", f"comment={VIDEO_MARKER}"],
         ffmpeg_log_level="error",
     )
     n = 0
@@ -185,6 +190,25 @@ def write_mp4(
         raise
     logger.info("wrote %d frames (%dx%d, %.3g fps) to %s", n, shape[1], shape[0], fps, path)
     return n
+
+
+def is_atlas_video(path: str | Path) -> bool:
+    """Whether ``path`` is an MP4 this project wrote (its ``comment`` tag holds :data:`VIDEO_MARKER`).
+
+    With ``+faststart`` the tag sits in the ``moov`` box at the front; the tail is searched too for
+    files remuxed without it. Used by the output policy: only our own videos are overwritten.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(_MARKER_SEARCH_BYTES)
+            f.seek(max(0, size - _MARKER_SEARCH_BYTES))
+            tail = f.read(_MARKER_SEARCH_BYTES)
+    except OSError:
+        return False
+    key = VIDEO_MARKER.encode()
+    return key in head or key in tail
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:

@@ -1,0 +1,84 @@
+"""Run bookkeeping the Dagster instance cannot do alone: which process runs a run, and failing runs
+whose process died.
+
+A run killed with SIGKILL (or by a machine reboot) never reports its end, so the instance shows it
+``STARTED`` forever. Every Atlas-GS asset step tags its run with the process that executes it
+(:func:`tag_run_process`); :func:`reap_dead_runs` marks runs whose tagged process is gone as failed.
+It runs when ``atlas-gs`` opens the instance and on every tick of the registry sensor under
+``dagster dev``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+
+from dagster import DagsterInstance, DagsterRunStatus, RunsFilter
+
+from atlas_pipeline.io_utils import process_alive
+
+logger = logging.getLogger("atlas_gs.runs")
+
+PID_TAG = "atlas/pid"
+HOST_TAG = "atlas/host"
+PID_START_TAG = "atlas/pid_start_ticks"  # guards against a recycled pid
+_IN_FLIGHT = [DagsterRunStatus.STARTED, DagsterRunStatus.STARTING, DagsterRunStatus.CANCELING]
+_tagged: set[str] = set()
+
+
+def _start_ticks(pid: int) -> str | None:
+    """The process's start time in clock ticks since boot (Linux ``/proc``), None elsewhere."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().split(b")")[-1].split()[19].decode()
+    except (OSError, IndexError):
+        return None
+
+
+def tag_run_process(instance: DagsterInstance, run_id: str) -> None:
+    """Record on the run which process executes it (once per run and process)."""
+    if run_id in _tagged:
+        return
+    pid = os.getpid()
+    tags = {PID_TAG: str(pid), HOST_TAG: socket.gethostname()}
+    ticks = _start_ticks(pid)
+    if ticks:
+        tags[PID_START_TAG] = ticks
+    try:
+        instance.add_run_tags(run_id, tags)
+        _tagged.add(run_id)
+    except Exception as exc:  # an ephemeral or read-only instance: bookkeeping only, never fatal
+        logger.debug("could not tag run %s with its process: %s", run_id, exc)
+
+
+def _dead(tags: dict[str, str]) -> str | None:
+    """Why the process that ran a run is gone (None: alive, or not ours to judge)."""
+    if tags.get(HOST_TAG) != socket.gethostname() or not tags.get(PID_TAG, "").isdigit():
+        return None
+    pid = int(tags[PID_TAG])
+    if not process_alive(pid):
+        return f"its process (pid {pid}) is gone"
+    recorded = tags.get(PID_START_TAG)
+    if recorded and _start_ticks(pid) not in (None, recorded):
+        return f"its process (pid {pid}) is gone (the pid now belongs to another process)"
+    return None
+
+
+def reap_dead_runs(instance: DagsterInstance) -> list[str]:
+    """Mark in-flight runs whose process died as failed; returns their run ids."""
+    reaped = []
+    try:
+        runs = instance.get_runs(filters=RunsFilter(statuses=_IN_FLIGHT))
+    except Exception as exc:
+        logger.debug("cannot list runs: %s", exc)
+        return reaped
+    for run in runs:
+        why = _dead(dict(run.tags))
+        if why is None:
+            continue
+        instance.report_run_failed(run, message=f"Marked failed by atlas-gs: {why} while the run was in progress.")
+        logger.warning("run %s (%s) was left in progress by a process that died; marked it failed",
+                       run.run_id, run.job_name)
+        reaped.append(run.run_id)
+    return reaped
