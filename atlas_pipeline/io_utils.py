@@ -285,6 +285,10 @@ def _legacy_files(folder: Path) -> tuple[str, list[str]] | None:
         if kind == "world_bundle" and data.get("format") != "atlas-gs-world-bundle":
             continue
         return kind, [record, *[str(n) for n in data["files"]]]
+    # Synthetic datasets written before the marker: their spec-hash file says they are ours.
+    if (folder / ".complete").is_file() and (folder / "rgb.txt").is_file():
+        with contextlib.suppress(OSError):
+            return "synthetic_dataset", [p.name for p in folder.iterdir()]
     return None
 
 

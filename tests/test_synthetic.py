@@ -83,7 +83,7 @@ def test_determinism_byte_identical(tmp_path):
     b = generate_synthetic_dataset(tmp_path / "b", spec)
     fa, fb = all_files(a), all_files(b)
     assert list(fa) == list(fb)
-    assert len(fa) == 2 * spec.n_frames + 5  # images, 3 lists, spec json, marker
+    assert len(fa) == 2 * spec.n_frames + 6  # images, 3 lists, spec json, .complete, .atlas-gs.json
     for name in fa:
         assert fa[name].read_bytes() == fb[name].read_bytes(), name
 
@@ -311,16 +311,24 @@ def test_caching_and_replacement(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # no temp folders left
 
 
-def test_incomplete_dataset_is_regenerated(tmp_path):
+def test_foreign_folder_is_never_replaced(tmp_path):
+    """A folder that is not a synthetic dataset (no .complete / marker) may hold a user's files:
+    generation refuses it instead of replacing it; an earlier synthetic dataset is regenerated."""
+    from atlas_pipeline.errors import OutputPolicyError
+
     out = tmp_path / "ds"
     (out / "rgb").mkdir(parents=True)
-    (out / "rgb.txt").write_text("# half written\n")
+    (out / "rgb.txt").write_text("# someone's list\n")
     (out / "junk.bin").write_bytes(b"x")
     spec = tiny_spec(n_frames=2)
-    generate_synthetic_dataset(out, spec)
-    assert not (out / "junk.bin").exists()
-    assert len(read_list(out / "rgb.txt")) == 2
-    assert (out / ".complete").read_text().strip() == syn.spec_hash(spec)
+    with pytest.raises(OutputPolicyError, match="not written by atlas-gs"):
+        generate_synthetic_dataset(out, spec)
+    assert (out / "junk.bin").read_bytes() == b"x"
+    other = tmp_path / "syn"
+    generate_synthetic_dataset(other, tiny_spec(n_frames=3))
+    generate_synthetic_dataset(other, spec)  # a different spec replaces our own dataset
+    assert len(read_list(other / "rgb.txt")) == 2
+    assert (other / ".complete").read_text().strip() == syn.spec_hash(spec)
 
 
 def test_crash_leaves_no_partial_dataset(tmp_path, monkeypatch):

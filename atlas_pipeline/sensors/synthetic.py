@@ -38,9 +38,6 @@ import hashlib
 import json
 import logging
 import math
-import os
-import shutil
-import tempfile
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -870,43 +867,37 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     (root / ".complete").write_text(spec_hash(spec) + "\n", encoding="utf-8")
 
 
+SYNTHETIC_KIND = "synthetic_dataset"  # output-policy kind (io_utils marker)
+
+
 def generate_synthetic_dataset(out_dir: str | Path, spec: SyntheticSpec = SyntheticSpec()) -> Path:
     """Write the dataset of ``spec`` to ``out_dir`` (TUM layout) and return ``out_dir``.
 
     An existing ``out_dir`` whose ``.complete`` marker holds this spec's hash is returned as is.
-    Otherwise the dataset is written into a temporary sibling folder and moved into place at the
-    end, so an interrupted run never leaves a half-written dataset at ``out_dir``; an incomplete or
-    different existing dataset is replaced.
+    Otherwise the dataset is written into a temporary sibling folder and swapped into place at the
+    end (:func:`atlas_pipeline.io_utils.commit_dir`), so an interrupted run never leaves a
+    half-written dataset at ``out_dir``. Only an empty folder or an earlier synthetic dataset is
+    replaced; any other folder at ``out_dir`` (a user's files) is refused.
     """
+    from atlas_pipeline.io_utils import check_output_dir, commit_dir, discard_dir, stage_dir
+
     out = Path(out_dir)
     digest = spec_hash(spec)
     if _is_complete(out, digest):
         logger.info("synthetic: %s is up to date, not regenerating", out)
         return out
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    check_output_dir(out, SYNTHETIC_KIND, what="synthetic dataset folder")
+    tmp = stage_dir(out)
     t0 = time.perf_counter()
     try:
         logger.info("synthetic: generating %d frames %dx%d into %s", spec.n_frames, spec.width,
                     spec.height, out)
         _write_dataset(tmp, spec)
-        if out.exists() or out.is_symlink():
-            # Move the stale dataset aside first: a directory cannot be replaced while non-empty.
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.replace(out, old / "data")
-            try:
-                os.replace(tmp, out)
-            finally:
-                shutil.rmtree(old, ignore_errors=True)
-        else:
-            try:
-                os.replace(tmp, out)
-            except OSError:
-                # Another process finished the same dataset first: keep theirs if it matches.
-                if not _is_complete(out, digest):
-                    raise
+        if _is_complete(out, digest):  # another process finished the same dataset first: keep theirs
+            return out
+        commit_dir(tmp, out, SYNTHETIC_KIND)
     finally:
         if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+            discard_dir(tmp)
     logger.info("synthetic: wrote %s in %.1f s", out, time.perf_counter() - t0)
     return out
