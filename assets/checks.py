@@ -57,7 +57,12 @@ def check_bundle_roundtrip(field: GaussianField) -> AssetCheckResult:
 
 
 def check_ate(summary: dict, max_ate_m: float) -> AssetCheckResult:
-    """Pass when the ATE RMSE is at most ``max_ate_m``; without ground truth there is nothing to grade."""
+    """Pass when the ATE RMSE is at most ``max_ate_m``; without ground truth there is nothing to grade.
+    A localization that stopped early (the world does not contain the frames) fails, with its reason."""
+    if summary.get("outcome", "complete") != "complete":
+        return AssetCheckResult(check_name=ATE_BOUND.name, passed=False, severity=AssetCheckSeverity.ERROR,
+                                description=str(summary.get("stopped_reason") or "localization stopped early"),
+                                metadata={"outcome": str(summary.get("outcome")), "max_ate_m": max_ate_m})
     ate = summary.get("ate_rmse_m")
     if ate is None or not np.isfinite(ate):
         return AssetCheckResult(check_name=ATE_BOUND.name, passed=True, severity=AssetCheckSeverity.ERROR,

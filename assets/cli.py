@@ -222,9 +222,8 @@ def cmd_localize(args: argparse.Namespace) -> int:
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
                                prior_poses=bundle_keyframe_poses(bundle.metadata))
     update_world_bundle(args.world, localization=report)
-    print(json.dumps({"world": str(Path(args.world).resolve()), **{
-        k: (round(v, 6) if isinstance(v, float) and np.isfinite(v) else (None if isinstance(v, float) else v))
-        for k, v in report.summary.items()}}, indent=2))
+    print(json.dumps({"world": str(Path(args.world).resolve()), **{  # to_json: unknown numbers are null
+        k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.to_json()["summary"].items()}}, indent=2))
     if report.summary.get("outcome", "complete") != "complete":
         # The report (what was tried, what failed) is in the bundle; the command itself failed.
         logger.error("%s", report.summary.get("stopped_reason") or "localization stopped early")
@@ -274,6 +273,9 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
         if not (Path(args.world) / "localization.json").is_file():
             raise ConfigError(f"{args.world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
         poses = LocalizationReport.load(Path(args.world)).T_world_cam
+        poses = poses[np.isfinite(poses).all(axis=(1, 2))]  # frames never placed have no pose to render from
+        if len(poses) == 0:
+            raise ConfigError(f"{args.world}/localization.json: no frame was placed in this world; nothing to render")
     else:
         poses = lib.orbit_trajectory(bundle.field, cfg)
     lib.render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, out, args.mode)

@@ -146,6 +146,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
             "rpe_trans_rmse_m_per_s": _num(s.get("rpe_trans_rmse_m_per_s")),
             "rpe_rot_rmse_deg_per_s": _num(s.get("rpe_rot_rmse_deg_per_s")),
             "frames_per_s": _num(s.get("frames_per_s")),
+            "outcome": str(s.get("outcome", "complete")),
+            "n_not_attempted": int(s.get("n_not_attempted", 0)),
+            "stopped_reason": MetadataValue.text(str(s.get("stopped_reason") or "")),
             "trajectory_plot": MetadataValue.md(markdown_image(
                 report.trajectory_plot_png(f"{context.partition_key}: top view"), "trajectory, top view")),
         })

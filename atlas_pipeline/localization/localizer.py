@@ -4,6 +4,14 @@ Tracking is frame-to-model (:mod:`atlas_pipeline.localization.sequence`): each f
 the world's surfels (geometry) and to a recent frame (appearance), starting from a constant-velocity
 guess; poor alignments are marked lost and recovered by relocalization. Ground truth is never read
 while estimating; it is used afterwards to grade (ATE and RPE, TUM conventions).
+
+Fail fast: a sequence from another place than the world's (the wrong ``--input`` for a bundle) is
+all lost, and each lost frame pays a global relocalization (seconds). :func:`localize_sequence`
+therefore stops once the world evidently does not contain the frames (see
+:data:`MISMATCH_WINDOW_FRAMES` and :data:`MISMATCH_MAX_LOST_RUN_FRAMES`): frames not reached get
+status ``not_attempted``, and the report's ``summary["outcome"]`` says ``stopped_world_mismatch``
+with a ``stopped_reason``. The report is still returned (and saves as valid JSON: unknown poses and
+figures are written as ``null``), so callers keep what was done.
 """
 
 from __future__ import annotations
@@ -20,12 +28,23 @@ from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
-from atlas_pipeline.localization.metrics import align_rigid, ate, pose_errors, rpe, write_tum_trajectory
+from atlas_pipeline.localization.metrics import (
+    align_rigid,
+    ate,
+    pose_errors,
+    read_tum_trajectory,
+    rpe,
+    write_tum_trajectory,
+)
 from atlas_pipeline.localization.sequence import (
+    NOTE_NO_DEPTH,
+    PLACED_STATUSES,
     STATUS_ANCHOR,
     STATUS_LOST,
+    STATUS_NOT_ATTEMPTED,
     STATUS_RELOCALIZED,
     STATUS_TRACKED,
+    FrameEstimate,
     SequenceTracker,
 )
 from atlas_pipeline.localization.tracker import SurfelModel
@@ -35,7 +54,47 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LocalizationReport", "localize_sequence", "grade"]
+__all__ = ["LocalizationReport", "localize_sequence", "grade", "OUTCOME_COMPLETE", "OUTCOME_STOPPED_WORLD_MISMATCH",
+           "MISMATCH_WINDOW_FRAMES", "MISMATCH_MAX_LOST_RUN_FRAMES"]
+
+# summary["outcome"] of a report.
+OUTCOME_COMPLETE = "complete"  # every frame was processed
+OUTCOME_STOPPED_WORLD_MISMATCH = "stopped_world_mismatch"  # stopped early: the world does not contain the frames
+
+# Fail fast, rule 1: stop when none of the first MISMATCH_WINDOW_FRAMES frames *tried* against the
+# map (enough valid depth to align; a given anchor does not count, its pose says nothing about the
+# map) was placed (tracked or relocalized). In a world that contains the sequence a tried frame is
+# placed almost always: tracked from the anchor, or relocalized with no initial pose in 97 % (29/30,
+# synthetic) and 100 % (50/50, TUM teddy) of frames unseen by the map (README benchmarks), so five
+# failures in a row from the start would be ~1e-8 by chance. In a world from another place every
+# tried frame is lost and pays a global relocalization (1-10 s each on 2 cores at 160x120; the issue
+# measured 109 s for 15 frames), so 5 bounds a mismatched run to tens of seconds whatever the
+# sequence length, and still tolerates a start on a few blurred or featureless frames.
+MISMATCH_WINDOW_FRAMES = 5
+# Fail fast, rule 2: stop when more than this many frames in a row are lost (of any kind, including
+# frames with no valid depth, which rule 1 does not count because nothing was tried) and no frame
+# has been placed since the start. One second at TUM's 30 fps: a recording whose depth stays
+# unusable that long from the start cannot be told apart from one the world does not contain.
+MISMATCH_MAX_LOST_RUN_FRAMES = 30
+
+
+def _json_safe(v):
+    """``v`` with non-finite floats as None and NumPy scalars as Python ones (dicts and lists recursed),
+    so ``json.dumps(..., allow_nan=False)`` accepts it."""
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _json_safe(v.tolist())
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    return v
+
 
 @dataclass
 class LocalizationReport:
@@ -44,13 +103,15 @@ class LocalizationReport:
     Attributes:
         timestamps_s: ``[N]``.
         T_world_cam: ``[N, 4, 4]`` estimates.
-        status: ``N`` strings: ``anchor`` (the start pose), ``tracked``, ``relocalized``, ``lost``.
+        status: ``N`` strings: ``anchor`` (the start pose), ``tracked``, ``relocalized``, ``lost``,
+            ``not_attempted`` (the run stopped before it: NaN pose and figures).
         fitness: ``[N]`` share of frame points with a model correspondence (inlier fraction).
         inlier_rmse_m: ``[N]`` RMS point-to-plane residual of those correspondences.
         time_s: ``[N]`` seconds spent per frame (reading excluded).
         T_world_cam_gt: ``[N, 4, 4]`` ground truth, NaN where unknown.
         error_t_m, error_rot_deg: ``[N]`` per-frame errors after the ATE alignment, NaN without ground truth.
-        summary: aggregate figures (RMSE, ATE, counts, rate).
+        summary: aggregate figures (RMSE, ATE, counts, rate), and ``outcome`` (``complete`` or
+            ``stopped_world_mismatch``) with ``stopped_reason`` (None when complete).
     """
 
     dataset: str
@@ -71,7 +132,10 @@ class LocalizationReport:
         return len(self.timestamps_s)
 
     def to_json(self) -> dict:
+        """The report as JSON-ready data: unknown poses (NaN rows) have ``position_xyz`` and
+        ``quat_xyzw`` null, and every non-finite figure (per frame or in the summary) is null."""
         t, q = tq_from_pose(self.T_world_cam)
+        known = np.isfinite(self.T_world_cam).all(axis=(1, 2))
         has_gt = np.isfinite(self.T_world_cam_gt).all(axis=(1, 2))
 
         def num(x: float) -> float | None:
@@ -81,14 +145,13 @@ class LocalizationReport:
         for i in range(self.n_frames):
             frames.append({
                 "frame_id": i, "timestamp_s": float(self.timestamps_s[i]), "status": self.status[i],
-                "position_xyz": [float(v) for v in t[i]], "quat_xyzw": [float(v) for v in q[i]],
+                "position_xyz": [float(v) for v in t[i]] if known[i] else None,
+                "quat_xyzw": [float(v) for v in q[i]] if known[i] else None,
                 "fitness": num(self.fitness[i]), "inlier_rmse_m": num(self.inlier_rmse_m[i]),
                 "time_s": num(self.time_s[i]), "has_ground_truth": bool(has_gt[i]),
                 "error_t_m": num(self.error_t_m[i]), "error_rot_deg": num(self.error_rot_deg[i]),
             })
-        return {"dataset": self.dataset, "map_id": self.map_id,
-                "summary": {k: (num(v) if isinstance(v, float) else v) for k, v in self.summary.items()},
-                "frames": frames}
+        return {"dataset": self.dataset, "map_id": self.map_id, "summary": _json_safe(self.summary), "frames": frames}
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
@@ -107,19 +170,24 @@ class LocalizationReport:
             raise ArtifactError(f"{directory}: localization.json missing")
         d = json.loads(path.read_text())
         fr = d["frames"]
-        T = pose_from_tq(np.array([f["position_xyz"] for f in fr]), np.array([f["quat_xyzw"] for f in fr]))
+        # A null position or quaternion is an unknown pose: a NaN row (as estimated).
+        T = np.full((len(fr), 4, 4), np.nan)
+        known = [i for i, f in enumerate(fr) if f.get("position_xyz") is not None and f.get("quat_xyzw") is not None]
+        if known:
+            T[known] = pose_from_tq(np.array([fr[i]["position_xyz"] for i in known], np.float64),
+                                    np.array([fr[i]["quat_xyzw"] for i in known], np.float64))
         gt_path = directory / "trajectory_groundtruth.tum"
         T_gt = np.full((len(fr), 4, 4), np.nan)
         if gt_path.is_file():
-            rows = np.loadtxt(gt_path, comments="#", ndmin=2)
-            if len(rows):
+            # Header only when no frame had ground truth (unknown poses are never written).
+            gt_ts, gt_poses = read_tum_trajectory(gt_path)
+            if len(gt_ts):
                 ts = np.array([f["timestamp_s"] for f in fr])
-                for r in rows:
-                    k = int(np.argmin(np.abs(ts - r[0])))
-                    T_gt[k] = pose_from_tq(r[1:4], r[4:8])
+                for t_gt, P in zip(gt_ts, gt_poses):
+                    T_gt[int(np.argmin(np.abs(ts - t_gt)))] = P
 
         def arr(key: str) -> np.ndarray:
-            return np.array([np.nan if f[key] is None else f[key] for f in fr], dtype=np.float64)
+            return np.array([np.nan if f.get(key) is None else f[key] for f in fr], dtype=np.float64)
 
         return cls(d["dataset"], d["map_id"], np.array([f["timestamp_s"] for f in fr]), T,
                    [f["status"] for f in fr], arr("fitness"), arr("inlier_rmse_m"), arr("time_s"), T_gt,
@@ -147,6 +215,39 @@ class LocalizationReport:
         return self.T_world_cam if source == "estimated" else self.T_world_cam_gt
 
 
+class _MismatchGuard:
+    """Watches the frames of one run, in the order processed, for evidence that the world does not
+    contain them (rules 1 and 2 above); :meth:`stop_reason` is None while the run should go on."""
+
+    def __init__(self, window_frames: int, max_lost_run: int):
+        self.window = window_frames
+        self.max_lost_run = max_lost_run
+        self.n_placed = 0  # tracked or relocalized, with a finite pose
+        self.n_tried = 0  # frames aligned against the map (not anchors, not frames without depth)
+        self.n_no_depth = 0
+        self.lost_run = 0
+
+    def add(self, est: FrameEstimate) -> None:
+        placed = est.status in PLACED_STATUSES and bool(np.isfinite(est.T_world_cam).all())
+        self.n_placed += placed
+        if est.status == STATUS_ANCHOR:
+            return
+        no_depth = est.status == STATUS_LOST and est.note == NOTE_NO_DEPTH
+        self.n_no_depth += no_depth
+        self.n_tried += not no_depth
+        self.lost_run = 0 if placed else self.lost_run + 1
+
+    def stop_reason(self) -> str | None:
+        if self.n_placed:
+            return None
+        if self.n_tried >= self.window:
+            return f"none of the first {self.n_tried} frames tried could be placed"
+        if self.lost_run > self.max_lost_run:
+            return (f"{self.lost_run} frames in a row were lost ({self.n_no_depth} without valid depth) "
+                    "and none was placed")
+        return None
+
+
 def localize_sequence(
     manifest: FrameManifest,
     model: SurfelModel,
@@ -157,6 +258,7 @@ def localize_sequence(
     depth_range_m: tuple[float, float] = (0.1, 4.0),
     prior_poses: np.ndarray | None = None,
     log: Callable[[str], None] | None = None,
+    stop_on_mismatch: bool = True,
 ) -> LocalizationReport:
     """Track every frame of ``manifest`` against a fixed map ``model``.
 
@@ -168,6 +270,15 @@ def localize_sequence(
         anchor_index: the frame tracking starts from (forward to the end, then backward).
         depth_range_m: depth readings used, ``(min, max)``; the fusion settings of the world.
         prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (the map's keyframe poses).
+        stop_on_mismatch: stop early when the world evidently does not contain the frames
+            (module docstring; :data:`MISMATCH_WINDOW_FRAMES`, :data:`MISMATCH_MAX_LOST_RUN_FRAMES`).
+
+    Returns:
+        The report, also when stopped early (never raises for that): the frames not reached have
+        status ``not_attempted`` and NaN pose and figures; ``summary["outcome"]`` is
+        ``complete`` or ``stopped_world_mismatch``, ``summary["stopped_reason"]`` a sentence (None
+        when complete), ``summary["n_attempted"]`` / ``["n_not_attempted"]`` the frames processed
+        or not.
     """
     n = manifest.n_frames
     if not 0 <= anchor_index < n:
@@ -179,13 +290,16 @@ def localize_sequence(
     fitness = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
     times = np.full(n, np.nan)
-    status: list[str] = [""] * n
+    status: list[str] = [STATUS_NOT_ATTEMPTED] * n
     progress = Progress("localizing", n, log)
     counts = {STATUS_TRACKED: 0, STATUS_LOST: 0, STATUS_RELOCALIZED: 0}
+    guard = _MismatchGuard(MISMATCH_WINDOW_FRAMES, MISMATCH_MAX_LOST_RUN_FRAMES)
+    stopped: str | None = None
+    n_attempted = 0
     # Forward from the anchor, then backward for frames before it (a sequence whose first frames
     # precede the map's first keyframe). Only the frames in flight are held in memory.
     for order in (range(anchor_index, n), range(anchor_index - 1, -1, -1)):
-        if len(order) == 0:
+        if len(order) == 0 or stopped is not None:
             continue
         if order.start != anchor_index:
             st.reset(anchor_index, T_est[anchor_index] if np.isfinite(T_est[anchor_index]).all() else None)
@@ -197,17 +311,34 @@ def localize_sequence(
             T_est[i], status[i] = est.T_world_cam, est.status
             fitness[i], rmse[i], times[i] = est.inlier_fraction, est.residual_m, est.time_s
             counts[est.status] = counts.get(est.status, 0) + 1
+            n_attempted += 1
             progress.update(extra=f"{counts[STATUS_LOST]} lost, {counts[STATUS_RELOCALIZED]} relocalized")
+            guard.add(est)
+            if stop_on_mismatch and (why := guard.stop_reason()) is not None:
+                if T_world_cam_start is None:
+                    start = "no start pose: relocalized"
+                else:
+                    start = "tracked from the given start pose" + (", then relocalized" if cfg.relocalize else "")
+                stopped = (f"stopped localizing '{manifest.dataset}' in world '{map_id}' after {n_attempted} of {n} "
+                           f"frames: {why} ({start}), so the world evidently does not contain this sequence; "
+                           f"{n - n_attempted} frames not attempted")
+                break
 
     summary, err_t, err_r = grade(manifest.timestamps_s, T_est, status, manifest.T_world_cam_gt)
     est_times = np.array([t for t, s in zip(times, status) if s != STATUS_ANCHOR and np.isfinite(t)])
     summary.update({
         "n_frames": n, "anchor_index": int(anchor_index), "start": "given" if T_world_cam_start is not None else "relocalized",
         "mean_time_per_frame_s": float(est_times.mean()) if len(est_times) else float("nan"),
+        "outcome": OUTCOME_COMPLETE if stopped is None else OUTCOME_STOPPED_WORLD_MISMATCH,
+        "stopped_reason": stopped, "n_attempted": n_attempted,
     })
     summary["frames_per_s"] = 1.0 / summary["mean_time_per_frame_s"] if summary["mean_time_per_frame_s"] > 0 else float("nan")
     logger.info("localized %s: %s", manifest.dataset, {k: round(v, 4) if isinstance(v, float) else v for k, v in summary.items()})
-    if summary["n_lost"] >= n - 1 and n > 1:
+    if stopped is not None:
+        logger.warning(stopped)
+        if log is not None:
+            log(stopped)
+    elif summary["n_lost"] >= n - 1 and n > 1:
         logger.warning("%s: every frame after the first was lost; check the world and the dataset match", manifest.dataset)
     return LocalizationReport(manifest.dataset, map_id, manifest.timestamps_s.copy(), T_est, status,
                               fitness, rmse, times, manifest.T_world_cam_gt.copy(), err_t, err_r, summary)
@@ -215,12 +346,13 @@ def localize_sequence(
 
 def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
     """Counts, and where ground truth exists ATE (rigidly aligned, TUM conventions) and RPE per
-    second over the estimated frames (anchors excluded: their pose is given). Returns
+    second over the estimated frames (anchors excluded: their pose is given; ``not_attempted`` and
+    other frames without a finite pose are left out of the errors). Returns
     ``(summary, error_t_m [N], error_rot_deg [N])``, per-frame errors after the alignment."""
     n = len(timestamps_s)
     summary: dict = {
         "n_tracked": status.count(STATUS_TRACKED), "n_lost": status.count(STATUS_LOST),
-        "n_relocalized": status.count(STATUS_RELOCALIZED),
+        "n_relocalized": status.count(STATUS_RELOCALIZED), "n_not_attempted": status.count(STATUS_NOT_ATTEMPTED),
     }
     err_t = np.full(n, np.nan)
     err_r = np.full(n, np.nan)

@@ -12,7 +12,9 @@ Per frame the status is one of:
 * ``tracked``: aligned to the map from the motion-model guess (or, failing that, the last pose);
 * ``relocalized``: tracking failed, and the frame was placed by :class:`Relocalizer`;
 * ``lost``: no good alignment (too few correspondences, too large a residual, no valid depth);
-  the pose is the motion-model prediction, and the frame never touches the map.
+  the pose is the motion-model prediction, and the frame never touches the map;
+* ``not_attempted``: never processed (set by callers such as
+  :func:`atlas_pipeline.localization.localizer.localize_sequence` when they stop early); NaN pose.
 """
 
 from __future__ import annotations
@@ -37,14 +39,19 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["STATUS_ANCHOR", "STATUS_TRACKED", "STATUS_RELOCALIZED", "STATUS_LOST", "FrameEstimate", "SequenceTracker"]
+__all__ = ["STATUS_ANCHOR", "STATUS_TRACKED", "STATUS_RELOCALIZED", "STATUS_LOST", "STATUS_NOT_ATTEMPTED",
+           "PLACED_STATUSES", "NOTE_NO_DEPTH", "FrameEstimate", "SequenceTracker"]
 
 STATUS_ANCHOR = "anchor"
 STATUS_TRACKED = "tracked"
 STATUS_RELOCALIZED = "relocalized"
 STATUS_LOST = "lost"
+STATUS_NOT_ATTEMPTED = "not_attempted"  # a run stopped before this frame (never produced by process())
+# Statuses of frames the map itself placed (an anchor's pose is given, so it says nothing about the map).
+PLACED_STATUSES = (STATUS_TRACKED, STATUS_RELOCALIZED)
 
 _MIN_VALID_DEPTH = 200  # fewer valid depth pixels than this: nothing to align
+NOTE_NO_DEPTH = "no valid depth"  # note of a frame lost without any alignment tried (nothing to align)
 
 
 @dataclass
@@ -142,7 +149,7 @@ class SequenceTracker:
             est = FrameEstimate(index, np.asarray(T_given, np.float64).copy(), STATUS_ANCHOR, nan, nan, 0.0)
         elif fp.n_valid < _MIN_VALID_DEPTH:
             T = self._predict(index, timestamp_s) if self._last is not None else np.full((4, 4), np.nan)
-            est = FrameEstimate(index, T, STATUS_LOST, 0.0, nan, 0.0, note="no valid depth")
+            est = FrameEstimate(index, T, STATUS_LOST, 0.0, nan, 0.0, note=NOTE_NO_DEPTH)
         elif self._last is None or len(self.model) == 0:
             est = self._relocalize(index, fp, [])
         else:
