@@ -152,7 +152,10 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
         url = raw.get("url")
         if url is not None and not (isinstance(url, str) and re.match(r"^https?://", url)):
             raise ConfigError(f"{where}.url: must be an http(s) URL")
-        return DatasetEntry(name, "tum", path, camera=camera, url=url, sha256=raw.get("sha256"),
+        sha = raw.get("sha256")
+        if sha is not None and not (isinstance(sha, str) and re.match(r"^[0-9a-f]{64}$", sha)):
+            raise ConfigError(f"{where}.sha256: must be 64 lower-case hex digits")
+        return DatasetEntry(name, "tum", path, camera=camera, url=url, sha256=sha,
                             source_file=str(source))
     raise ConfigError(f"{where}: kind must be 'synthetic' or 'tum', got {kind!r}")
 
@@ -241,5 +244,7 @@ def ensure_dataset_files(entry: DatasetEntry, log: Callable[[str], None] | None 
         from atlas_pipeline.sensors.download import download_tum_archive
 
         log(f"{entry.name}: {entry.path} not found, downloading {entry.url}")
+        if not entry.sha256:
+            logger.warning("%s: no sha256 registered for %s; the download cannot be verified", entry.name, entry.url)
         return download_tum_archive(entry.url, entry.path, sha256=entry.sha256, log=log)
     raise DatasetError(entry.path, f"dataset folder of '{entry.name}' not found and no url to download it from")
