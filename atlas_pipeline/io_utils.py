@@ -43,6 +43,7 @@ __all__ = [
     "stage_dir",
     "commit_dir",
     "recover_dir",
+    "sweep_stale_files",
     "folder_kind",
     "foreign_entries",
     "check_output_dir",
@@ -89,7 +90,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise _write_error(path.parent, exc) from exc
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
+    sweep_stale_files(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
     try:
         yield tmp
         os.replace(tmp, path)
@@ -98,6 +100,25 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def sweep_stale_files(path: str | Path) -> list[str]:
+    """Remove temporary files of ``path`` (``.<stem>.<pid>-<id>.tmp<suffix>``) whose writer died."""
+    path = Path(path)
+    pattern = re.compile(rf"^\.{re.escape(path.stem)}\.(\d+)-[0-9a-f]{{8}}\.tmp{re.escape(path.suffix)}$")
+    removed = []
+    try:
+        siblings = list(path.parent.iterdir())
+    except OSError:
+        return removed
+    for p in siblings:
+        m = pattern.match(p.name)
+        if m and not process_alive(int(m.group(1))) and p.is_file():
+            p.unlink(missing_ok=True)
+            removed.append(p.name)
+    if removed:
+        logger.info("%s: removed %d temporary file(s) left by a killed writer", path, len(removed))
+    return removed
 
 
 # ---- folders: stage, commit, recover -------------------------------------------------------------

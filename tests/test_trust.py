@@ -371,3 +371,15 @@ def test_runs_whose_process_died_are_marked_failed(isolated):
         assert reap_dead_runs(instance) == [dead.run_id]
         assert instance.get_run_by_id(dead.run_id).status == DagsterRunStatus.FAILURE
         assert instance.get_run_by_id(alive.run_id).status == DagsterRunStatus.STARTED
+
+
+def test_temporary_files_of_a_killed_writer_are_swept(tmp_path):
+    target = tmp_path / "report.json"
+    stale = tmp_path / f".report.{_dead_pid()}-0123abcd.tmp.json"
+    stale.write_text("half")
+    live = tmp_path / f".report.{os.getpid()}-0123abcd.tmp.json"
+    live.write_text("in progress")
+    from atlas_pipeline.io_utils import write_json_atomic
+
+    write_json_atomic(target, {"ok": True})
+    assert not stale.exists() and live.exists() and json.loads(target.read_text()) == {"ok": True}

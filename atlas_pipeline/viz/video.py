@@ -15,6 +15,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from atlas_pipeline.geometry import look_at
+from atlas_pipeline.io_utils import sweep_stale_files
 
 __all__ = ["orbit_poses", "write_mp4", "side_by_side"]
 
@@ -151,6 +152,7 @@ def write_mp4(
         logger.info("padding %dx%d frames to even size for yuv420p", shape[1], shape[0])
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    sweep_stale_files(path)  # temporaries of a killed earlier writer
     # same folder (atomic rename), hidden, and ending in .mp4 so ffmpeg picks the container
     tmp = path.with_name(f".{path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp.mp4")
     writer = imageio.get_writer(
