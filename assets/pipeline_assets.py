@@ -132,7 +132,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
 
     @atlas_asset(description="Per-frame pose tracked against the world (frame-to-model, no ground truth used): status, "
                              "residual, time; ATE and RPE where ground truth exists; trajectory plot.",
-                 code_version="2", checks=[ATE_CHECK], **common)
+                 code_version="3", checks=[ATE_CHECK], **common)
     def localization_report(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                             gaussian_world: GaussianWorld) -> LocalizationReport:
         report = lib.localize(raw_dataset, gaussian_world, atlas.load(), log=context.log.info)
@@ -155,7 +155,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         return report
 
     @atlas_asset(description="State-action-state transitions, one row per consecutive frame pair (Parquet).",
-                 code_version="1", checks=[TRANSITIONS_CHECK], **common)
+                 code_version="2", checks=[TRANSITIONS_CHECK], **common)
     def transitions(context: AssetExecutionContext, atlas: AtlasConfig, localization_report: LocalizationReport,
                     gaussian_world: GaussianWorld) -> pa.Table:
         table = lib.log_transitions(localization_report, context.partition_key, len(gaussian_world.field), atlas.load())
@@ -171,7 +171,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
 
     @atlas_asset(description="Orbit, trajectory and side-by-side (real | render) MP4s (H.264, yuv420p) from the CPU "
                              "Gaussian rasterizer.",
-                 code_version="2", **common)
+                 code_version="3", **common)
     def demo_videos(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                     gaussian_world: GaussianWorld, localization_report: LocalizationReport) -> lib.DemoVideos:
         cfg = atlas.load()
@@ -207,7 +207,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
         return rep
 
     @atlas_asset(description="World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, surfels.npz (tracking map), localization.json, transitions.parquet.",
-                 code_version="5", checks=[BUNDLE_CHECK], **common)
+                 code_version="6", checks=[BUNDLE_CHECK], **common)
     def world_bundle(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                      gaussian_world: GaussianWorld, localization_report: LocalizationReport,
                      transitions: pa.Table):

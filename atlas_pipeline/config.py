@@ -3,6 +3,15 @@
 A profile has one section per pipeline stage. Each stage's artifacts depend only on its own
 section (and upstream artifacts), which is what lets the orchestrator tell which stages are stale
 after a config change.
+
+Validation happens whole and first, when a profile or an override is parsed
+(:meth:`PipelineConfig.from_dict`, :meth:`PipelineConfig.with_overrides`, :func:`load_profile`),
+so a bad value fails before any stage runs, never as a deep error three assets later. Each field
+declares its allowed range beside its declaration (``metadata["range"]``, a :class:`Range`); the
+type comes from its annotation (ints are ints, floats are finite numbers, tuples are checked
+element-wise, Literals list their choices). Rules that tie fields together are named checks
+(:data:`_SECTION_CHECKS`). Every error names the dotted field and the offending value, prefixed by
+the source (YAML path or ``--set``): ``--set: mapping.voxel_size_m must be a finite number > 0, got nan``.
 """
 
 from __future__ import annotations
@@ -10,10 +19,11 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Literal, get_args, get_type_hints
+from typing import Any, Callable, Literal, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -26,7 +36,9 @@ __all__ = [
     "LocalizationConfig",
     "TransitionsConfig",
     "VideoConfig",
+    "EvaluationConfig",
     "PipelineConfig",
+    "Range",
     "project_root",
     "configs_dir",
     "load_profile",
@@ -38,47 +50,104 @@ PoseSource = Literal["auto", "ground_truth", "estimated"]
 
 
 @dataclass(frozen=True)
+class Range:
+    """Bounds a number (or each element of a tuple of numbers) must lie within; ``None``: unbounded.
+
+    ``gt``/``lt`` are open bounds, ``ge``/``le`` closed ones (give at most one per side).
+    """
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.ge is not None and self.gt is not None or self.le is not None and self.lt is not None:
+            raise ValueError("a Range takes at most one lower and one upper bound")
+
+    def contains(self, v: float) -> bool:
+        return ((self.ge is None or v >= self.ge) and (self.gt is None or v > self.gt)
+                and (self.le is None or v <= self.le) and (self.lt is None or v < self.lt))
+
+    def describe(self) -> str:
+        """``> 0``, ``>= 2``, ``in (0, 1]``, ...; empty when unbounded."""
+        lo, lo_open = (self.gt, True) if self.gt is not None else (self.ge, False)
+        hi, hi_open = (self.lt, True) if self.lt is not None else (self.le, False)
+        if lo is not None and hi is not None:
+            return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        if lo is not None:
+            return f"{'>' if lo_open else '>='} {lo:g}"
+        if hi is not None:
+            return f"{'<' if hi_open else '<='} {hi:g}"
+        return ""
+
+
+POSITIVE = Range(gt=0)
+NON_NEGATIVE = Range(ge=0)
+UNIT_INTERVAL = Range(ge=0, le=1)  # shares and fractions
+SCALE_AT_MOST_ONE = Range(gt=0, le=1)  # image scale factors that only shrink
+AT_LEAST_ONE = Range(ge=1)
+MIN_FRAMES = 2  # a sequence needs two frames for one motion
+MAX_FINEST_LEVEL = 3  # 1/8 resolution: coarser leaves too few pixels to track on
+MAX_PYRAMID_LEVELS = 6  # finest_level + number of levels tracked
+MAX_VIDEO_SCALE = 4.0  # renders beyond 4x the sensor size only cost time
+RANGE_KEY = "range"  # the dataclass field metadata key holding a field's Range
+
+
+def _setting(default: Any, range_: Range | None = None) -> Any:
+    """A config field whose allowed range is declared with it (``metadata["range"]``)."""
+    return field(default=default, metadata={RANGE_KEY: range_})
+
+
+@dataclass(frozen=True)
 class DatasetConfig:
-    max_frames: int | None = None  # keep the first N frames; None = all
+    max_frames: int | None = _setting(None, Range(ge=MIN_FRAMES))  # keep the first N frames; None = all
 
 
 @dataclass(frozen=True)
 class FusionConfig:
-    min_depth_m: float = 0.1
-    max_depth_m: float = 4.0
-    stride: int = 2  # back-project every ``stride``-th pixel in u and v
+    min_depth_m: float = _setting(0.1, NON_NEGATIVE)
+    max_depth_m: float = _setting(4.0, POSITIVE)
+    stride: int = _setting(2, AT_LEAST_ONE)  # back-project every ``stride``-th pixel in u and v
 
 
 @dataclass(frozen=True)
 class MappingConfig:
     pose_source: PoseSource = "auto"
-    voxel_size_m: float = 0.02
-    keyframe_translation_m: float = 0.08
-    keyframe_rotation_deg: float = 8.0
-    colour_refinement_iterations: int = 3  # fit Gaussian colours to the keyframe images; 0 = mean colours
-    colour_refinement_scale: float = 0.5  # image scale of that fit
-    optimization_epochs: int = 30  # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off
-    optimization_max_steps: int = 600  # cap on its steps (one keyframe each), whatever the keyframe count
-    optimization_scale: float = 0.5  # image scale of that fit (1/n)
-    optimization_depth_weight: float = 1.0  # depth L1 (m) against colour L1 ([0, 1]) in its loss
+    voxel_size_m: float = _setting(0.02, POSITIVE)
+    keyframe_translation_m: float = _setting(0.08, NON_NEGATIVE)
+    keyframe_rotation_deg: float = _setting(8.0, NON_NEGATIVE)
+    # Fit Gaussian colours to the keyframe images; 0 = mean colours.
+    colour_refinement_iterations: int = _setting(3, NON_NEGATIVE)
+    colour_refinement_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit
+    # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off.
+    optimization_epochs: int = _setting(30, NON_NEGATIVE)
+    # Cap on its steps (one keyframe each), whatever the keyframe count.
+    optimization_max_steps: int = _setting(600, AT_LEAST_ONE)
+    optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
+    optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
 
 
 @dataclass(frozen=True)
 class LocalizationConfig:
-    iterations: tuple[int, ...] = (12, 8, 5)  # Gauss-Newton iterations per pyramid level, coarse to fine
-    finest_level: int = 1  # finest pyramid level used: 0 = full resolution, 1 = half, ...
-    max_correspondence_m: float = 0.1  # association gate at the coarsest level (halves per level)
-    min_correspondence_m: float = 0.02  # ... and its floor, used at the finest level and for grading
-    huber_depth_m: float = 0.01
-    photometric_weight: float = 0.1  # 0 = geometry only
+    # Gauss-Newton iterations per pyramid level, coarse to fine (each >= 0; one > 0: named check).
+    iterations: tuple[int, ...] = _setting((12, 8, 5), NON_NEGATIVE)
+    # Finest pyramid level used: 0 = full resolution, 1 = half, ...
+    finest_level: int = _setting(1, Range(ge=0, le=MAX_FINEST_LEVEL))
+    # Association gate at the coarsest level (halves per level) ...
+    max_correspondence_m: float = _setting(0.1, POSITIVE)
+    # ... and its floor, used at the finest level and for grading (<= max: named check).
+    min_correspondence_m: float = _setting(0.02, POSITIVE)
+    huber_depth_m: float = _setting(0.01, POSITIVE)
+    photometric_weight: float = _setting(0.1, NON_NEGATIVE)  # 0 = geometry only
     motion_model: Literal["constant_velocity", "none"] = "constant_velocity"
-    min_fitness: float = 0.15  # share of frame points with a model correspondence; below it: lost
-    min_agreement: float = 0.6  # share of the points landing on the map that fit it; below it: lost
-    max_residual_m: float = 0.02  # RMS point-to-plane residual; above it: lost
-    reference_translation_m: float = 0.05  # photometric reference frame renewed after this motion
-    reference_rotation_deg: float = 5.0
+    min_fitness: float = _setting(0.15, UNIT_INTERVAL)  # share of frame points with a model correspondence; below: lost
+    min_agreement: float = _setting(0.6, UNIT_INTERVAL)  # share of points landing on the map that fit it; below: lost
+    max_residual_m: float = _setting(0.02, POSITIVE)  # RMS point-to-plane residual; above it: lost
+    reference_translation_m: float = _setting(0.05, NON_NEGATIVE)  # photometric reference renewed after this motion
+    reference_rotation_deg: float = _setting(5.0, NON_NEGATIVE)
     relocalize: bool = True  # lost frames try global relocalization against the map
-    max_ate_m: float = 0.05  # blocking check: ATE RMSE above this (where ground truth exists) fails
+    max_ate_m: float = _setting(0.05, POSITIVE)  # blocking check: ATE RMSE above this (where ground truth exists) fails
 
 
 @dataclass(frozen=True)
@@ -88,17 +157,17 @@ class TransitionsConfig:
 
 @dataclass(frozen=True)
 class VideoConfig:
-    fps: float = 15.0
-    orbit_frames: int = 90
-    orbit_height_m: float = 1.0
-    orbit_radius_scale: float = 1.2
-    scale: float = 1.0
+    fps: float = _setting(15.0, POSITIVE)
+    orbit_frames: int = _setting(90, AT_LEAST_ONE)
+    orbit_height_m: float = _setting(1.0)  # above the world centre; any finite height (below it: negative)
+    orbit_radius_scale: float = _setting(1.2, POSITIVE)
+    scale: float = _setting(1.0, Range(gt=0, le=MAX_VIDEO_SCALE))
 
 
 @dataclass(frozen=True)
 class EvaluationConfig:
-    view_stride: int = 2  # evaluate every n-th held-out (non-keyframe) frame
-    max_views: int | None = None  # cap on the number of views; None = all selected
+    view_stride: int = _setting(2, AT_LEAST_ONE)  # evaluate every n-th held-out (non-keyframe) frame
+    max_views: int | None = _setting(None, AT_LEAST_ONE)  # cap on the number of views; None = all selected
 
 
 @dataclass(frozen=True)
@@ -122,15 +191,21 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], source: str = "<dict>") -> "PipelineConfig":
+        """Parse and validate a whole profile; a :class:`ConfigError` lists every bad field, one a line."""
         if not isinstance(data, dict):
-            raise ConfigError(f"{source}: a profile must be a mapping of sections")
-        return _build(cls, data, source, "")
+            raise ConfigError(f"{source}: a profile must be a mapping of sections, got {_show(data)}")
+        errors: list[str] = []
+        cfg = _parse(cls, data, "", errors)
+        if errors or cfg is None:
+            raise ConfigError("\n".join(f"{source}: {e}" for e in errors))
+        return cfg
 
     def with_overrides(self, overrides: dict[str, Any], source: str = "<overrides>") -> "PipelineConfig":
-        """Copy with dotted-key overrides applied, e.g. ``{"localization.photometric_weight": 0.5}``."""
+        """Copy with dotted-key overrides applied, e.g. ``{"localization.photometric_weight": 0.5}``;
+        the result is validated whole, as :meth:`from_dict` does."""
         data = self.to_dict()
         for dotted, value in overrides.items():
-            parts = dotted.split(".")
+            parts = str(dotted).split(".")
             node = data
             for p in parts[:-1]:
                 if p not in node or not isinstance(node[p], dict):
@@ -142,112 +217,183 @@ class PipelineConfig:
         return PipelineConfig.from_dict(data, source)
 
 
-def _check_value(tp: Any, value: Any, where: str) -> Any:
-    """Coerce and check one scalar against its annotated type."""
+# ---- validation ---------------------------------------------------------------------------------
+
+_SHOW_MAX_CHARS = 80  # a value quoted in an error is cut to this length
+
+
+class _Invalid(Exception):
+    """One field's value does not fit its type or range (message without the source)."""
+
+    def __init__(self, path: str, expected: str, value: Any):
+        super().__init__(f"{path} must be {expected}, got {_show(value)}")
+
+
+def _show(value: Any) -> str:
+    text = repr(value)  # nan, inf, 'two', True, [1, 2]
+    return text if len(text) <= _SHOW_MAX_CHARS else text[: _SHOW_MAX_CHARS - 3] + "..."
+
+
+def _optional_inner(tp: Any) -> Any | None:
+    """``T`` of ``T | None``; None for any other type."""
     args = get_args(tp)
-    if getattr(tp, "__origin__", None) is Literal:
-        if value not in args:
-            raise ConfigError(f"{where}: must be one of {list(args)}, got {value!r}")
-        return value
-    if getattr(tp, "__origin__", None) is tuple:  # tuple[T, ...] from a YAML list
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: must be a list, got {value!r}")
-        return tuple(_check_value(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-    if type(None) in args:  # Optional[...]
-        if value is None:
-            return None
-        inner = [a for a in args if a is not type(None)][0]
-        return _check_value(inner, value, where)
+    if type(None) in args and len(args) == 2:
+        return next(a for a in args if a is not type(None))
+    return None
+
+
+_PLURAL = {int: "integers", float: "finite numbers"}
+
+
+def _expectation(tp: Any, rng: Range | None) -> str:
+    """What a value of annotated type ``tp`` within ``rng`` must be, in words."""
+    bound = f" {rng.describe()}" if rng is not None and rng.describe() else ""
+    if get_origin(tp) is tuple:
+        return f"a list of {_PLURAL[get_args(tp)[0]]}{bound}"
+    if get_origin(tp) is Literal:
+        return f"one of {list(get_args(tp))}"
+    inner = _optional_inner(tp)
+    if inner is not None:
+        return f"{_expectation(inner, rng)} or null"
     if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: must be true or false, got {value!r}")
-        return value
+        return "true or false"
     if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: must be an integer, got {value!r}")
-        return value
+        return f"an integer{bound}"
     if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: must be a number, got {value!r}")
-        return float(value)
+        return f"a finite number{bound}"
     if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: must be a string, got {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported config type {tp}")  # pragma: no cover
+        return "a string"
+    raise TypeError(f"unsupported config type {tp}")  # a programming error: a new field type needs a rule
 
 
-def _build(cls: type, data: dict[str, Any], source: str, prefix: str) -> Any:
+def _scalar_ok(tp: Any, value: Any, rng: Range | None) -> tuple[bool, Any]:
+    """``(fits, coerced value)`` for one scalar of annotated type ``tp``."""
+    if get_origin(tp) is Literal:
+        return any(type(value) is type(a) and value == a for a in get_args(tp)), value
+    inner = _optional_inner(tp)
+    if inner is not None:
+        return (True, None) if value is None else _scalar_ok(inner, value, rng)
+    if tp is bool:
+        return isinstance(value, bool), value
+    if tp is str:
+        return isinstance(value, str), value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):  # YAML true is not a number
+        return False, value
+    if tp is int:
+        return isinstance(value, int) and (rng is None or rng.contains(value)), value
+    if tp is float:
+        try:
+            v = float(value)
+        except OverflowError:  # an int too large for a float
+            return False, value
+        return math.isfinite(v) and (rng is None or rng.contains(v)), v
+    raise TypeError(f"unsupported config type {tp}")  # pragma: no cover
+
+
+def _coerce(tp: Any, value: Any, path: str, rng: Range | None) -> Any:
+    """``value`` checked against annotated type ``tp`` and ``rng`` (tuples element-wise); raises
+    :class:`_Invalid` naming ``path`` (``path[i]`` for a tuple element)."""
+    if get_origin(tp) is tuple:  # tuple[T, ...] from a YAML list
+        if not isinstance(value, (list, tuple)):
+            raise _Invalid(path, _expectation(tp, rng), value)
+        elem = get_args(tp)[0]
+        return tuple(_coerce(elem, v, f"{path}[{i}]", rng) for i, v in enumerate(value))
+    ok, out = _scalar_ok(tp, value, rng)
+    if not ok:
+        raise _Invalid(path, _expectation(tp, rng), value)
+    return out
+
+
+def _parse(cls: type, data: dict[str, Any], prefix: str, errors: list[str]) -> Any | None:
+    """Build ``cls`` from ``data``, appending every problem to ``errors``; None where there was one.
+
+    Field checks run first; a section's named checks only once all its fields are valid (they
+    compare fields, and an invalid one would make their message misleading).
+    """
+    n_errors = len(errors)
     hints = get_type_hints(cls)
     names = {f.name for f in fields(cls)}
-    unknown = sorted(set(data) - names)
+    unknown = sorted((str(k) for k in data if k not in names))
     if unknown:
-        raise ConfigError(f"{source}: unknown key(s) {', '.join(prefix + u for u in unknown)}")
+        errors.append(f"unknown key(s) {', '.join(prefix + u for u in unknown)}")
     kwargs: dict[str, Any] = {}
     for f in fields(cls):
         if f.name not in data:
             continue
-        tp = hints[f.name]
-        value = data[f.name]
-        where = f"{source}: {prefix}{f.name}"
+        tp, value, path = hints[f.name], data[f.name], prefix + f.name
         if dataclasses.is_dataclass(tp):
-            if value is None:
+            if value is None:  # an empty YAML section
                 value = {}
             if not isinstance(value, dict):
-                raise ConfigError(f"{where}: must be a mapping")
-            kwargs[f.name] = _build(tp, value, source, prefix + f.name + ".")
-        else:
-            kwargs[f.name] = _check_value(tp, value, where)
+                errors.append(f"{path} must be a mapping of keys, got {_show(value)}")
+                continue
+            section = _parse(tp, value, path + ".", errors)
+            if section is not None:
+                kwargs[f.name] = section
+            continue
+        try:
+            kwargs[f.name] = _coerce(tp, value, path, f.metadata.get(RANGE_KEY))
+        except _Invalid as exc:
+            errors.append(str(exc))
+    if len(errors) > n_errors:
+        return None
     obj = cls(**kwargs)
-    _validate(obj, source)
-    return obj
+    for check in _SECTION_CHECKS.get(cls, ()):
+        problem = check(obj, prefix)
+        if problem:
+            errors.append(problem)
+    return obj if len(errors) == n_errors else None
 
 
-def _validate(obj: Any, source: str) -> None:
-    """Range checks that types alone cannot express."""
-    def bad(msg: str) -> ConfigError:
-        return ConfigError(f"{source}: {msg}")
+# Named checks of rules that tie fields together: (section, dotted prefix) -> message or None.
 
-    if isinstance(obj, DatasetConfig) and obj.max_frames is not None and obj.max_frames < 2:
-        raise bad("dataset.max_frames must be at least 2 (or null)")
-    if isinstance(obj, FusionConfig):
-        if not 0 <= obj.min_depth_m < obj.max_depth_m:
-            raise bad("fusion needs 0 <= min_depth_m < max_depth_m")
-        if obj.stride < 1:
-            raise bad("fusion.stride must be >= 1")
-    if isinstance(obj, MappingConfig):
-        if obj.voxel_size_m <= 0:
-            raise bad("mapping.voxel_size_m must be positive")
-        if obj.keyframe_translation_m < 0 or obj.keyframe_rotation_deg < 0:
-            raise bad("mapping keyframe thresholds must be non-negative")
-        if obj.colour_refinement_iterations < 0 or not 0 < obj.colour_refinement_scale <= 1:
-            raise bad("mapping needs colour_refinement_iterations >= 0 and 0 < colour_refinement_scale <= 1")
-        inv = 1.0 / obj.optimization_scale if obj.optimization_scale > 0 else 0.0
-        if obj.optimization_epochs < 0 or not (0 < obj.optimization_scale <= 1 and abs(inv - round(inv)) < 1e-9):
-            raise bad("mapping needs optimization_epochs >= 0 and optimization_scale = 1/n (1, 0.5, 0.25, ...)")
-        if obj.optimization_max_steps < 1:
-            raise bad("mapping.optimization_max_steps must be at least 1")
-        if obj.optimization_depth_weight < 0:
-            raise bad("mapping.optimization_depth_weight must be non-negative")
-    if isinstance(obj, LocalizationConfig):
-        if not obj.iterations or min(obj.iterations) < 0 or max(obj.iterations) < 1:
-            raise bad("localization.iterations needs one non-negative count per pyramid level, at least one > 0")
-        if not 0 <= obj.finest_level <= 3 or obj.finest_level + len(obj.iterations) > 6:
-            raise bad("localization.finest_level must lie in 0..3 with at most 6 pyramid levels in all")
-        if not 0 < obj.min_correspondence_m <= obj.max_correspondence_m:
-            raise bad("localization needs 0 < min_correspondence_m <= max_correspondence_m")
-        if obj.huber_depth_m <= 0 or obj.photometric_weight < 0 or obj.max_residual_m <= 0:
-            raise bad("localization needs huber_depth_m > 0, photometric_weight >= 0, max_residual_m > 0")
-        if not 0 <= obj.min_fitness <= 1 or not 0 <= obj.min_agreement <= 1:
-            raise bad("localization.min_fitness and min_agreement must lie in [0, 1]")
-        if not obj.max_ate_m > 0:
-            raise bad("localization.max_ate_m must be positive")
-    if isinstance(obj, EvaluationConfig):
-        if obj.view_stride < 1 or (obj.max_views is not None and obj.max_views < 1):
-            raise bad("evaluation needs view_stride >= 1 and max_views >= 1 (or null)")
-    if isinstance(obj, VideoConfig):
-        if obj.fps <= 0 or obj.orbit_frames < 1 or not 0 < obj.scale <= 4:
-            raise bad("video needs fps > 0, orbit_frames >= 1 and 0 < scale <= 4")
+_RECIPROCAL_TOL = 1e-9  # the same tolerance gaussian_world.optimize applies
+
+
+def _depth_interval_not_empty(c: FusionConfig, p: str) -> str | None:
+    # Depths outside [min, max] are dropped: an empty interval back-projects nothing.
+    if c.min_depth_m >= c.max_depth_m:
+        return f"{p}min_depth_m must be < {p}max_depth_m ({c.max_depth_m!r}), got {c.min_depth_m!r}"
+    return None
+
+
+def _optimization_scale_is_reciprocal(c: MappingConfig, p: str) -> str | None:
+    # The fit downsamples the keyframes by a whole factor n (block averages).
+    n = round(1.0 / c.optimization_scale)
+    if n < 1 or abs(1.0 / n - c.optimization_scale) > _RECIPROCAL_TOL:
+        return f"{p}optimization_scale must be 1/n for a whole n (1, 0.5, 0.25, ...), got {c.optimization_scale!r}"
+    return None
+
+
+def _iterations_track_something(c: LocalizationConfig, p: str) -> str | None:
+    # One count per pyramid level; all zero would never move the pose.
+    if not c.iterations or max(c.iterations) < 1:
+        return (f"{p}iterations must list one count per pyramid level, at least one of them > 0, "
+                f"got {list(c.iterations)}")
+    return None
+
+
+def _pyramid_not_too_deep(c: LocalizationConfig, p: str) -> str | None:
+    # Each level halves the image; deeper pyramids leave too few pixels at the coarsest level.
+    if c.finest_level + len(c.iterations) > MAX_PYRAMID_LEVELS:
+        return (f"{p}finest_level + len({p}iterations) must be <= {MAX_PYRAMID_LEVELS} pyramid levels, "
+                f"got {c.finest_level} + {len(c.iterations)}")
+    return None
+
+
+def _correspondence_gates_ordered(c: LocalizationConfig, p: str) -> str | None:
+    # The gate shrinks from max at the coarsest level down to min at the finest.
+    if c.min_correspondence_m > c.max_correspondence_m:
+        return (f"{p}min_correspondence_m must be <= {p}max_correspondence_m ({c.max_correspondence_m!r}), "
+                f"got {c.min_correspondence_m!r}")
+    return None
+
+
+_SECTION_CHECKS: dict[type, tuple[Callable[[Any, str], str | None], ...]] = {
+    FusionConfig: (_depth_interval_not_empty,),
+    MappingConfig: (_optimization_scale_is_reciprocal,),
+    LocalizationConfig: (_iterations_track_something, _pyramid_not_too_deep, _correspondence_gates_ordered),
+}
 
 
 def project_root() -> Path:

@@ -6,6 +6,7 @@ typed artifact. No orchestration here: ordering, caching and persistence belong 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -151,13 +152,21 @@ def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: Lo
 
 def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int,
                     cfg: PipelineConfig) -> pa.Table:
-    """Transitions from the estimated (default) or ground-truth trajectory of ``report``."""
+    """Transitions from the estimated (default) or ground-truth trajectory of ``report``.
+
+    Estimated rows carry the tracking status of their frames (which decides ``valid``: lost frames
+    and relocalization jumps are not motions); ground-truth rows have none (status ``unknown``,
+    validity from pose finiteness and time only).
+    """
     source = cfg.transitions.pose_source
-    poses = report.pose_source_poses(source)
+    poses = report.pose_source_poses(source)  # [N, 4, 4] T_world_cam
     if source == "ground_truth" and not np.isfinite(poses).all(axis=(1, 2)).any():
         raise DatasetError(partition, "transitions.pose_source is ground_truth but the dataset has no ground truth")
-    status = report.status if source == "estimated" else None
-    return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source, status)
+    if source == "estimated":
+        # Frames before the anchor were tracked backwards from it (see localize_sequence).
+        return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source,
+                                 list(report.status), int(report.summary.get("anchor_index", 0)))
+    return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source)
 
 
 @dataclass
@@ -174,15 +183,20 @@ class DemoVideos:
     def save(self, directory: Path) -> list[Path]:
         """Move the videos into ``directory`` (same file system: a rename) and describe them."""
         out = []
+        sources = set()
         for attr in ("orbit", "trajectory", "side_by_side"):
             src = getattr(self, attr)
             if src is None:
                 continue
             dst = directory / src.name
             if src.resolve() != dst.resolve():
+                sources.add(src.parent)
                 shutil.move(str(src), dst)
             setattr(self, attr, dst)
             out.append(dst)
+        for folder in sources:  # the render's scratch folder, now empty: leave nothing behind
+            with contextlib.suppress(OSError):
+                folder.rmdir()
         out.append(write_json_atomic(directory / "videos.json", {
             "orbit": self.orbit.name, "trajectory": self.trajectory.name,
             "side_by_side": self.side_by_side.name if self.side_by_side else None,

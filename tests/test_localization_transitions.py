@@ -99,5 +99,128 @@ def test_transitions_with_unknown_poses_are_marked_invalid():
     table = build_transitions("p", "m", 1, np.arange(4.0), T, "ground_truth")
     df = table.to_pandas()
     assert df["valid"].tolist() == [True, False, False]
+    assert df["valid_reason"].tolist() == ["ok", "after_pose_unknown", "before_pose_unknown"]
     assert df.loc[1, ["action_vx_mps", "after_x_m"]].isna().all()
     assert table.schema.equals(TRANSITIONS_SCHEMA, check_metadata=False)
+
+
+# ---- validity, table-driven ------------------------------------------------------------------------
+
+STEP_M, STEP_RAD, DT_S = 0.05, 0.02, 0.1  # per frame: forward along camera z, turn about camera y
+A, TR, RL, LO = "anchor", "tracked", "relocalized", "lost"
+N_FRAMES = 4
+
+
+def _trajectory(n: int = N_FRAMES) -> np.ndarray:
+    """``[n, 4, 4]`` T_world_cam moving ``STEP_M`` along, and turning ``STEP_RAD`` about, its own axes each frame."""
+    step = pose_from_tq(np.array([0, 0, STEP_M]), np.array([0, np.sin(STEP_RAD / 2), 0, np.cos(STEP_RAD / 2)]))
+    T = [np.eye(4)]
+    for _ in range(n - 1):
+        T.append(T[-1] @ step)
+    return np.array(T)
+
+
+TIMES = DT_S * np.arange(N_FRAMES)
+# name: (status, timestamps, frames with a NaN pose, anchor_index, expected valid_reason per row)
+CASES = {
+    "anchor_then_tracked": ([A, TR, TR, TR], TIMES, [], 0, ["ok", "ok", "ok"]),
+    "lost_before": ([A, TR, LO, TR], TIMES, [], 0, ["ok", "after_lost", "before_lost"]),
+    "lost_after": ([A, TR, TR, LO], TIMES, [], 0, ["ok", "ok", "after_lost"]),
+    "lost_with_no_pose": ([A, LO, TR, TR], TIMES, [1], 0,
+                          ["after_lost;after_pose_unknown", "before_lost;before_pose_unknown", "ok"]),
+    "relocalized_after": ([A, TR, RL, TR], TIMES, [], 0, ["ok", "after_relocalized", "ok"]),
+    # Before the anchor frames were tracked backwards: the jump is into the earlier frame.
+    "relocalized_before_the_anchor": ([TR, RL, A, TR], TIMES, [], 2, ["ok", "before_relocalized", "ok"]),
+    "relocalized_start": ([RL, TR, TR, TR], TIMES, [], 0, ["ok", "ok", "ok"]),
+    "dt_negative": ([A, TR, TR, TR], np.array([0.0, 0.1, 0.05, 0.3]), [], 0, ["ok", "dt_not_positive", "ok"]),
+    "dt_zero": ([A, TR, TR, TR], np.array([0.0, 0.1, 0.1, 0.2]), [], 0, ["ok", "dt_not_positive", "ok"]),
+    "dt_nan": ([A, TR, TR, TR], np.array([0.0, 0.1, np.nan, 0.3]), [], 0,
+               ["ok", "dt_not_positive", "dt_not_positive"]),
+    "nan_pose": ([A, TR, TR, TR], TIMES, [2], 0, ["ok", "after_pose_unknown", "before_pose_unknown"]),
+    "never_attempted": ([A, TR, TR, "not_attempted"], TIMES, [3], 0, ["ok", "ok", "after_pose_unknown"]),
+    "several_reasons": ([A, TR, LO, TR], np.array([0.0, 0.1, 0.1, 0.3]), [], 0,
+                        ["ok", "after_lost;dt_not_positive", "before_lost"]),
+    "ground_truth_has_no_status": (None, np.array([0.0, 0.1, 0.2, 0.2]), [1], 0,
+                                   ["after_pose_unknown", "before_pose_unknown", "dt_not_positive"]),
+}
+ACTION_DELTA = [c for c in TRANSITIONS_SCHEMA.names if c.startswith(("action_", "delta_"))]
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_validity_reasons_and_nan_for_unknowns(case):
+    status, ts, nan_frames, anchor, reasons = CASES[case]
+    T = _trajectory()
+    T[nan_frames] = np.nan
+    source = "ground_truth" if status is None else "estimated"
+    df = build_transitions("p", "m", 1, ts, T, source, status, anchor).to_pandas()
+
+    assert len(df) == N_FRAMES - 1 and df["valid_reason"].tolist() == reasons
+    assert df["valid"].tolist() == [r == "ok" for r in reasons]
+    assert df["status_before"].tolist() + df["status_after"].tolist()[-1:] == (status or ["unknown"] * N_FRAMES)
+    assert np.array_equal(df["dt_s"], np.diff(ts), equal_nan=True)  # recorded as is, even when invalid
+    # Unknown is NaN, never 0: every action and delta of an invalid row ...
+    assert df.loc[~df["valid"], ACTION_DELTA].isna().all().all()
+    # ... and the pose of a lost frame (a prediction) or of a frame with no pose.
+    unknown = set(nan_frames) | {i for i, s in enumerate(status or []) if s == LO}
+    t_true = _trajectory()[:, :3, 3]
+    for side, frames in (("before", df["frame_id_before"]), ("after", df["frame_id_after"])):
+        for row, i in enumerate(frames):
+            xyz = df.loc[row, [f"{side}_x_m", f"{side}_y_m", f"{side}_z_m"]].to_numpy(np.float64)
+            assert np.isnan(xyz).all() if i in unknown else np.allclose(xyz, t_true[i], atol=1e-12), (side, i)
+    # Valid rows are still exact.
+    ok = df[df["valid"]]
+    assert np.allclose(ok["action_vz_mps"], STEP_M / ok["dt_s"]) and np.allclose(ok["action_vx_mps"], 0, atol=1e-12)
+    assert np.allclose(ok["action_wy_radps"], STEP_RAD / ok["dt_s"])
+    assert np.allclose(ok["delta_translation_m"], STEP_M)
+    assert np.allclose(ok["delta_rotation_deg"], np.degrees(STEP_RAD))
+    assert np.isfinite(ok[ACTION_DELTA].to_numpy()).all()
+
+
+def test_valid_reason_is_documented_and_follows_valid():
+    from atlas_pipeline.transition_log.transitions import VALID_REASONS
+
+    names = TRANSITIONS_SCHEMA.names
+    assert names[names.index("valid") + 1] == "valid_reason"
+    doc = TRANSITIONS_SCHEMA.metadata[b"valid_reason"].decode()
+    assert all(f"{r}:" in doc for r in VALID_REASONS)
+    reasons_seen = {r for case in CASES.values() for row in case[-1] for r in row.split(";")} - {"ok"}
+    assert reasons_seen == set(VALID_REASONS)  # the table above exercises every reason
+
+
+def test_status_is_checked():
+    T, ts = _trajectory(), TIMES
+    with pytest.raises(ValueError, match="no tracking status"):
+        build_transitions("p", "m", 1, ts, T, "ground_truth", [A, TR, TR, TR])
+    with pytest.raises(ValueError, match="unknown tracking status"):
+        build_transitions("p", "m", 1, ts, T, "estimated", [A, TR, "guessed", TR])
+    with pytest.raises(ValueError, match="3 entries for 4 frames"):
+        build_transitions("p", "m", 1, ts, T, "estimated", [A, TR, TR])
+    with pytest.raises(ValueError, match="pose_source"):
+        build_transitions("p", "m", 1, ts, T, "made_up")
+
+
+def test_log_transitions_uses_status_only_for_estimated_poses():
+    from types import SimpleNamespace
+
+    T_est, T_gt = _trajectory(), _trajectory()
+    T_est[2] = T_est[1]  # a lost frame's pose: the prediction, finite but only a guess
+    report = SimpleNamespace(map_id="m", timestamps_s=TIMES, status=[A, TR, LO, TR], summary={"anchor_index": 0},
+                             pose_source_poses=lambda s: T_est if s == "estimated" else T_gt)
+    cfg = load_profile("default")
+    est = lib.log_transitions(report, "p", 1, cfg).to_pandas()
+    assert est["valid_reason"].tolist() == ["ok", "after_lost", "before_lost"]
+    assert est.loc[1, ["after_x_m", "action_vz_mps"]].isna().all()  # frame 2 is lost: its pose is a guess
+    cfg_gt = cfg.with_overrides({"transitions.pose_source": "ground_truth"})
+    gt = lib.log_transitions(report, "p", 1, cfg_gt).to_pandas()
+    assert gt["valid"].all() and set(gt["status_before"]) == {"unknown"}
+
+
+def test_reading_a_table_without_valid_reason_is_refused(tmp_path):
+    import pyarrow.parquet as pq
+
+    from atlas_pipeline.errors import ArtifactError
+
+    old = build_transitions("p", "m", 1, TIMES, _trajectory(), "ground_truth").drop_columns(["valid_reason"])
+    pq.write_table(old, tmp_path / "old.parquet")
+    with pytest.raises(ArtifactError, match="valid_reason"):
+        read_transitions(tmp_path / "old.parquet")
