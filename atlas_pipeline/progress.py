@@ -1,4 +1,4 @@
-"""Progress reporting for long loops: frames done and rate, at most every few seconds."""
+"""Progress reporting for long loops: items done, rate and time left, at most every few seconds."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ LogFn = Callable[[str], None]
 
 
 class Progress:
-    """Counts work items and logs ``"<label>: 40/100 frames (12.3 frames/s)"``.
+    """Counts work items and logs ``"<label>: 40/100 frames (12.3 frames/s, about 5 s left)"``.
 
     Args:
         label: what is being done ("fusing frames").
@@ -50,5 +50,24 @@ class Progress:
         if finished or now - self._last >= self.every_s:
             self._last = now
             of = f"/{self.total}" if self.total is not None else ""
+            eta = self.eta_s
+            left = f", about {format_duration(eta)} left" if (eta is not None and not finished) else ""
             tail = f", {extra}" if extra else ""
-            self.log(f"{self.label}: {self.done}{of} {self.unit} ({self.rate:.1f} {self.unit}/s{tail})")
+            self.log(f"{self.label}: {self.done}{of} {self.unit} ({self.rate:.1f} {self.unit}/s{left}{tail})")
+
+    @property
+    def eta_s(self) -> float | None:
+        """Seconds left at the mean rate so far; None without a total or before the first item."""
+        if self.total is None or self.done <= 0 or self.rate <= 0:
+            return None
+        return max(0.0, (self.total - self.done) / self.rate)
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``3 min 5 s``, ``1 h 2 min``: how long, at a glance."""
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60} s"
+    return f"{s // 3600} h {(s % 3600) // 60} min"
