@@ -29,6 +29,7 @@ from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.sensors.camera import TUM_CAMERAS
 from atlas_pipeline.sensors.registry import (
     DatasetEntry,
+    camera_from_intrinsics,
     load_registry,
     local_registry_path,
     register_local_dataset,
@@ -476,9 +477,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     if args.dataset_cmd == "add":
         camera: Any = args.camera
         if args.intrinsics:
-            fx, fy, cx, cy = _numbers(args.intrinsics, 4, "--intrinsics", "fx fy cx cy")
-            camera = {"width": args.width, "height": args.height, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
-                      "depth_scale": args.depth_scale}
+            camera = camera_from_intrinsics(args.intrinsics, args.width, args.height, args.depth_scale)
         entry = register_local_dataset(args.name, args.path, camera, replace=args.replace)
         _default_dagster_home()
         from dagster import DagsterInstance

@@ -18,7 +18,7 @@ fresh home.
 import logging
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 from dagster import (
     AssetSelection,
@@ -38,11 +38,18 @@ from dagster import (
     sensor,
 )
 
+from pydantic import Field as PField
+
 from assets.io_managers import ArtifactIOManager, artifacts_root
 from assets.pipeline_assets import build_pipeline_assets
 from assets.resources import AtlasConfig
 from assets.runs import reap_dead_runs
-from atlas_pipeline.sensors.registry import load_registry, register_local_dataset, validate_dataset_name
+from atlas_pipeline.sensors.registry import (
+    camera_from_intrinsics,
+    load_registry,
+    register_local_dataset,
+    validate_dataset_name,
+)
 
 logger = logging.getLogger("atlas_gs.definitions")
 
@@ -90,15 +97,21 @@ def dataset_registry_sensor(context: SensorEvaluationContext):
 class RegisterDatasetConfig(Config):
     """A folder in TUM RGB-D layout to register as a dataset partition."""
 
-    name: str
-    path: str
-    camera: str = "default"
-    replace: bool = False  # re-point a name that is already registered
+    name: str = PField(description="partition name: lower-case letters, digits, '-', '_'")
+    path: str = PField(description="the folder (rgb.txt, depth.txt, optional groundtruth.txt)")
+    camera: str = PField("default", description="camera preset: freiburg1, freiburg2, freiburg3 or default")
+    intrinsics: Optional[str] = PField(None, description="'fx fy cx cy' instead of a preset")
+    width: int = PField(640, description="image width (with intrinsics)")
+    height: int = PField(480, description="image height (with intrinsics)")
+    depth_scale: float = PField(5000.0, description="depth units per metre (with intrinsics)")
+    replace: bool = PField(False, description="re-point a name that is already registered")
 
 
 @op(description="Validate the name and the TUM layout, write the local registry, add the partition.")
 def register_dataset_op(context: OpExecutionContext, config: RegisterDatasetConfig) -> None:
-    entry = register_local_dataset(config.name, config.path, config.camera, replace=config.replace)
+    camera = (camera_from_intrinsics(config.intrinsics, config.width, config.height, config.depth_scale, "intrinsics")
+              if config.intrinsics else config.camera)
+    entry = register_local_dataset(config.name, config.path, camera, replace=config.replace)
     sync_dataset_partitions(context.instance, [entry.name])
     context.log.info(f"registered dataset {entry.name} -> {entry.path}; partition added")
 

@@ -46,6 +46,9 @@ __all__ = [
     "section_hash",
 ]
 
+# Profiles and registries are a few kB; refuse huge files before parsing them.
+MAX_YAML_BYTES = 4 * 1024 * 1024
+
 PoseSource = Literal["auto", "ground_truth", "estimated"]
 
 
@@ -411,17 +414,36 @@ def configs_dir() -> Path:
 def load_yaml_file(path: Path) -> Any:
     """Parse a YAML file with the safe loader; errors name the file and line."""
     try:
-        text = path.read_text(encoding="utf-8")
+        size = path.stat().st_size
+        if size > MAX_YAML_BYTES:
+            raise ConfigError(f"{path}: {size} bytes is far more than any profile or registry ({MAX_YAML_BYTES})")
+        text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
+    except UnicodeDecodeError as exc:
+        line = text_line_of(path, exc.start)
+        raise ConfigError(f"{path}:{line}: not UTF-8 text (byte {exc.start})") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc})") from exc
+        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         raise ConfigError(f"{where}: invalid YAML ({getattr(exc, 'problem', exc)})") from exc
+    except RecursionError:
+        raise ConfigError(f"{path}: YAML nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
+        raise ConfigError(f"{path}: invalid value ({exc})") from None
+
+
+def text_line_of(path: Path, offset: int) -> int:
+    """1-based line of byte ``offset`` in ``path`` (for errors about undecodable bytes)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(offset).count(b"\n") + 1
+    except OSError:
+        return 1
 
 
 def load_profile(name_or_path: str | Path = "default") -> PipelineConfig:

@@ -60,9 +60,10 @@ def _add_bytes(tar: tarfile.TarFile, name: str, data: bytes) -> None:
     tar.addfile(info, io.BytesIO(data))
 
 
-def make_tgz(path: Path, extra: dict[str, bytes] | None = None) -> Path:
+def make_tgz(path: Path, extra: dict[str, bytes] | None = None,
+             special: list[tarfile.TarInfo] | None = None) -> Path:
     """Write ``path`` (.tgz): ``rgbd_dataset_test/`` with the sequence, plus ``extra`` members
-    (names taken literally, e.g. ``../evil.txt``)."""
+    (names taken literally, e.g. ``../evil.txt``) and ``special`` data-less members (links, fifos)."""
     with tarfile.open(path, "w:gz") as tar:
         for d in (TOP, f"{TOP}/rgb", f"{TOP}/depth"):
             info = tarfile.TarInfo(d)
@@ -73,7 +74,17 @@ def make_tgz(path: Path, extra: dict[str, bytes] | None = None) -> Path:
             _add_bytes(tar, f"{TOP}/{rel}", data)
         for name, data in (extra or {}).items():
             _add_bytes(tar, name, data)
+        for info in special or []:
+            tar.addfile(info)
     return path
+
+
+def _special_member(name: str, kind: bytes, linkname: str = "") -> tarfile.TarInfo:
+    info = tarfile.TarInfo(name)
+    info.type = kind
+    info.linkname = linkname
+    info.mode = 0o644
+    return info
 
 
 def sha256_of(path: Path) -> str:
@@ -296,3 +307,75 @@ def test_ensure_dataset_files_without_url_raises(tmp_path):
     entry = DatasetEntry(name="tum-test", kind="tum", path=tmp_path / "missing", camera=TUM_CAMERAS["default"])
     with pytest.raises(DatasetError, match="no url"):
         ensure_dataset_files(entry)
+
+
+# ---- members the unpacker validates itself (not relying on tarfile's "data" filter) -------------
+
+
+def _assert_refused_untouched(server, name: str, tmp_path: Path, member: str, why: str) -> None:
+    """Download ``name``: a DatasetError naming the URL, the member and ``why``; nothing written."""
+    base = tmp_path / "a" / "b"
+    dest = base / "seq"
+    with pytest.raises(DatasetError, match="cannot unpack") as exc_info:
+        download_tum_archive(server.url(name), dest, log=lambda m: None)
+    msg = str(exc_info.value)
+    assert server.url(name) in msg and repr(member) in msg and why in msg, msg
+    assert not dest.exists()
+    assert list(base.iterdir()) == []  # temporary folder removed
+    assert not any(p.name in ("evil.txt", "passwd", "link") for p in tmp_path.rglob("*"))
+
+
+@pytest.mark.parametrize("kind, linkname", [(tarfile.SYMTYPE, "/etc/passwd"), (tarfile.SYMTYPE, "../../.."),
+                                            (tarfile.LNKTYPE, f"{TOP}/rgb.txt")],
+                         ids=["symlink-absolute", "symlink-up", "hardlink"])
+def test_archive_with_link_member_is_refused(server, tmp_path, kind, linkname):
+    member = f"{TOP}/link"
+    name = f"link-{ord(kind)}-{linkname.count('.')}.tgz"
+    make_tgz(server.root / name, special=[_special_member(member, kind, linkname)])
+    _assert_refused_untouched(server, name, tmp_path, member, "is a link")
+
+
+def test_archive_with_fifo_member_is_refused(server, tmp_path):
+    member = f"{TOP}/fifo"
+    make_tgz(server.root / "fifo.tgz", special=[_special_member(member, tarfile.FIFOTYPE)])
+    _assert_refused_untouched(server, "fifo.tgz", tmp_path, member, "not a regular file or folder")
+
+
+def test_archive_with_absolute_member_is_refused(server, tmp_path):
+    member = "/tmp/evil.txt"
+    make_tgz(server.root / "absolute.tgz", extra={member: b"pwned\n"})
+    _assert_refused_untouched(server, "absolute.tgz", tmp_path, member, "absolute path")
+
+
+def test_archive_with_dotdot_member_names_it(server, tmp_path):
+    member = f"{TOP}/rgb/../../evil.txt"
+    make_tgz(server.root / "dotdot-named.tgz", extra={member: b"pwned\n"})
+    _assert_refused_untouched(server, "dotdot-named.tgz", tmp_path, member, "'..' component")
+
+
+def test_non_empty_destination_is_never_replaced(server, good_archive, tmp_path):
+    dest = tmp_path / "seq"
+    dest.mkdir()
+    (dest / "my_recording.txt").write_text("precious\n")
+    n0 = len(server.requests)
+    with pytest.raises(DatasetError, match="will not overwrite") as exc_info:
+        download_tum_archive(server.url("good.tgz"), dest, log=lambda m: None)
+    assert str(dest) in str(exc_info.value)
+    assert len(server.requests) == n0  # refused before downloading anything
+    assert all_files(dest) == {"my_recording.txt"} and (dest / "my_recording.txt").read_text() == "precious\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
+
+
+def test_existing_file_as_destination_is_refused(tmp_path):
+    dest = tmp_path / "seq"
+    dest.write_text("not a folder\n")
+    with pytest.raises(DatasetError, match="will not overwrite"):
+        download_tum_archive("http://127.0.0.1:9/never-fetched.tgz", dest, log=lambda m: None)
+    assert dest.read_text() == "not a folder\n"
+
+
+def test_empty_existing_destination_is_filled(server, good_archive, tmp_path):
+    dest = tmp_path / "seq"
+    dest.mkdir()
+    download_tum_archive(server.url("good.tgz"), dest, sha256=sha256_of(good_archive), log=lambda m: None)
+    assert all_files(dest) == set(_sequence_files())

@@ -12,6 +12,9 @@ from assets.io_managers import ArtifactIOManager
 from assets.resources import AtlasConfig
 from assets.staleness import dagster_status, stale_assets
 
+# The small synthetic frames are 160x120: registering them needs their own camera (checked whole).
+SMALL_INTRINSICS = ["--intrinsics", "131.25 131.25 79.5 59.5", "--width", "160", "--height", "120"]
+
 PART = "synth-small"
 UPSTREAM = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world"]
 DOWNSTREAM_OF_LOCALIZATION = ["localization_report", "transitions", "demo_videos", "render_evaluation", "world_bundle"]
@@ -188,7 +191,7 @@ def test_dataset_add_adds_a_partition_and_the_sensor_syncs_the_registry(isolated
         with pytest.raises(ConfigError):
             validate_dataset_name(bad)
     assert main(["dataset", "add", "../x", str(small_synthetic)]) == 2
-    assert main(["dataset", "add", "my-room", str(small_synthetic), "--camera", "freiburg3"]) == 0
+    assert main(["dataset", "add", "my-room", str(small_synthetic), *SMALL_INTRINSICS]) == 0
     with DagsterInstance.get() as instance:
         assert "my-room" in instance.get_dynamic_partitions("datasets")
         # A dataset written into the registry by hand: the sensor adds it.
@@ -210,7 +213,8 @@ def test_register_dataset_job_from_the_ui(isolated, small_synthetic):
     with DagsterInstance.get() as instance:
         job = defs.resolve_job_def("register_dataset")
         ok = job.execute_in_process(instance=instance, run_config={"ops": {"register_dataset_op": {"config": {
-            "name": "ui-room", "path": str(small_synthetic), "camera": "freiburg3"}}}})
+            "name": "ui-room", "path": str(small_synthetic), "intrinsics": "131.25 131.25 79.5 59.5",
+            "width": 160, "height": 120}}}})
         assert ok.success and "ui-room" in instance.get_dynamic_partitions("datasets")
         bad = job.execute_in_process(instance=instance, raise_on_error=False, run_config={"ops": {
             "register_dataset_op": {"config": {"name": "UI Room", "path": str(small_synthetic)}}}})

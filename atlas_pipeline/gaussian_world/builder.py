@@ -8,7 +8,6 @@ surface patch keeps the same id across merges, reruns and sessions.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import numpy as np
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
+from atlas_pipeline.safe_arrays import is_finite_number, load_json_object_checked, load_npz_checked
 
 __all__ = ["pack_voxel_ids", "unpack_voxel_ids", "VoxelGaussianBuilder", "GaussianWorld"]
 
@@ -176,6 +176,17 @@ class VoxelGaussianBuilder:
         ))
 
 
+_POSE_SOURCES = ("ground_truth", "estimated")  # as mapping.keyframes.POSE_SOURCES (no import cycle)
+# world.npz members: (dtype kinds or exact dtype, ndim); shapes in GaussianWorld / VoxelGaussianBuilder.
+_WORLD_MEMBERS = {
+    "positions": ("f", 2), "scales": ("f", 2), "rotations_xyzw": ("f", 2), "colors": (np.uint8, 2),
+    "opacities": ("f", 1), "ids": (np.uint64, 1), "voxel_ids": (np.uint64, 1), "voxel_count": ("iu", 1),
+    "voxel_sum_xyz": ("f", 2), "voxel_sum_rgb": ("f", 2), "voxel_sum_sq": ("f", 2),
+    "voxel_n_keyframes": ("iu", 1), "keyframe_indices": ("iu", 1), "T_world_cam_keyframes": ("f", 3),
+    "history": ("iu", 1),
+}
+
+
 @dataclass
 class GaussianWorld:
     """A built world: the Gaussian field, the voxel statistics behind it, and how it was made.
@@ -225,15 +236,54 @@ class GaussianWorld:
 
     @classmethod
     def load(cls, directory: Path) -> "GaussianWorld":
+        """Read :meth:`save`'s folder. Every array is checked (dtype, shape, matching lengths,
+        finite values, sorted voxel ids) before it is used; a malformed file raises
+        ``ArtifactError`` naming it."""
         path, meta_path = directory / "world.npz", directory / "world.json"
         if not path.is_file() or not meta_path.is_file():
             raise ArtifactError(f"{directory}: Gaussian world missing world.npz or world.json")
-        meta = json.loads(meta_path.read_text())
-        with np.load(path, allow_pickle=False) as z:
-            fld = GaussianField(z["positions"], z["scales"], z["rotations_xyzw"], z["colors"],
-                                z["opacities"], z["ids"])
-            builder = VoxelGaussianBuilder(float(meta["voxel_size_m"]), z["voxel_ids"], z["voxel_count"],
-                                           z["voxel_sum_xyz"], z["voxel_sum_rgb"], z["voxel_sum_sq"],
-                                           z["voxel_n_keyframes"])
-            return cls(fld, builder, z["keyframe_indices"], z["T_world_cam_keyframes"],
-                       str(meta["pose_source"]), z["history"], dict(meta.get("fit", {})))
+        meta = load_json_object_checked(meta_path)
+        voxel_size_m, pose_source, fit = meta.get("voxel_size_m"), meta.get("pose_source"), meta.get("fit", {})
+        if not is_finite_number(voxel_size_m) or voxel_size_m <= 0:
+            raise ArtifactError(f"{meta_path}: voxel_size_m must be a positive number, got {voxel_size_m!r}")
+        if pose_source not in _POSE_SOURCES or not isinstance(fit, dict):
+            raise ArtifactError(f"{meta_path}: pose_source must be one of {list(_POSE_SOURCES)} and fit an object, "
+                                f"got {str(pose_source)[:40]!r} and {type(fit).__name__}")
+        z = load_npz_checked(path, _WORLD_MEMBERS, error_type=ArtifactError)
+
+        def bad(msg: str) -> ArtifactError:
+            return ArtifactError(f"{path}: {msg}")
+
+        n, m, k = len(z["positions"]), len(z["voxel_ids"]), len(z["keyframe_indices"])
+        want = {"positions": (n, 3), "scales": (n, 3), "rotations_xyzw": (n, 4), "colors": (n, 3),
+                "opacities": (n,), "ids": (n,), "voxel_count": (m,), "voxel_sum_xyz": (m, 3),
+                "voxel_sum_rgb": (m, 3), "voxel_sum_sq": (m, 6), "voxel_n_keyframes": (m,),
+                "T_world_cam_keyframes": (k, 4, 4)}
+        for name, shape in want.items():
+            if z[name].shape != shape:
+                raise bad(f"{name} has shape {list(z[name].shape)}, expected {list(shape)}")
+        for name in ("positions", "scales", "rotations_xyzw", "opacities", "voxel_sum_xyz", "voxel_sum_rgb",
+                     "voxel_sum_sq", "T_world_cam_keyframes"):
+            if not np.isfinite(z[name]).all():
+                raise bad(f"{name} has NaN or infinite values")
+        if m and not (np.diff(z["voxel_ids"].astype(np.uint64)) > 0).all():
+            raise bad("voxel_ids must be strictly increasing (the merge relies on sorted ids)")
+        if len(np.unique(z["ids"])) != n:
+            raise bad("Gaussian ids are not unique")
+        if (z["scales"] < 0).any() or (z["opacities"] < 0).any() or (z["opacities"] > 1).any():
+            raise bad("scales must be >= 0 and opacities in [0, 1]")
+
+        def counts(name: str, dtype) -> np.ndarray:
+            # integers are cast to the builder's dtypes: refuse values that would wrap on the way
+            a = z[name]
+            if a.size and (a.min() < 0 or int(a.max()) > np.iinfo(dtype).max):
+                raise bad(f"{name} must be in [0, {np.iinfo(dtype).max}]")
+            return a.astype(dtype)
+
+        fld = GaussianField(z["positions"], z["scales"], z["rotations_xyzw"], z["colors"], z["opacities"], z["ids"])
+        builder = VoxelGaussianBuilder(
+            float(voxel_size_m), z["voxel_ids"].astype(np.uint64), counts("voxel_count", np.int64),
+            z["voxel_sum_xyz"].astype(np.float64), z["voxel_sum_rgb"].astype(np.float64),
+            z["voxel_sum_sq"].astype(np.float64), counts("voxel_n_keyframes", np.int32))
+        return cls(fld, builder, counts("keyframe_indices", np.int64), z["T_world_cam_keyframes"].astype(np.float64),
+                   pose_source, counts("history", np.int64), dict(fit))

@@ -150,6 +150,10 @@ def surfels_from_voxels(ids: np.ndarray, count: np.ndarray, sum_xyz: np.ndarray,
     return np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep])
 
 
+# surfels.npz members: (dtype kinds, ndim) -- centres [M, 3], normals [M, 3], radius_m scalar.
+_SURFEL_MEMBERS = {"centres": ("f", 2), "normals": ("f", 2), "radius_m": ("f", 0)}
+
+
 @dataclass
 class SurfelModel:
     """The map as surfels: ``centres [M, 3]``, ``normals [M, 3]``, one disk radius (m)."""
@@ -157,6 +161,14 @@ class SurfelModel:
     centres: np.ndarray
     normals: np.ndarray
     radius_m: float
+
+    def __post_init__(self) -> None:
+        # The map is what surfels.npz stores (float32). Rounding here too makes a map used in
+        # memory (the Dagster graph) and the same map reloaded from a bundle (the CLI) identical,
+        # so both routes track to the same poses bit for bit. The kernels compute in float64.
+        self.centres = np.asarray(self.centres, np.float32).astype(np.float64)
+        self.normals = np.asarray(self.normals, np.float32).astype(np.float64)
+        self.radius_m = float(self.radius_m)
 
     @classmethod
     def from_builder(cls, builder, min_points: int = 1) -> "SurfelModel":
@@ -201,12 +213,14 @@ class SurfelModel:
     def load(cls, path: Path) -> "SurfelModel":
         """Read :meth:`save`'s file; a malformed one raises ``BundleFormatError`` naming it."""
         from atlas_pipeline.errors import BundleFormatError
+        from atlas_pipeline.safe_arrays import load_npz_checked
 
         try:
-            with np.load(path, allow_pickle=False) as z:
-                c, n, r = z["centres"], z["normals"], float(z["radius_m"])
-        except (OSError, ValueError, KeyError) as exc:
-            raise BundleFormatError(path, f"not a surfel map ({exc})") from exc
+            z = load_npz_checked(path, _SURFEL_MEMBERS)
+        except BundleFormatError as exc:
+            # keep one "<path>: " prefix: the inner message already names the file
+            raise BundleFormatError(path, f"not a surfel map ({str(exc).removeprefix(f'{exc.path}: ')})") from exc
+        c, n, r = z["centres"], z["normals"], float(z["radius_m"])
         if c.ndim != 2 or c.shape[1:] != (3,) or n.shape != c.shape:
             raise BundleFormatError(path, f"centres {list(c.shape)} and normals {list(n.shape)} must both be [M, 3]")
         if not (np.isfinite(c).all() and np.isfinite(n).all() and np.isfinite(r) and r > 0):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,11 +15,18 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.progress import Progress
+from atlas_pipeline.safe_arrays import load_json_object_checked, load_npz_checked
 from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["KeyframeSet", "select_keyframes", "slam_poses", "uses_ground_truth", "build_keyframes"]
+
+
+# Where mapping poses come from (KeyframeSet.pose_source, GaussianWorld.pose_source).
+POSE_SOURCES = ("ground_truth", "estimated")
+# keyframes.npz members: (dtype kinds, ndim) -- T_world_cam [N, 4, 4], valid [N], indices [K].
+_KEYFRAME_MEMBERS = {"T_world_cam": ("f", 3), "valid": ("b", 1), "indices": ("iu", 1)}
 
 
 def select_keyframes(T_world_cam: np.ndarray, valid: np.ndarray, translation_m: float,
@@ -122,12 +128,24 @@ class KeyframeSet:
 
     @classmethod
     def load(cls, directory: Path) -> "KeyframeSet":
+        """Read :meth:`save`'s folder; arrays are checked (dtype, shape, finite poses where valid,
+        increasing in-range indices) and a malformed file raises ``ArtifactError`` naming it."""
         path, meta_path = directory / "keyframes.npz", directory / "keyframes.json"
         if not path.is_file() or not meta_path.is_file():
             raise ArtifactError(f"{directory}: keyframes missing keyframes.npz or keyframes.json")
-        meta = json.loads(meta_path.read_text())
-        with np.load(path, allow_pickle=False) as z:
-            return cls(z["T_world_cam"], z["valid"], z["indices"], str(meta["pose_source"]))
+        pose_source = load_json_object_checked(meta_path).get("pose_source")
+        if pose_source not in POSE_SOURCES:
+            raise ArtifactError(f"{meta_path}: pose_source must be one of {list(POSE_SOURCES)}, got {str(pose_source)[:40]!r}")
+        z = load_npz_checked(path, _KEYFRAME_MEMBERS, error_type=ArtifactError)
+        T, valid, idx = z["T_world_cam"], z["valid"], z["indices"]
+        n = len(valid)
+        if T.shape != (n, 4, 4):
+            raise ArtifactError(f"{path}: T_world_cam has shape {list(T.shape)}, expected [{n}, 4, 4] (one per frame)")
+        if not np.isfinite(T[valid]).all():
+            raise ArtifactError(f"{path}: T_world_cam has NaN or infinite values in a frame marked valid")
+        if len(idx) and (idx.min() < 0 or int(idx.max()) >= n or (np.diff(idx.astype(np.int64)) <= 0).any()):
+            raise ArtifactError(f"{path}: indices must be increasing frame indices in [0, {n})")
+        return cls(T.astype(np.float64), valid, idx.astype(np.int64), pose_source)
 
 
 def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingConfig,

@@ -8,7 +8,6 @@ whole image, not only near the centre.
 from __future__ import annotations
 
 import functools
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ from atlas_pipeline.config import FusionConfig
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.progress import Progress
+from atlas_pipeline.safe_arrays import is_finite_number, load_json_object_checked, load_npz_checked
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 from atlas_pipeline.sensors.tum import FrameManifest
@@ -94,6 +94,10 @@ def iter_rgbd(manifest: FrameManifest, indices=None):
         yield i, rgb, depth
 
 
+# fused.npz members: (dtype kinds or exact dtype, ndim); shapes in FusedFrames.
+_FUSED_MEMBERS = {"points_cam": ("f", 2), "colors": (np.uint8, 2), "offsets": ("iu", 1), "valid_fraction": ("f", 1)}
+
+
 @dataclass
 class FusedFrames:
     """Coloured camera-frame points of every frame, concatenated.
@@ -140,14 +144,32 @@ class FusedFrames:
 
     @classmethod
     def load(cls, directory: Path) -> "FusedFrames":
+        """Read :meth:`save`'s folder; arrays are checked (dtype, shape, offsets that partition the
+        points, finite points) and a malformed file raises ``ArtifactError`` naming it."""
         path, meta_path = directory / "fused.npz", directory / "fused.json"
         if not path.is_file() or not meta_path.is_file():
             raise ArtifactError(f"{directory}: fused frames missing fused.npz or fused.json")
-        meta = json.loads(meta_path.read_text())
-        with np.load(path, allow_pickle=False) as z:
-            return cls(points_cam=z["points_cam"], colors=z["colors"], offsets=z["offsets"],
-                       valid_fraction=z["valid_fraction"], stride=int(meta["stride"]),
-                       min_depth_m=float(meta["min_depth_m"]), max_depth_m=float(meta["max_depth_m"]))
+        meta = load_json_object_checked(meta_path)
+        stride, lo, hi = meta.get("stride"), meta.get("min_depth_m"), meta.get("max_depth_m")
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ArtifactError(f"{meta_path}: stride must be an integer >= 1, got {stride!r}")
+        if not (is_finite_number(lo) and is_finite_number(hi)):
+            raise ArtifactError(f"{meta_path}: min_depth_m and max_depth_m must be finite numbers, got {lo!r}, {hi!r}")
+        z = load_npz_checked(path, _FUSED_MEMBERS, error_type=ArtifactError)
+        pts, cols, offsets, valid = z["points_cam"], z["colors"], z["offsets"], z["valid_fraction"]
+        n = len(valid)
+        if pts.shape[1:] != (3,) or cols.shape != pts.shape or offsets.shape != (n + 1,):
+            raise ArtifactError(f"{path}: points_cam {list(pts.shape)}, colors {list(cols.shape)}, offsets "
+                                f"{list(offsets.shape)} and valid_fraction {list(valid.shape)} must be "
+                                "[M, 3], [M, 3], [N + 1], [N]")
+        if offsets[0] != 0 or int(offsets[-1]) != len(pts) or (np.diff(offsets.astype(np.int64)) < 0).any():
+            raise ArtifactError(f"{path}: offsets must rise from 0 to the number of points ({len(pts)})")
+        if not np.isfinite(pts).all():
+            raise ArtifactError(f"{path}: points_cam has NaN or infinite values")
+        if not (np.isfinite(valid).all() and (valid >= 0).all() and (valid <= 1).all()):
+            raise ArtifactError(f"{path}: valid_fraction must lie in [0, 1]")
+        return cls(points_cam=pts.astype(np.float32), colors=cols, offsets=offsets.astype(np.int64),
+                   valid_fraction=valid.astype(np.float32), stride=stride, min_depth_m=float(lo), max_depth_m=float(hi))
 
 
 def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,

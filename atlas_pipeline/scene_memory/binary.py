@@ -54,16 +54,40 @@ def _read_checked(path: Path, magic: bytes, header_len: int, bytes_per: int, par
     arrays, and return ``(header_fields, body, count)``."""
     if not path.is_file():
         raise BundleFormatError(path, "file not found")
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(header_len)
-        if len(head) < header_len or head[:8] != magic:
-            raise BundleFormatError(path, f"not an {magic.decode()} file (magic {head[:8]!r})")
-        fields, n = parse_header(head)
-        expected = header_len + n * bytes_per
-        if size != expected:
-            raise BundleFormatError(path, f"count {n} needs {expected} bytes, file has {size}")
-        return fields, f.read(), n
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(header_len)
+            if len(head) < header_len or head[:8] != magic:
+                raise BundleFormatError(path, f"not an {magic.decode()} file (magic {head[:8]!r}, {size} bytes)")
+            fields, n = parse_header(head)
+            expected = header_len + n * bytes_per  # Python ints: any uint64 count compares safely
+            if size != expected:
+                raise BundleFormatError(path, f"count {n} needs {expected} bytes, file has {size}")
+            body = f.read(expected - header_len + 1)  # one byte more shows a file that grew
+    except OSError as exc:
+        raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
+    if len(body) != expected - header_len:
+        raise BundleFormatError(path, f"count {n} needs {expected} bytes, {header_len + len(body)} could be read "
+                                "(file changed while reading)")
+    return fields, body, n
+
+
+def _check_values(path: Path, pos: np.ndarray, scales: np.ndarray, rot: np.ndarray | None, opa: np.ndarray,
+                  ids: np.ndarray) -> None:
+    """The invariants of a :class:`GaussianField`, so a corrupt file is refused rather than loaded:
+    finite values, scales >= 0, non-zero quaternions, opacities in [0, 1], unique ids."""
+    arrays = (pos, scales, opa) if rot is None else (pos, scales, rot, opa)
+    if not all(np.isfinite(a).all() for a in arrays):
+        raise BundleFormatError(path, "NaN or infinite values")
+    if len(pos) and scales.min() < 0:
+        raise BundleFormatError(path, "negative scale")
+    if rot is not None and len(pos) and np.any(np.linalg.norm(rot.astype(np.float64), axis=1) < 1e-12):
+        raise BundleFormatError(path, "zero-norm rotation")
+    if len(pos) and (opa.min() < 0 or opa.max() > 1):
+        raise BundleFormatError(path, "opacity outside [0, 1]")
+    if len(np.unique(ids)) != len(ids):
+        raise BundleFormatError(path, "Gaussian ids are not unique")
 
 
 class _Columns:
@@ -105,8 +129,7 @@ def read_atlasgs1(path: str | Path) -> GaussianField:
     col = take("u1", (n, 3))
     opa = take("<f4", (n,))
     ids = take("<u8", (n,))
-    if not (np.isfinite(pos).all() and np.isfinite(scale).all() and np.isfinite(opa).all()):
-        raise BundleFormatError(path, "NaN or infinite values")
+    _check_values(path, pos, scale, None, opa, ids)
     rot = np.zeros((n, 4), np.float32)
     rot[:, 3] = 1.0
     return GaussianField(pos, np.repeat(scale[:, None], 3, axis=1), rot, col, opa, ids)
@@ -142,10 +165,7 @@ def read_atlasgs2(path: str | Path) -> GaussianField:
     take = _Columns(buf).take
     pos, scl, rot = take("<f4", (n, 3)), take("<f4", (n, 3)), take("<f4", (n, 4))
     col, opa, ids = take("u1", (n, 3)), take("<f4", (n,)), take("<u8", (n,))
-    if not all(np.isfinite(a).all() for a in (pos, scl, rot, opa)):
-        raise BundleFormatError(path, "NaN or infinite values")
-    if n and (scl.min() < 0 or np.any(np.linalg.norm(rot.astype(np.float64), axis=1) < 1e-12)):
-        raise BundleFormatError(path, "negative scale or zero-norm rotation")
+    _check_values(path, pos, scl, rot, opa, ids)
     return GaussianField(pos, scl, rot, col, opa, ids)
 
 
@@ -164,8 +184,11 @@ def read_gaussian_binary(path: str | Path) -> GaussianField:
     path = Path(path)
     if not path.is_file():
         raise BundleFormatError(path, "file not found")
-    with open(path, "rb") as f:
-        magic = f.read(8)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(MAGIC_V1))
+    except OSError as exc:
+        raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
     if magic == MAGIC_V1:
         return read_atlasgs1(path)
     if magic == MAGIC_V2:

@@ -290,6 +290,8 @@ def read_metadata(directory: Path) -> dict[str, Any]:
         raise BundleFormatError(path, f"invalid JSON at line {exc.lineno}: {exc.msg}") from exc
     except RecursionError as exc:
         raise BundleFormatError(path, "JSON nested too deeply") from exc
+    except ValueError as exc:  # not a JSONDecodeError: e.g. an integer of more than 4300 digits
+        raise BundleFormatError(path, f"invalid JSON value ({exc})") from exc
     except OSError as exc:
         raise BundleFormatError(path, f"cannot read: {exc.strerror or exc}") from exc
     if not isinstance(meta, dict):

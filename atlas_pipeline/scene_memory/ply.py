@@ -18,6 +18,7 @@ accepts any PLY with at least the 3DGS properties (ids are assigned when absent)
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -32,6 +33,8 @@ from atlas_pipeline.gaussian_world.field import (
     scale_to_log as _encode_scale,
 )
 from atlas_pipeline.io_utils import atomic_path
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["SH_C0", "write_gaussian_ply", "read_gaussian_ply"]
 
@@ -48,6 +51,9 @@ _FLOAT_PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "
 _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
              "rot_0", "rot_1", "rot_2", "rot_3"]
 _MAX_HEADER_BYTES = 64 * 1024
+# A vertex count has at most 20 digits (uint64); longer digit strings are garbage, and int() of
+# more than 4300 digits raises ValueError in Python >= 3.11.
+_MAX_COUNT_DIGITS = 20
 
 
 def _normals(field: GaussianField) -> np.ndarray:
@@ -99,37 +105,57 @@ def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
 
 
 def _parse_header(path: Path, f) -> tuple[int, np.dtype, int]:
+    """Parse the header at the start of ``f``: ``(vertex count, vertex dtype, data offset)``.
+
+    Every problem is a ``BundleFormatError`` naming the file and the header line; nothing here
+    allocates more than the (bounded) header.
+    """
     head = f.read(_MAX_HEADER_BYTES)
     end = head.find(b"end_header\n")
     if not head.startswith(b"ply") or end < 0:
         raise BundleFormatError(path, "not a PLY file (no 'ply' magic or no end_header in the first 64 KiB)")
-    lines = head[:end].decode("ascii", errors="replace").splitlines()
+    # split on "\n" only, so the reported line numbers are the file's (splitlines also splits on \x0b ...)
+    lines = head[:end].decode("ascii", errors="replace").split("\n")
+    if lines[0].strip() != "ply":
+        raise BundleFormatError(path, f"header line 1: expected 'ply', found {lines[0][:80]!r}")
     fmt = None
     count = None
     props: list[tuple[str, str]] = []
+    seen: set[str] = set()
     in_vertex = False
     for ln, line in enumerate(lines[1:], start=2):
         parts = line.split()
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
         if parts[0] == "format":
-            fmt = parts[1] if len(parts) > 1 else None
+            if len(parts) != 3:
+                raise BundleFormatError(path, f"header line {ln}: malformed format line {line[:80]!r}")
+            fmt = parts[1]
         elif parts[0] == "element":
-            if len(parts) != 3 or not re.fullmatch(r"\d+", parts[2]):
-                raise BundleFormatError(path, f"header line {ln}: malformed element line {line!r}")
+            if len(parts) != 3 or not re.fullmatch(r"[0-9]{1,%d}" % _MAX_COUNT_DIGITS, parts[2]):
+                raise BundleFormatError(path, f"header line {ln}: malformed element line {line[:80]!r}")
             in_vertex = parts[1] == "vertex"
             if in_vertex:
+                if count is not None:
+                    raise BundleFormatError(path, f"header line {ln}: a second 'element vertex'")
                 count = int(parts[2])
             elif count is not None:
                 break  # elements after the vertices (faces) are not part of a Gaussian file
             else:
-                raise BundleFormatError(path, f"header line {ln}: element '{parts[1]}' before 'vertex' is not supported")
-        elif parts[0] == "property" and in_vertex:
+                raise BundleFormatError(path, f"header line {ln}: element {parts[1][:40]!r} before 'vertex' is not supported")
+        elif parts[0] == "property":
+            if not in_vertex:
+                raise BundleFormatError(path, f"header line {ln}: property outside an element")
             if len(parts) != 3 or parts[1] == "list":
-                raise BundleFormatError(path, f"header line {ln}: unsupported vertex property {line!r}")
+                raise BundleFormatError(path, f"header line {ln}: unsupported vertex property {line[:80]!r}")
             if parts[1] not in _PLY_TYPES:
-                raise BundleFormatError(path, f"header line {ln}: unknown property type {parts[1]!r}")
+                raise BundleFormatError(path, f"header line {ln}: unknown property type {parts[1][:40]!r}")
+            if parts[2] in seen:
+                raise BundleFormatError(path, f"header line {ln}: duplicate vertex property {parts[2][:40]!r}")
+            seen.add(parts[2])
             props.append((parts[2], _PLY_TYPES[parts[1]]))
+        else:
+            raise BundleFormatError(path, f"header line {ln}: unknown header keyword {parts[0][:40]!r}")
     if fmt != "binary_little_endian":
         raise BundleFormatError(path, f"only binary_little_endian PLY is supported, file says {fmt!r}")
     if count is None:
@@ -138,53 +164,76 @@ def _parse_header(path: Path, f) -> tuple[int, np.dtype, int]:
     missing = [p for p in _REQUIRED if p not in names]
     if missing:
         raise BundleFormatError(path, f"missing Gaussian properties: {', '.join(missing)}")
-    if len(set(names)) != len(names):
-        raise BundleFormatError(path, "duplicate vertex property names")
     return count, np.dtype(props), end + len(b"end_header\n")
+
+
+def _finite_float32(path: Path, v: np.ndarray, names: list[str]) -> np.ndarray:
+    """``[N, len(names)]`` float32 of the named properties; values that are not finite, or become
+    infinite as float32 (a double 1e300), are refused naming the property."""
+    out = np.empty((len(v), len(names)), np.float32)
+    for k, p in enumerate(names):
+        if not np.isfinite(v[p]).all():
+            raise BundleFormatError(path, f"property '{p}' has NaN or infinite values")
+        with np.errstate(over="ignore", invalid="ignore"):
+            out[:, k] = v[p]
+        if not np.isfinite(out[:, k]).all():
+            raise BundleFormatError(path, f"property '{p}' has values outside the float32 range")
+    return out
 
 
 def read_gaussian_ply(path: str | Path) -> GaussianField:
     """Read a 3DGS-layout PLY into a :class:`GaussianField`.
 
     The vertex count is checked against the file size before any array is allocated, and every
-    value must be finite.
+    value must be finite (also once stored as float32). ``red green blue`` are used when they are
+    ``uchar``, else colours come from ``f_dc_*``; ``id_hi id_lo`` when they are ``uint``.
     """
     path = Path(path)
     if not path.is_file():
         raise BundleFormatError(path, "file not found")
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        count, dtype, data_start = _parse_header(path, f)
-        need = count * dtype.itemsize
-        if size - data_start < need:
-            raise BundleFormatError(
-                path, f"header declares {count} vertices ({need} bytes) but only {size - data_start} bytes follow"
-            )
-        f.seek(data_start)
-        v = np.frombuffer(f.read(need), dtype=dtype, count=count)
-    floats = [p for p in _REQUIRED if p in dtype.names]
-    for p in floats:
-        if not np.isfinite(v[p]).all():
-            raise BundleFormatError(path, f"property '{p}' has NaN or infinite values")
-    pos = np.stack([v["x"], v["y"], v["z"]], axis=1)
-    if all(c in dtype.names for c in ("red", "green", "blue")):
-        colors = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            count, dtype, data_start = _parse_header(path, f)
+            need = count * dtype.itemsize  # Python ints: a count of 10**19 cannot overflow here
+            if size - data_start < need:
+                raise BundleFormatError(
+                    path, f"header declares {count} vertices ({need} bytes) but only {size - data_start} bytes follow"
+                )
+            f.seek(data_start)
+            body = f.read(need)
+    except OSError as exc:
+        raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
+    if len(body) != need:  # the file shrank after stat()
+        raise BundleFormatError(path, f"header declares {count} vertices ({need} bytes) but only {len(body)} bytes could be read")
+    v = np.frombuffer(body, dtype=dtype, count=count)
+    vals = _finite_float32(path, v, _REQUIRED)  # [N, 14] in _REQUIRED order
+    col = {p: k for k, p in enumerate(_REQUIRED)}
+    pos = vals[:, [col["x"], col["y"], col["z"]]]
+    if all(c in dtype.names and dtype[c] == np.uint8 for c in ("red", "green", "blue")):
+        colors = np.stack([v["red"], v["green"], v["blue"]], axis=1)
     else:
-        dc = np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], axis=1).astype(np.float64)
+        if any(c in dtype.names for c in ("red", "green", "blue")):
+            logger.warning("%s: red/green/blue are not all uchar; colours come from f_dc_*", path)
+        dc = vals[:, [col["f_dc_0"], col["f_dc_1"], col["f_dc_2"]]].astype(np.float64)
         colors = np.clip(np.rint((dc * SH_C0 + 0.5) * 255.0), 0, 255).astype(np.uint8)
     with np.errstate(over="ignore"):
-        scales = _decode_scale(np.stack([v["scale_0"], v["scale_1"], v["scale_2"]], axis=1))
+        scales = _decode_scale(vals[:, [col["scale_0"], col["scale_1"], col["scale_2"]]])
     if not np.isfinite(scales).all():
         bad = int(np.flatnonzero(~np.isfinite(scales).all(axis=1))[0])
         raise BundleFormatError(path, f"vertex {bad}: log scale too large (exp overflows float32)")
-    rot = np.stack([v["rot_1"], v["rot_2"], v["rot_3"], v["rot_0"]], axis=1).astype(np.float32)
+    rot = vals[:, [col["rot_1"], col["rot_2"], col["rot_3"], col["rot_0"]]]
     norms = np.linalg.norm(rot.astype(np.float64), axis=1)
     if np.any(norms < 1e-12):
         raise BundleFormatError(path, "a rotation quaternion has zero norm")
     if "id_hi" in dtype.names and "id_lo" in dtype.names:
+        if not all(dtype[c].kind == "u" and dtype[c].itemsize <= 4 for c in ("id_hi", "id_lo")):
+            raise BundleFormatError(path, "properties id_hi and id_lo must be unsigned integers of at most 32 bits")
         ids = (v["id_hi"].astype(np.uint64) << np.uint64(32)) | v["id_lo"].astype(np.uint64)
         if len(np.unique(ids)) != len(ids):
             raise BundleFormatError(path, "Gaussian ids are not unique")
     else:
         ids = np.arange(count, dtype=np.uint64)  # foreign PLY: ids by vertex order
-    return GaussianField(pos, scales, rot, colors, _decode_opacity(v["opacity"]), ids)
+    with np.errstate(over="ignore"):  # exp(-logit) may overflow to inf: opacity 0, as intended
+        opacities = _decode_opacity(vals[:, col["opacity"]])
+    return GaussianField(pos, scales, rot, colors, opacities, ids)

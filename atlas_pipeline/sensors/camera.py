@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -34,10 +36,15 @@ class CameraIntrinsics:
     def __post_init__(self) -> None:
         if self.width <= 0 or self.height <= 0:
             raise ConfigError(f"camera size must be positive, got {self.width}x{self.height}")
-        if self.fx <= 0 or self.fy <= 0:
-            raise ConfigError(f"focal lengths must be positive, got fx={self.fx} fy={self.fy}")
-        if self.depth_scale <= 0:
-            raise ConfigError(f"depth_scale must be positive, got {self.depth_scale}")
+        # "not x > 0" also refuses NaN, which every comparison answers False
+        if not (math.isfinite(self.fx) and math.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
+            raise ConfigError(f"focal lengths must be finite and positive, got fx={self.fx} fy={self.fy}")
+        if not (math.isfinite(self.cx) and math.isfinite(self.cy)):
+            raise ConfigError(f"principal point must be finite, got cx={self.cx} cy={self.cy}")
+        if not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise ConfigError(f"depth_scale must be finite and positive, got {self.depth_scale}")
+        if not all(math.isfinite(k) for k in self.distortion):
+            raise ConfigError(f"distortion coefficients must be finite, got {list(self.distortion)}")
         if len(self.distortion) not in (0, 4, 5):
             raise ConfigError(
                 f"distortion needs 0, 4 or 5 coefficients (k1 k2 p1 p2 [k3]), got {len(self.distortion)}"
@@ -89,7 +96,7 @@ class CameraIntrinsics:
                 depth_scale=float(d.get("depth_scale", 5000.0)),
                 distortion=tuple(float(x) for x in (d.get("distortion") or ())),
             )
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise ConfigError(f"camera field has a non-numeric value: {exc}") from exc
 
 

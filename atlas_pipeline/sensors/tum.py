@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,10 +33,17 @@ logger = logging.getLogger(__name__)
 
 MAX_ASSOCIATION_DT_S = 0.02  # TUM's associate.py default max_difference
 MAX_GT_INTERPOLATION_GAP_S = 0.1  # never interpolate across a longer hole in the motion capture
+# A list line is "timestamp filename" (< 100 bytes in TUM); longer lines are not a list file, and
+# reading them in bounded pieces keeps a garbage file from being read as one huge line.
+MAX_LIST_LINE_BYTES = 4096
+# Depth frames within +-max_dt of one RGB frame: a 100 Hz sensor puts 4-5 there; far more means
+# the timestamps are not seconds (and association would consider every pair).
+MAX_DEPTH_FRAMES_PER_RGB_WINDOW = 64
 
 __all__ = [
     "FrameManifest",
     "read_list_file",
+    "increasing_timestamps",
     "read_groundtruth",
     "associate",
     "lookup_groundtruth",
@@ -45,39 +53,87 @@ __all__ = [
 ]
 
 
+def _iter_lines(path: Path):
+    """``(line_number, text)`` of a list file, read in bounded pieces: a line longer than
+    ``MAX_LIST_LINE_BYTES`` or one that is not UTF-8 is a ``DatasetError`` naming it."""
+    try:
+        with open(path, "rb") as f:
+            lineno = 0
+            while True:
+                raw = f.readline(MAX_LIST_LINE_BYTES + 1)
+                if not raw:
+                    return
+                lineno += 1
+                if len(raw) > MAX_LIST_LINE_BYTES:
+                    raise DatasetError(path, f"line is longer than {MAX_LIST_LINE_BYTES} bytes "
+                                             "(not a TUM list file?)", lineno)
+                try:
+                    text = raw.decode("utf-8")
+                except UnicodeDecodeError as exc:
+                    raise DatasetError(path, f"line is not UTF-8 text (byte {exc.start}: "
+                                             f"{raw[exc.start:exc.start + 1]!r})", lineno) from None
+                yield lineno, text.lstrip("\ufeff") if lineno == 1 else text  # editors may add a BOM
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read list file ({exc.strerror or exc})") from None
+
+
 def read_list_file(path: Path, n_fields: int) -> list[tuple[int, list[str]]]:
     """Parse a TUM list file into ``(line_number, fields)`` rows, skipping comments and blanks.
 
     Raises:
-        DatasetError: missing file, or a line with a wrong number of fields or a bad timestamp.
+        DatasetError: missing or unreadable file, a line that is too long or not UTF-8, a line
+            with a wrong number of fields, or a timestamp that is not a finite number.
     """
     if not path.is_file():
         raise DatasetError(path, "list file not found")
     rows: list[tuple[int, list[str]]] = []
-    with open(path, encoding="utf-8", errors="replace") as f:
-        for lineno, raw in enumerate(f, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            parts = line.replace(",", " ").split()
-            if len(parts) != n_fields:
-                raise DatasetError(
-                    path, f"expected {n_fields} fields, found {len(parts)}: {line[:80]!r}", lineno
-                )
-            try:
-                float(parts[0])
-            except ValueError:
-                raise DatasetError(path, f"timestamp is not a number: {parts[0]!r}", lineno) from None
-            rows.append((lineno, parts))
+    for lineno, raw in _iter_lines(path):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != n_fields:
+            raise DatasetError(
+                path, f"expected {n_fields} fields, found {len(parts)}: {line[:80]!r}", lineno
+            )
+        try:
+            t = float(parts[0])
+        except ValueError:
+            raise DatasetError(path, f"timestamp is not a number: {parts[0][:40]!r}", lineno) from None
+        if not math.isfinite(t):
+            raise DatasetError(path, f"timestamp {parts[0][:40]!r} is not a finite number", lineno)
+        rows.append((lineno, parts))
     if not rows:
         raise DatasetError(path, "no entries")
     return rows
 
 
+def increasing_timestamps(path: Path, rows: list[tuple[int, list[str]]]) -> np.ndarray:
+    """Timestamps ``[N]`` of :func:`read_list_file` rows, which must strictly increase.
+
+    TUM's rgb.txt and depth.txt are in capture order; a timestamp that repeats or goes back means
+    an edited or concatenated list, and association would silently drop or swap frames.
+
+    Raises:
+        DatasetError: naming the list file and the first line whose time is not after the one before.
+    """
+    ts = np.array([float(p[0]) for _, p in rows])
+    bad = np.flatnonzero(np.diff(ts) <= 0)
+    if len(bad):
+        k = int(bad[0]) + 1
+        (prev_line, prev), (line, cur) = rows[k - 1], rows[k]
+        raise DatasetError(
+            path, f"timestamp {cur[0][:40]} is not after the previous one (line {prev_line}: {prev[0][:40]}); "
+                  "TUM lists must be in increasing time order", line)
+    return ts
+
+
 def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``groundtruth.txt``: timestamps ``[M]`` and ``poses_se3`` ``[M, 4, 4]`` (camera-to-world).
 
-    Rows are sorted by time; a non-numeric value or a zero quaternion names its line.
+    Rows are sorted by time (motion-capture exports are not always in order), but two rows with
+    the same timestamp are an error naming both lines; a non-numeric value or a zero quaternion
+    names its line.
     """
     rows = read_list_file(path, 8)
     ts = np.empty(len(rows))
@@ -95,6 +151,11 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
         tq[i] = vals[1:]
     order = np.argsort(ts, kind="stable")
     ts, tq = ts[order], tq[order]
+    same = np.flatnonzero(np.diff(ts) == 0)
+    if len(same):
+        first, second = rows[order[same[0]]], rows[order[same[0] + 1]]
+        raise DatasetError(path, f"timestamp {second[1][0][:40]} repeats line {first[0]}; ground truth "
+                                 "needs one pose per time", second[0])
     return ts, pose_from_tq(tq[:, :3], tq[:, 3:])
 
 
@@ -108,24 +169,39 @@ def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_ASSOCIATIO
     b = np.asarray(ts_b, dtype=np.float64)
     order_b = np.argsort(b, kind="stable")
     bs = b[order_b]
-    cands: list[tuple[float, int, int]] = []
-    for i, t in enumerate(a):
-        lo = np.searchsorted(bs, t - max_dt, side="left")
-        hi = np.searchsorted(bs, t + max_dt, side="right")
-        for j in range(lo, hi):
-            cands.append((abs(bs[j] - t), i, int(order_b[j])))
-    cands.sort()
-    used_a: set[int] = set()
-    used_b: set[int] = set()
+    lo = np.searchsorted(bs, a - max_dt, side="left")
+    hi = np.searchsorted(bs, a + max_dt, side="right")
+    n_cand = np.maximum(hi - lo, 0)  # [len(a)] candidates of each a
+    # Candidate k of a[i] is bs[lo[i] + k]; as flat arrays (24 bytes per candidate, not a tuple each).
+    cand_a = np.repeat(np.arange(len(a)), n_cand)
+    first = np.cumsum(n_cand) - n_cand
+    pos = np.arange(int(n_cand.sum())) + np.repeat(lo - first, n_cand)
+    cand_b = order_b[pos]
+    dt = np.abs(bs[pos] - a[cand_a])
+    used_a = np.zeros(len(a), bool)
+    used_b = np.zeros(len(b), bool)
     pairs = []
-    for _, i, j in cands:
-        if i in used_a or j in used_b:
+    for k in np.lexsort((cand_b, cand_a, dt)):  # by time difference, ties by a then b
+        i, j = int(cand_a[k]), int(cand_b[k])
+        if used_a[i] or used_b[j]:
             continue
-        used_a.add(i)
-        used_b.add(j)
+        used_a[i] = used_b[j] = True
         pairs.append((i, j))
     pairs.sort()
     return pairs
+
+
+def _check_association_density(rgb_path: Path, depth_path: Path, rgb_rows, rgb_ts: np.ndarray,
+                               depth_ts: np.ndarray, max_dt: float) -> None:
+    """Refuse lists where many depth frames fall within ``max_dt`` of one RGB frame: real sensors
+    run at <= 100 Hz (a 40 ms window holds a few frames), so this is a unit error (timestamps not
+    in seconds) or garbage, and association would consider every pair (quadratic memory)."""
+    n = np.searchsorted(depth_ts, rgb_ts + max_dt, side="right") - np.searchsorted(depth_ts, rgb_ts - max_dt, side="left")
+    worst = int(np.argmax(n)) if len(n) else 0
+    if len(n) and n[worst] > MAX_DEPTH_FRAMES_PER_RGB_WINDOW:
+        raise DatasetError(depth_path, f"{int(n[worst])} depth frames lie within {max_dt * 1000:.0f} ms of the RGB "
+                                       f"frame at {rgb_path.name} line {rgb_rows[worst][0]} (at most "
+                                       f"{MAX_DEPTH_FRAMES_PER_RGB_WINDOW} expected): are the timestamps in seconds?")
 
 
 def lookup_groundtruth(
@@ -166,6 +242,8 @@ def png_header(path: Path) -> tuple[int, int, int, int]:
             head = f.read(33)
     except FileNotFoundError:
         raise DatasetError(path, "image file not found") from None
+    except OSError as exc:
+        raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from None
     if len(head) < 33 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         raise DatasetError(path, "not a PNG file")
     w, h, depth, ctype = struct.unpack(">IIBB", head[16:26])
@@ -280,9 +358,20 @@ def check_tum_layout(root: Path) -> None:
             raise DatasetError(root / name, "list file not found (expected TUM RGB-D layout)")
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False also for names the OS refuses (too long), which pathlib raises for."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
 def _safe_member(root: Path, rel: str, list_path: Path, lineno: int) -> Path:
     """Resolve a file named in a list file, refusing paths that leave the dataset folder."""
-    p = (root / rel).resolve()
+    try:
+        p = (root / rel).resolve()
+    except (ValueError, OSError) as exc:  # embedded NUL byte, symlink loop, name too long
+        raise DatasetError(list_path, f"invalid file path {rel[:80]!r} ({exc})", lineno) from None
     if not p.is_relative_to(root.resolve()):
         raise DatasetError(list_path, f"file path leaves the dataset folder: {rel!r}", lineno)
     return p
@@ -297,15 +386,19 @@ def load_tum_sequence(
 ) -> FrameManifest:
     """Read a TUM-layout folder into a :class:`FrameManifest`, checking every image header.
 
-    Every listed image must exist, be a PNG of the camera's size, 8-bit colour for RGB and
+    Before any image is opened, rgb.txt and depth.txt must be in strictly increasing time order
+    (:func:`increasing_timestamps`). Every listed image must exist, be a PNG of the camera's size, 8-bit colour for RGB and
     16-bit single-channel for depth; the first offending file is named with its list line.
     """
     root = Path(root)
     check_tum_layout(root)
     rgb_rows = read_list_file(root / "rgb.txt", 2)
     depth_rows = read_list_file(root / "depth.txt", 2)
-    rgb_ts = np.array([float(p[0]) for _, p in rgb_rows])
-    depth_ts = np.array([float(p[0]) for _, p in depth_rows])
+    # Order is checked before any image is opened: a repeated timestamp would make association
+    # drop a frame without saying why.
+    rgb_ts = increasing_timestamps(root / "rgb.txt", rgb_rows)
+    depth_ts = increasing_timestamps(root / "depth.txt", depth_rows)
+    _check_association_density(root / "rgb.txt", root / "depth.txt", rgb_rows, rgb_ts, depth_ts, max_dt)
     pairs = associate(rgb_ts, depth_ts, max_dt)
     if not pairs:
         raise DatasetError(root / "depth.txt", f"no depth frame within {max_dt * 1000:.0f} ms of any RGB frame")
@@ -326,7 +419,7 @@ def load_tum_sequence(
             lineno, parts = rows[idx]
             list_path = root / list_name
             path = _safe_member(root, parts[1], list_path, lineno)
-            if not path.is_file():
+            if not _is_file(path):
                 raise DatasetError(list_path, f"{kind} image {parts[1]!r} not found", lineno)
             w, h, bits, ctype = png_header(path)
             if (w, h) != (camera.width, camera.height):
