@@ -35,6 +35,7 @@ __all__ = [
     "load_registry",
     "register_local_dataset",
     "check_dataset_folder",
+    "camera_from_intrinsics",
     "resolve_camera",
 ]
 
@@ -120,7 +121,30 @@ def resolve_camera(spec: Any, where: str) -> CameraIntrinsics:
     raise ConfigError(f"{where}: camera must be a preset name or a mapping, got {spec!r}")
 
 
-_SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "fps"}
+def camera_from_intrinsics(text: str, width: int, height: int, depth_scale: float,
+                           where: str = "--intrinsics") -> dict[str, Any]:
+    """An inline camera mapping from ``"fx fy cx cy"`` and the image size (checked: 4 finite numbers)."""
+    import math
+
+    parts = str(text).replace(",", " ").split()
+    try:
+        vals = [float(x) for x in parts]
+    except ValueError:
+        vals = []
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
+        raise ConfigError(f"{where} needs 4 finite numbers (fx fy cx cy), got {text!r}")
+    fx, fy, cx, cy = vals
+    camera = {"width": width, "height": height, "fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale}
+    CameraIntrinsics.from_dict(camera)  # range checks, naming the field
+    return camera
+
+
+_SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "fps"} | {  # + sensor / motion model
+    "orbit_rate_deg_per_s", "loop_revolutions", "pan_rate_deg_per_s", "shake_m", "shake_deg", "depth_noise_a_m",
+    "depth_noise_b_per_m", "depth_noise_angle_m", "depth_noise_corr_px", "inverse_depth_step_per_m",
+    "depth_lateral_noise_px", "edge_dropout_prob", "projector_baseline_m", "dark_dropout_luma", "shiny_dropout_deg",
+    "grazing_dropout_deg", "rgb_shift_x_px", "rgb_shift_y_px", "motion_blur_samples", "exposure_time_s",
+    "exposure_drift", "white_balance_drift", "rgb_noise_std", "dropped_frame_rate"}
 
 
 def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
@@ -128,6 +152,11 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
     validate_dataset_name(name)
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: must be a mapping")
+    bad_keys = [k for k in raw if not isinstance(k, str)]
+    if bad_keys:
+        raise ConfigError(f"{where}: keys must be names, got {bad_keys[0]!r}")
+    if "path" in raw and not (isinstance(raw["path"], str) and raw["path"].strip() and "\0" not in raw["path"]):
+        raise ConfigError(f"{where}.path: must be a non-empty folder path, got {raw['path']!r}")
     kind = raw.get("kind")
     if kind == "synthetic":
         unknown = set(raw) - {"kind", "path"} - _SYNTH_KEYS
@@ -147,7 +176,10 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
         if "path" not in raw:
             raise ConfigError(f"{where}: 'path' is required")
         camera = resolve_camera(raw.get("camera", "default"), where)
-        path = Path(str(raw["path"])).expanduser()
+        try:
+            path = Path(str(raw["path"])).expanduser()
+        except RuntimeError as exc:  # "~user" of an unknown user
+            raise ConfigError(f"{where}.path: {exc}") from None
         path = path if path.is_absolute() else data_dir() / path
         url = raw.get("url")
         if url is not None and not (isinstance(url, str) and re.match(r"^https?://", url)):
@@ -169,7 +201,7 @@ def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
             raise ConfigError(f"{path}: expected a top-level 'datasets:' mapping")
         extra = set(data) - {"datasets"}
         if extra:
-            raise ConfigError(f"{path}: unknown top-level key(s) {sorted(extra)}")
+            raise ConfigError(f"{path}: unknown top-level key(s) {sorted(map(str, extra))}")
         for name, raw in (data.get("datasets") or {}).items():
             entries[str(name)] = _parse_entry(str(name), raw, path)
     return entries
