@@ -53,15 +53,25 @@ def _config(args: argparse.Namespace) -> PipelineConfig:
 
 
 def _dataset(spec: str, camera: str | None = None) -> DatasetEntry:
-    """A registered dataset name, or a path to a folder in TUM layout."""
+    """A registered dataset name, or the path of a recording (folder, or ``.bag`` file) whose
+    layout is detected (TUM, 7-Scenes, Replica, ScanNet, bag), with the kind's camera preset
+    unless ``camera`` names one."""
+    from atlas_pipeline.sensors.registry import default_camera_spec, detect_kind
+
     registry = load_registry()
     if spec in registry:
         return registry[spec]
     p = Path(spec).expanduser()
-    if p.is_dir():
-        name = "".join(c if c.isalnum() or c in "-_" else "-" for c in p.resolve().name.lower())[:64] or "dataset"
-        return DatasetEntry(name=name.strip("-_") or "dataset", kind="tum", path=p.resolve(),
-                            camera=resolve_camera(camera or "default", "--camera"))
+    if p.exists():
+        kind = detect_kind(p)
+        if kind is None:
+            raise ConfigError(f"'{spec}' is not a recording of a known layout (TUM, 7-Scenes, Replica, ScanNet, bag); "
+                              "register it with `atlas-gs dataset add NAME PATH --kind KIND`")
+        stem = p.resolve().stem if p.is_file() else p.resolve().name
+        name = "".join(c if c.isalnum() or c in "-_" else "-" for c in stem.lower())[:64] or "dataset"
+        spec_cam = camera or default_camera_spec(kind)
+        return DatasetEntry(name=name.strip("-_") or "dataset", kind=kind, path=p.resolve(),  # type: ignore[arg-type]
+                            camera=resolve_camera(spec_cam, "--camera") if spec_cam else None)
     raise ConfigError(f"'{spec}' is neither a registered dataset ({', '.join(registry)}) nor a folder")
 
 
@@ -157,7 +167,6 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.relocalize import Relocalizer
     from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 
     cfg = _config(args)
     bundle = load_world_bundle(args.world)
@@ -172,8 +181,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
                         bundle_keyframe_poses(bundle.metadata))
     rows = []
     for i in frames:
-        fp = tracker.prepare(read_rgb(manifest.rgb_path(i), manifest.camera),
-                             read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True))
+        fp = tracker.prepare(manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True))
         r = reloc.relocalize(fp)
         row: dict[str, Any] = {"frame": i, "timestamp_s": float(manifest.timestamps_s[i]), "ok": bool(r.ok),
                                "confidence": round(r.confidence, 4), "source": r.source,
@@ -468,17 +476,35 @@ def cmd_lineage(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
+    from atlas_pipeline.errors import DatasetError
+    from atlas_pipeline.sensors.registry import default_camera_spec, detect_kind
+
     if args.dataset_cmd == "list":
         for name, e in load_registry().items():
-            present = "present" if e.path.is_dir() else ("generated on demand" if e.kind == "synthetic" else
+            present = "present" if e.path.exists() else ("generated on demand" if e.kind == "synthetic" else
                                                          "downloaded on demand" if e.url else "MISSING")
             print(f"{name:24s} {e.kind:10s} {present:22s} {e.path}")
         return 0
     if args.dataset_cmd == "add":
-        camera: Any = args.camera
+        path = Path(args.path).expanduser()
+        kind = args.kind or detect_kind(path)
+        if kind is None:
+            raise DatasetError(path, "not found" if not path.exists() else
+                               "cannot tell the layout (TUM: rgb.txt + depth.txt; 7-Scenes: frame-*.color.*; "
+                               "Replica: results/ + traj.txt; ScanNet: color/ depth/ pose/ intrinsic/; bag: *.bag "
+                               "or metadata.yaml + .db3/.mcap); give --kind")
+        camera: Any = args.camera  # None: the kind's preset (TUM default, 7scenes, replica) or the data's own
         if args.intrinsics:
-            camera = camera_from_intrinsics(args.intrinsics, args.width, args.height, args.depth_scale)
-        entry = register_local_dataset(args.name, args.path, camera, replace=args.replace)
+            preset = default_camera_spec(kind)
+            base = resolve_camera(preset, "--kind") if preset else None
+            width = args.width or (base.width if base else 640)
+            height = args.height or (base.height if base else 480)
+            scale = args.depth_scale or (base.depth_scale if base else 1000.0)
+            camera = camera_from_intrinsics(args.intrinsics, width, height, scale)
+        params = {"fps": args.fps, "sequence": args.sequence, "rgb_topic": args.rgb_topic,
+                  "depth_topic": args.depth_topic}
+        entry = register_local_dataset(args.name, path, camera, replace=args.replace, kind=kind,
+                                       params={k: v for k, v in params.items() if v is not None})
         _default_dagster_home()
         from dagster import DagsterInstance
 
@@ -602,14 +628,24 @@ def build_parser() -> argparse.ArgumentParser:
     dsub.add_parser("list", help="registered datasets")
     sh = dsub.add_parser("show", help="one dataset's registry entry")
     sh.add_argument("name")
-    add = dsub.add_parser("add", help="register a TUM-layout folder as a dataset (adds a partition)")
+    add = dsub.add_parser("add", help="register a recording (TUM, 7-Scenes, Replica, ScanNet folder or a "
+                                      "ROS/RealSense bag) as a dataset (adds a partition)")
     add.add_argument("name")
-    add.add_argument("path")
-    add.add_argument("--camera", default="default", help="freiburg1, freiburg2, freiburg3 or default")
+    add.add_argument("path", help="the recording's folder, or a .bag file")
+    add.add_argument("--kind", default=None, choices=["tum", "7scenes", "replica", "scannet", "bag"],
+                     help="layout (default: detected from the folder)")
+    add.add_argument("--camera", default=None,
+                     help="camera preset: freiburg1/2/3, default, 7scenes, replica (default: the kind's preset; "
+                          "ScanNet and bags read theirs)")
     add.add_argument("--intrinsics", default=None, help="'fx fy cx cy' instead of a preset")
-    add.add_argument("--width", type=int, default=640)
-    add.add_argument("--height", type=int, default=480)
-    add.add_argument("--depth-scale", type=float, default=5000.0)
+    add.add_argument("--width", type=int, default=None, help="with --intrinsics (default: the kind's preset, 640)")
+    add.add_argument("--height", type=int, default=None, help="with --intrinsics (default: the kind's preset, 480)")
+    add.add_argument("--depth-scale", type=float, default=None,
+                     help="raw depth units per metre, with --intrinsics (default: the kind's, TUM 5000)")
+    add.add_argument("--fps", type=float, default=None, help="frame rate of 7-Scenes / Replica / ScanNet (default 30)")
+    add.add_argument("--sequence", default=None, help="7-Scenes: the seq-XX folder when PATH is the scene folder")
+    add.add_argument("--rgb-topic", default=None, help="bag: colour topic (default: detected)")
+    add.add_argument("--depth-topic", default=None, help="bag: depth topic (default: detected)")
     add.add_argument("--replace", action="store_true",
                      help="re-point an already registered name (a preset or a local entry) at this folder")
     ds.set_defaults(func=cmd_dataset)

@@ -99,7 +99,8 @@ class RegisterDatasetConfig(Config):
 
     name: str = PField(description="partition name: lower-case letters, digits, '-', '_'")
     path: str = PField(description="the folder (rgb.txt, depth.txt, optional groundtruth.txt)")
-    camera: str = PField("default", description="camera preset: freiburg1, freiburg2, freiburg3 or default")
+    kind: Optional[str] = PField(None, description="tum, 7scenes, replica, scannet or bag (default: detected)")
+    camera: Optional[str] = PField(None, description="camera preset (default: the kind's own; TUM: default)")
     intrinsics: Optional[str] = PField(None, description="'fx fy cx cy' instead of a preset")
     width: int = PField(640, description="image width (with intrinsics)")
     height: int = PField(480, description="image height (with intrinsics)")
@@ -111,7 +112,7 @@ class RegisterDatasetConfig(Config):
 def register_dataset_op(context: OpExecutionContext, config: RegisterDatasetConfig) -> None:
     camera = (camera_from_intrinsics(config.intrinsics, config.width, config.height, config.depth_scale, "intrinsics")
               if config.intrinsics else config.camera)
-    entry = register_local_dataset(config.name, config.path, camera, replace=config.replace)
+    entry = register_local_dataset(config.name, config.path, camera, replace=config.replace, kind=config.kind)
     sync_dataset_partitions(context.instance, [entry.name])
     context.log.info(f"registered dataset {entry.name} -> {entry.path}; partition added")
 

@@ -27,8 +27,8 @@ from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.mapping.mapper import build_world
 from atlas_pipeline.perception.rgbd import FusedFrames, fuse_frames
 from atlas_pipeline.scene_memory.bundle import load_world_bundle, write_bundle_files
-from atlas_pipeline.sensors.registry import DatasetEntry, ensure_dataset_files
-from atlas_pipeline.sensors.tum import FrameManifest, load_tum_sequence
+from atlas_pipeline.sensors.registry import DatasetEntry, ensure_dataset_files, read_dataset_manifest
+from atlas_pipeline.sensors.tum import FrameManifest
 from atlas_pipeline.transition_log.transitions import build_transitions
 
 logger = logging.getLogger(__name__)
@@ -53,16 +53,10 @@ __all__ = [
 
 
 def load_dataset(entry: DatasetEntry, cfg: PipelineConfig, log: LogFn | None = None) -> FrameManifest:
-    """Make the dataset's files exist (generate / download) and read its frame manifest."""
+    """Make the dataset's files exist (generate / download) and read its frame manifest, whatever
+    the layout (TUM, 7-Scenes, Replica, ScanNet, bag: ``entry.kind``)."""
     root = ensure_dataset_files(entry, log)
-    if entry.kind == "synthetic":
-        from atlas_pipeline.sensors.synthetic import SyntheticSpec
-
-        camera = SyntheticSpec(**entry.params).camera()
-    else:
-        assert entry.camera is not None
-        camera = entry.camera
-    return load_tum_sequence(root, camera, entry.name, cfg.dataset.max_frames)
+    return read_dataset_manifest(entry, cfg.dataset.max_frames, root)
 
 
 def fuse(manifest: FrameManifest, cfg: PipelineConfig, log: LogFn | None = None) -> FusedFrames:
@@ -85,10 +79,8 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     optimize = mc.optimization_epochs > 0
     if manifest is None or not len(world.field) or not (fit_colours or optimize):
         return world
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
-
     idx = [int(i) for i in world.keyframe_indices]
-    images = [read_rgb(manifest.rgb_path(i), manifest.camera) for i in idx]
+    images = [manifest.read_rgb(i) for i in idx]
     if fit_colours:
         from atlas_pipeline.gaussian_world.refine import refine_colours
 
@@ -100,7 +92,7 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
         lo, hi = cfg.fusion.min_depth_m, cfg.fusion.max_depth_m
         depths = []
         for i in idx:  # the depth the map was built from: the fusion range only
-            d = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+            d = manifest.read_depth_m(i, allow_empty=True)
             depths.append(np.where((d >= lo) & (d <= hi), d, 0.0))
         settings = OptimizationSettings(epochs=mc.optimization_epochs, max_steps=mc.optimization_max_steps,
                                         scale=mc.optimization_scale,
@@ -286,7 +278,6 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
     at the dataset's frame size (frames read one at a time)."""
     from atlas_pipeline.gaussian_world.render import render_gaussians
     from atlas_pipeline.progress import Progress
-    from atlas_pipeline.sensors.images import read_rgb
     from atlas_pipeline.viz.video import side_by_side, write_mp4
 
     if len(field) == 0:
@@ -300,7 +291,7 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
             r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
                                  poses_se3[i], cam.K, cam.width, cam.height)
             progress.update()
-            yield side_by_side(read_rgb(manifest.rgb_path(int(i)), cam), r.rgb)
+            yield side_by_side(manifest.read_rgb(int(i)), r.rgb)
 
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_mp4(frames(), path, fps=cfg.video.fps)

@@ -176,7 +176,6 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     compare with frame ``i`` of ``manifest``. Frames without a finite pose are skipped."""
     from atlas_pipeline.gaussian_world.render import render_gaussians
     from atlas_pipeline.progress import Progress
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
     from atlas_pipeline.viz.plots import png_bytes
 
     cam = manifest.camera
@@ -185,8 +184,8 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     progress = Progress("evaluating views", len(idx), log)
     keep_for_preview: list[tuple[float, int]] = []
     for k, i in enumerate(idx):
-        real = read_rgb(manifest.rgb_path(i), cam)
-        depth = read_depth_m(manifest.depth_path(i), cam, allow_empty=True)
+        real = manifest.read_rgb(i)
+        depth = manifest.read_depth_m(i, allow_empty=True)
         depth = np.where((depth > depth_range_m[0]) & (depth < depth_range_m[1]), depth, 0.0)
         r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
                              T_world_cam[i], cam.K, cam.width, cam.height, background=background)
@@ -202,8 +201,8 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     if idx:
         # Preview: the view with the median PSNR (a typical one, neither the best nor the worst).
         _, i = sorted(keep_for_preview)[len(keep_for_preview) // 2]
-        real = read_rgb(manifest.rgb_path(i), cam)
-        depth = read_depth_m(manifest.depth_path(i), cam, allow_empty=True)
+        real = manifest.read_rgb(i)
+        depth = manifest.read_depth_m(i, allow_empty=True)
         r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
                              T_world_cam[i], cam.K, cam.width, cam.height, background=background)
         img = preview_image(real, r.rgb, r.depth_median_m, depth)

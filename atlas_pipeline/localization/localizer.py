@@ -49,7 +49,6 @@ from atlas_pipeline.localization.sequence import (
 )
 from atlas_pipeline.localization.tracker import SurfelModel
 from atlas_pipeline.progress import Progress
-from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
@@ -304,8 +303,8 @@ def localize_sequence(
         if order.start != anchor_index:
             st.reset(anchor_index, T_est[anchor_index] if np.isfinite(T_est[anchor_index]).all() else None)
         for i in order:
-            rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
-            depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+            rgb = manifest.read_rgb(i)
+            depth = manifest.read_depth_m(i, allow_empty=True)
             given = T_world_cam_start if (i == anchor_index and T_world_cam_start is not None) else None
             est = st.process(i, rgb, depth, T_given=given, timestamp_s=float(manifest.timestamps_s[i]))
             T_est[i], status[i] = est.T_world_cam, est.status

@@ -62,7 +62,6 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     """
     from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
     from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 
     n = manifest.n_frames
     poses = np.full((n, 4, 4), np.nan)
@@ -73,8 +72,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     progress = Progress("tracking and mapping", n, log)
     started = False
     for i in range(n):
-        rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
-        depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+        rgb = manifest.read_rgb(i)
+        depth = manifest.read_depth_m(i, allow_empty=True)
         # The first frame with depth anchors the world at the identity.
         anchor = None if started or np.count_nonzero(depth) < 200 else np.eye(4)
         est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]))

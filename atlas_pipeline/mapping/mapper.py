@@ -73,7 +73,6 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
 
     from atlas_pipeline.errors import DatasetError
     from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 
     if abs(world.builder.voxel_size_m - mapping.voxel_size_m) > 1e-12:
         raise ValueError(f"cannot extend a world built with {world.builder.voxel_size_m} m voxels "
@@ -89,8 +88,8 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     history = list(world.history)
     progress = Progress("tracking into the saved world", n, log)
     for i in range(n):
-        rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
-        depth = read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True)
+        rgb = manifest.read_rgb(i)
+        depth = manifest.read_depth_m(i, allow_empty=True)
         est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]))
         poses[i] = est.T_world_cam
         status.append(est.status)

@@ -21,7 +21,6 @@ from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.safe_arrays import is_finite_number, load_json_object_checked, load_npz_checked
 from atlas_pipeline.sensors.camera import CameraIntrinsics
-from atlas_pipeline.sensors.images import read_depth_m, read_rgb
 from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
@@ -89,8 +88,8 @@ def backproject(
 def iter_rgbd(manifest: FrameManifest, indices=None):
     """Yield ``(frame_index, rgb [H, W, 3] uint8, depth_m [H, W] float32)``, one frame in memory at a time."""
     for i in range(manifest.n_frames) if indices is None else indices:
-        rgb = read_rgb(manifest.rgb_path(i), manifest.camera)
-        depth = read_depth_m(manifest.depth_path(i), manifest.camera)
+        rgb = manifest.read_rgb(i)
+        depth = manifest.read_depth_m(i)
         yield i, rgb, depth
 
 

@@ -19,6 +19,17 @@ from atlas_pipeline.config import configs_dir, load_yaml_file, project_root
 from atlas_pipeline.errors import ConfigError, DatasetError
 from atlas_pipeline.io_utils import write_text_atomic
 from atlas_pipeline.sensors.camera import TUM_CAMERAS, CameraIntrinsics
+from atlas_pipeline.sensors.layouts import (
+    CAMERA_PRESETS,
+    DEFAULT_FPS,
+    KIND_CAMERA_PRESET,
+    MAX_FPS,
+    RECORDING_KINDS,
+    SEQUENCE_RE,
+    detect_kind,
+    load_recording,
+    recording_exists,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +48,11 @@ __all__ = [
     "check_dataset_folder",
     "camera_from_intrinsics",
     "resolve_camera",
+    "camera_presets",
+    "default_camera_spec",
+    "detect_kind",
+    "bag_cache_root",
+    "read_dataset_manifest",
 ]
 
 
@@ -56,17 +72,21 @@ class DatasetEntry:
 
     Attributes:
         name: registry key and partition key.
-        kind: ``synthetic`` (generated) or ``tum`` (folder in TUM layout).
-        path: folder of the frames (absolute once resolved).
-        camera: intrinsics for ``tum`` entries (synthetic ones derive theirs from ``params``).
+        kind: ``synthetic`` (generated) or a recording layout: ``tum``, ``7scenes``, ``replica``,
+            ``scannet``, ``bag`` (see :mod:`atlas_pipeline.sensors.layouts`).
+        path: folder of the frames (a ``.bag`` file for ROS 1 bags), absolute once resolved.
+        camera: intrinsics of ``tum``, ``7scenes``, ``replica`` entries (a preset by default); of
+            ``bag`` entries only when the bag has no camera_info; None for ``scannet`` (read from
+            its ``intrinsic/`` files) and ``synthetic`` (derived from ``params``).
         url: archive to download when ``path`` does not exist (``tum`` only).
         sha256: optional checksum of the archive.
-        params: generator parameters for ``synthetic`` entries.
+        params: generator parameters for ``synthetic`` entries; the layout's options for
+            recordings (``fps``, ``sequence``, ``rgb_topic``, ``depth_topic``, ``camera_info_topic``).
         source_file: registry file the entry came from.
     """
 
     name: str
-    kind: Literal["synthetic", "tum"]
+    kind: Literal["synthetic", "tum", "7scenes", "replica", "scannet", "bag"]
     path: Path
     camera: CameraIntrinsics | None = None
     url: str | None = None
@@ -105,14 +125,30 @@ def data_dir() -> Path:
     return Path(env).resolve() if env else project_root() / "data"
 
 
+def bag_cache_root() -> Path:
+    """Where bags are converted into TUM folders (``<data>/bag_imports``)."""
+    return data_dir() / "bag_imports"
+
+
+def camera_presets() -> dict[str, CameraIntrinsics]:
+    """Every camera preset by name: TUM's (``freiburg1/2/3``, ``default``), ``7scenes``, ``replica``."""
+    return {**TUM_CAMERAS, **CAMERA_PRESETS}
+
+
+def default_camera_spec(kind: str) -> str | None:
+    """The camera preset a recording of ``kind`` gets when none is given (None: read from the data)."""
+    return KIND_CAMERA_PRESET.get(kind)
+
+
 def resolve_camera(spec: Any, where: str) -> CameraIntrinsics:
-    """A camera from a preset name (``freiburg1`` ...) or an inline mapping."""
+    """A camera from a preset name (``freiburg1`` ..., ``7scenes``, ``replica``) or an inline mapping."""
     if isinstance(spec, str):
         key = spec.lower()
         key = {"fr1": "freiburg1", "fr2": "freiburg2", "fr3": "freiburg3"}.get(key, key)
-        if key not in TUM_CAMERAS:
-            raise ConfigError(f"{where}: unknown camera preset {spec!r}; known: {sorted(TUM_CAMERAS)}")
-        return TUM_CAMERAS[key]
+        presets = camera_presets()
+        if key not in presets:
+            raise ConfigError(f"{where}: unknown camera preset {spec!r}; known: {sorted(presets)}")
+        return presets[key]
     if isinstance(spec, dict):
         try:
             return CameraIntrinsics.from_dict(spec)
@@ -147,6 +183,47 @@ _SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "f
     "exposure_drift", "white_balance_drift", "rgb_noise_std", "dropped_frame_rate"}
 
 
+# Registry keys of each recording kind besides kind and path; camera: "preset" when it has a
+# default preset, "optional" when only used as a fallback, absent when the data holds it.
+_RECORDING_KEYS: dict[str, set[str]] = {
+    "tum": {"camera", "url", "sha256"},
+    "7scenes": {"camera", "sequence", "fps"},
+    "replica": {"camera", "fps"},
+    "scannet": {"fps"},
+    "bag": {"camera", "rgb_topic", "depth_topic", "camera_info_topic"},
+}
+_TOPIC_RE = re.compile(r"^/?[A-Za-z0-9_~{}][A-Za-z0-9_/ {}~.-]{0,254}$")  # ROS topic names (+ RealSense's spaces)
+
+
+def _entry_path(raw: dict, where: str) -> Path:
+    try:
+        path = Path(str(raw["path"])).expanduser()
+    except RuntimeError as exc:  # "~user" of an unknown user
+        raise ConfigError(f"{where}.path: {exc}") from None
+    return path if path.is_absolute() else data_dir() / path
+
+
+def _layout_params(kind: str, raw: dict, where: str) -> dict[str, Any]:
+    params: dict[str, Any] = {}
+    if "fps" in raw:
+        v = raw["fps"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v <= MAX_FPS):
+            raise ConfigError(f"{where}.fps: must be a number in (0, {MAX_FPS:g}] (default {DEFAULT_FPS:g})")
+        params["fps"] = float(v)
+    if "sequence" in raw:
+        v = raw["sequence"]
+        if not (isinstance(v, str) and SEQUENCE_RE.match(v)):
+            raise ConfigError(f"{where}.sequence: must name a seq-XX folder of the scene, got {v!r}")
+        params["sequence"] = v
+    for key in ("rgb_topic", "depth_topic", "camera_info_topic"):
+        if key in raw:
+            v = raw[key]
+            if not (isinstance(v, str) and _TOPIC_RE.match(v)):
+                raise ConfigError(f"{where}.{key}: must be a ROS topic name, got {v!r}")
+            params[key] = v
+    return params
+
+
 def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
     where = f"{source}: datasets.{name}"
     validate_dataset_name(name)
@@ -169,27 +246,26 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
         path = Path(raw.get("path", name))
         path = path if path.is_absolute() else data_dir() / path
         return DatasetEntry(name, "synthetic", path, params=params, source_file=str(source))
-    if kind == "tum":
-        unknown = set(raw) - {"kind", "path", "camera", "url", "sha256"}
+    if kind in _RECORDING_KEYS:
+        unknown = set(raw) - {"kind", "path"} - _RECORDING_KEYS[kind]
         if unknown:
-            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
+            hint = " (scannet reads its camera from intrinsic/)" if kind == "scannet" and "camera" in unknown else ""
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)} for kind {kind}{hint}")
         if "path" not in raw:
             raise ConfigError(f"{where}: 'path' is required")
-        camera = resolve_camera(raw.get("camera", "default"), where)
-        try:
-            path = Path(str(raw["path"])).expanduser()
-        except RuntimeError as exc:  # "~user" of an unknown user
-            raise ConfigError(f"{where}.path: {exc}") from None
-        path = path if path.is_absolute() else data_dir() / path
+        preset = default_camera_spec(kind)
+        spec = raw.get("camera", preset)
+        camera = resolve_camera(spec, where) if spec is not None else None
+        path = _entry_path(raw, where)
         url = raw.get("url")
         if url is not None and not (isinstance(url, str) and re.match(r"^https?://", url)):
             raise ConfigError(f"{where}.url: must be an http(s) URL")
         sha = raw.get("sha256")
         if sha is not None and not (isinstance(sha, str) and re.match(r"^[0-9a-f]{64}$", sha)):
             raise ConfigError(f"{where}.sha256: must be 64 lower-case hex digits")
-        return DatasetEntry(name, "tum", path, camera=camera, url=url, sha256=sha,
-                            source_file=str(source))
-    raise ConfigError(f"{where}: kind must be 'synthetic' or 'tum', got {kind!r}")
+        return DatasetEntry(name, kind, path, camera=camera, url=url, sha256=sha,
+                            params=_layout_params(kind, raw, where), source_file=str(source))
+    raise ConfigError(f"{where}: kind must be one of {['synthetic', *RECORDING_KINDS]}, got {kind!r}")
 
 
 def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
@@ -207,32 +283,51 @@ def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
     return entries
 
 
-def check_dataset_folder(folder: Path, camera: CameraIntrinsics, name: str = "dataset") -> None:
-    """Check a TUM-layout folder whole before it is registered: the list files parse, every listed
-    image exists with the camera's size and type (headers), and the first RGB-D pair decodes.
+def read_dataset_manifest(entry: DatasetEntry, max_frames: int | None = None, root: Path | None = None):
+    """The :class:`~atlas_pipeline.sensors.tum.FrameManifest` of a registered recording (files on
+    disk; synthetic entries are read as the TUM folder they are generated into)."""
+    root = Path(root) if root is not None else entry.path
+    if entry.kind == "synthetic":
+        from atlas_pipeline.sensors.synthetic import SyntheticSpec
+        from atlas_pipeline.sensors.tum import load_tum_sequence
 
-    Raises DatasetError naming the file (and list line) at fault.
+        return load_tum_sequence(root, SyntheticSpec(**entry.params).camera(), entry.name, max_frames)
+    return load_recording(entry.kind, root, entry.camera, entry.name, max_frames, entry.params,
+                          bag_cache_root=bag_cache_root())
+
+
+def check_dataset_folder(folder: Path, camera: CameraIntrinsics | None, name: str = "dataset", kind: str = "tum",
+                         params: dict[str, Any] | None = None) -> None:
+    """Check a recording whole before it is registered: its lists, poses and intrinsics parse,
+    every image it uses exists with the camera's size and type (headers), and the first RGB-D
+    frame decodes (a bag is converted here, once).
+
+    Raises DatasetError naming the file (and line) at fault.
     """
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
-    from atlas_pipeline.sensors.tum import load_tum_sequence
-
-    manifest = load_tum_sequence(folder, camera, name)
-    read_rgb(manifest.rgb_path(0), camera)
-    read_depth_m(manifest.depth_path(0), camera, allow_empty=True)
+    entry = DatasetEntry(name, kind, Path(folder), camera=camera, params=dict(params or {}))  # type: ignore[arg-type]
+    manifest = read_dataset_manifest(entry)
+    manifest.read_rgb(0)
+    manifest.read_depth_m(0, allow_empty=True)
 
 
 def register_local_dataset(
     name: str,
     path: str | Path,
-    camera: str | dict[str, Any] = "default",
+    camera: str | dict[str, Any] | None = None,
     registry_path: Path | None = None,
-    check: Callable[[Path, CameraIntrinsics], None] | None = None,
+    check: Callable[[DatasetEntry], None] | None = None,
     replace: bool = False,
+    kind: str | None = None,
+    params: dict[str, Any] | None = None,
 ) -> DatasetEntry:
-    """Add a TUM-layout folder to the local registry file.
+    """Add a recording (a folder, or a ``.bag`` file) to the local registry file.
+
+    ``kind`` is detected from the layout when not given (:func:`detect_kind`); ``camera`` defaults
+    to the kind's preset (TUM ``default``, ``7scenes``, ``replica``; ScanNet and bags read theirs).
+    ``params``: the kind's options (``fps``, ``sequence``, ``rgb_topic`` ...).
 
     A name that is already registered (a preset of ``configs/datasets.yaml`` or a local entry) is
-    refused unless ``replace``. The whole folder is checked first (``check``, by default
+    refused unless ``replace``. The whole recording is checked first (``check(entry)``, by default
     :func:`check_dataset_folder`) so a typo or a broken recording never becomes a partition that
     fails later. The registry file is rewritten atomically.
     """
@@ -244,9 +339,28 @@ def register_local_dataset(
         raise ConfigError(f"dataset '{name}' is already registered ({e.kind} at {e.path}, from {e.source_file}); "
                           "choose another name, or pass --replace to re-point it")
     folder = Path(path).expanduser().resolve()
-    entry_raw = {"kind": "tum", "path": str(folder), "camera": camera}
-    entry = _parse_entry(name, entry_raw, reg)  # validates the camera before any frame is read
-    (check or check_dataset_folder)(folder, entry.camera)
+    if kind is None:
+        if not folder.exists():
+            raise DatasetError(folder, "dataset folder not found")
+        kind = detect_kind(folder)
+        if kind is None:
+            raise DatasetError(folder, "cannot tell the layout (TUM: rgb.txt + depth.txt; 7-Scenes: "
+                                       "frame-*.color.*; Replica: results/ + traj.txt; ScanNet: color/ depth/ "
+                                       "pose/ intrinsic/; bag: *.bag or metadata.yaml + .db3/.mcap); give --kind")
+        logger.info("%s: detected layout %s", folder, kind)
+    if kind not in RECORDING_KINDS:
+        raise ConfigError(f"kind must be one of {list(RECORDING_KINDS)}, got {kind!r}")
+    entry_raw: dict[str, Any] = {"kind": kind, "path": str(folder)}
+    if camera is not None:
+        entry_raw["camera"] = camera
+    elif default_camera_spec(kind) is not None:
+        entry_raw["camera"] = default_camera_spec(kind)
+    entry_raw.update({k: v for k, v in (params or {}).items() if v is not None})
+    entry = _parse_entry(name, entry_raw, reg)  # validates camera and options before any frame is read
+    if check is not None:
+        check(entry)
+    else:
+        check_dataset_folder(folder, entry.camera, name, entry.kind, entry.params)
     data: dict[str, Any] = {"datasets": {}}
     if reg.is_file():
         loaded = load_yaml_file(reg) or {}
@@ -258,7 +372,7 @@ def register_local_dataset(
     data["datasets"][name] = entry_raw
     header = "# Local datasets registered with `atlas-gs dataset add` (not tracked by git).\n"
     write_text_atomic(reg, header + yaml.safe_dump(data, sort_keys=False))
-    logger.info("registered dataset %s -> %s in %s", name, folder, reg)
+    logger.info("registered dataset %s (%s) -> %s in %s", name, kind, folder, reg)
     return entry
 
 
@@ -270,7 +384,7 @@ def ensure_dataset_files(entry: DatasetEntry, log: Callable[[str], None] | None 
 
         spec = SyntheticSpec(**entry.params)
         return generate_synthetic_dataset(entry.path, spec)
-    if entry.path.is_dir():
+    if recording_exists(entry.kind, entry.path):
         return entry.path
     if entry.url:
         from atlas_pipeline.sensors.download import download_tum_archive

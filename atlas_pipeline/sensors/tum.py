@@ -2,7 +2,7 @@
 
 Layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
 
-    rgb.txt          timestamp filename      (8-bit colour PNG)
+    rgb.txt          timestamp filename      (8-bit colour PNG or JPEG)
     depth.txt        timestamp filename      (16-bit PNG, depth_m = value / depth_scale, 0 = none)
     groundtruth.txt  timestamp tx ty tz qx qy qz qw   (camera-to-world, optional)
 
@@ -28,6 +28,7 @@ from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.geometry import interpolate_pose, pose_from_tq, tq_from_pose
 from atlas_pipeline.io_utils import atomic_path, sha256_files, write_json_atomic
 from atlas_pipeline.sensors.camera import CameraIntrinsics
+from atlas_pipeline.sensors.images import check_depth_header, check_rgb_header
 
 logger = logging.getLogger(__name__)
 
@@ -263,7 +264,18 @@ class FrameManifest:
         rgb_files, depth_files: ``N`` relative paths.
         T_world_cam_gt: ``[N, 4, 4]`` ground-truth camera-to-world, NaN where unknown.
         has_gt: ``[N]`` bool.
-        content_hash: sha256 over the list files and every image used (data version of the raw data).
+        content_hash: sha256 over the list files (or pose / intrinsics files) and every image used
+            (data version of the raw data).
+        source: where the frames came from and how to decode them, saved with the manifest:
+            ``layout`` (``tum``, ``7scenes``, ``replica``, ``scannet``, ``bag``), ``path``, and the
+            decoding parameters :meth:`read_rgb` / :meth:`read_depth_m` apply:
+            ``depth_invalid_raw`` (raw depth values meaning "no reading", besides 0) and
+            ``colour_camera`` (camera dict of the colour images when they differ from the depth
+            camera ``camera``; colour is then resampled onto the depth camera). Manifests saved
+            before these keys existed decode as TUM (neither key).
+
+    Callers read frames with :meth:`read_rgb` and :meth:`read_depth_m`, never from the paths
+    directly, so no caller needs to know the layout.
     """
 
     dataset: str
@@ -287,6 +299,30 @@ class FrameManifest:
 
     def depth_path(self, i: int) -> Path:
         return self.root / self.depth_files[i]
+
+    @property
+    def colour_camera(self) -> CameraIntrinsics:
+        """The camera of the colour files (``camera`` unless ``source`` names another one)."""
+        spec = self.source.get("colour_camera")
+        return CameraIntrinsics.from_dict(spec) if spec else self.camera
+
+    def read_rgb(self, i: int) -> np.ndarray:
+        """Colour of frame ``i`` on the depth camera's pixel grid: ``[H, W, 3]`` uint8 (``H, W`` of
+        ``camera``); resampled bilinearly when the colour camera differs (see ``source``)."""
+        from atlas_pipeline.sensors.images import read_rgb, resample_rgb
+
+        colour = self.colour_camera
+        rgb = read_rgb(self.rgb_path(i), colour)
+        return rgb if colour is self.camera else resample_rgb(rgb, colour, self.camera)
+
+    def read_depth_m(self, i: int, allow_empty: bool = False) -> np.ndarray:
+        """Depth of frame ``i`` in metres, ``[H, W]`` float32, 0 where there is no reading (the
+        layout's invalid raw values included). An all-invalid image is a DatasetError unless
+        ``allow_empty``."""
+        from atlas_pipeline.sensors.images import read_depth_m
+
+        invalid = tuple(int(v) for v in self.source.get("depth_invalid_raw") or ())
+        return read_depth_m(self.depth_path(i), self.camera, allow_empty=allow_empty, invalid_raw=invalid)
 
     # ---- persistence: frames.parquet (one row per frame) + manifest.json -------------------
     def save(self, directory: Path) -> list[Path]:
@@ -387,8 +423,9 @@ def load_tum_sequence(
     """Read a TUM-layout folder into a :class:`FrameManifest`, checking every image header.
 
     Before any image is opened, rgb.txt and depth.txt must be in strictly increasing time order
-    (:func:`increasing_timestamps`). Every listed image must exist, be a PNG of the camera's size, 8-bit colour for RGB and
-    16-bit single-channel for depth; the first offending file is named with its list line.
+    (:func:`increasing_timestamps`). Every listed image must exist with the camera's size (header
+    only): 8-bit colour PNG or JPEG for RGB, 16-bit single-channel PNG for depth; the first
+    offending file is named with its list line.
     """
     root = Path(root)
     check_tum_layout(root)
@@ -421,15 +458,10 @@ def load_tum_sequence(
             path = _safe_member(root, parts[1], list_path, lineno)
             if not _is_file(path):
                 raise DatasetError(list_path, f"{kind} image {parts[1]!r} not found", lineno)
-            w, h, bits, ctype = png_header(path)
-            if (w, h) != (camera.width, camera.height):
-                raise DatasetError(
-                    path, f"image is {w}x{h}, camera expects {camera.width}x{camera.height} ({list_name} line {lineno})"
-                )
-            if kind == "rgb" and (bits != 8 or ctype not in (2, 6)):
-                raise DatasetError(path, f"RGB image must be 8-bit colour PNG (bit depth {bits}, colour type {ctype})")
-            if kind == "depth" and (bits != 16 or ctype != 0):
-                raise DatasetError(path, f"depth image must be 16-bit greyscale PNG (bit depth {bits}, colour type {ctype})")
+            if kind == "rgb":
+                check_rgb_header(path, camera.width, camera.height, list_path, lineno)
+            else:
+                check_depth_header(path, camera.width, camera.height, list_path, lineno)
             files.append(parts[1])
             used_paths.append(path)
             used_names.append(parts[1])
