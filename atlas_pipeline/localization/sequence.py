@@ -10,9 +10,13 @@ Per frame the status is one of:
 
 * ``anchor``: the pose was given (where the session starts);
 * ``tracked``: aligned to the map from the motion-model guess (or, failing that, the last pose);
+  when mapping, a frame the map does not cover is aligned to the previous frame instead (note
+  ``frame-to-frame``) and becomes a keyframe, so the map grows into what the camera pans to;
 * ``relocalized``: tracking failed, and the frame was placed by :class:`Relocalizer`;
 * ``lost``: no good alignment (too few correspondences, too large a residual, no valid depth);
-  the pose is the motion-model prediction, and the frame never touches the map;
+  the pose is the motion-model prediction, and the frame never touches the map. After a failed
+  relocalization the next tries back off (1, 2, 4 ... frames, at most
+  :data:`RELOCALIZATION_BACKOFF_MAX_FRAMES`), so being lost has a bounded cost per frame;
 * ``not_attempted``: never processed (set by callers such as
   :func:`atlas_pipeline.localization.localizer.localize_sequence` when they stop early); NaN pose.
 """
@@ -52,6 +56,15 @@ PLACED_STATUSES = (STATUS_TRACKED, STATUS_RELOCALIZED)
 
 _MIN_VALID_DEPTH = 200  # fewer valid depth pixels than this: nothing to align
 NOTE_NO_DEPTH = "no valid depth"  # note of a frame lost without any alignment tried (nothing to align)
+NOTE_BACKING_OFF = "relocalization backing off"
+NOTE_FRAME_TO_FRAME = "frame-to-frame"  # tracked against the previous frame where the map ended
+# Global relocalization costs seconds per frame, tracking milliseconds. After each failed try the
+# next one waits twice as many frames (1, 2, 4, ... up to this cap), so a long stretch the map
+# cannot explain costs a bounded share of relocalizations instead of one per frame.
+RELOCALIZATION_BACKOFF_MAX_FRAMES = 16
+# Mapping only: the points of the previous frame that a frame is tracked against when the map does
+# not cover it (a pan into unmapped space). One point per this many pixels in u and v.
+FRAME_TO_FRAME_STRIDE = 2
 
 
 @dataclass
@@ -111,6 +124,9 @@ class SequenceTracker:
         self._t_prev: float | None = None
         self._ref = None  # (pyramid, pose) of the photometric reference
         self._last_kf_pose: np.ndarray | None = self.keyframe_poses[-1] if self.keyframe_poses else None
+        self._last_frame = None  # (pyramid, pose) of the last accepted frame (frame-to-frame fallback)
+        self._reloc_failures = 0  # consecutive failed relocalizations
+        self._reloc_wait = 0  # frames to skip before the next relocalization try
 
     @property
     def relocalizer(self) -> Relocalizer:
@@ -161,8 +177,14 @@ class SequenceTracker:
                 res2 = self.tracker.align(fp, self.model, self._last[1], None)
                 if _better(res2, res):
                     res = res2
+            f2f = None
+            if not res.ok and self.builder is not None:
+                f2f = self._align_to_last_frame(fp, guess)
             if res.ok:
                 est = FrameEstimate(index, res.T_world_cam, STATUS_TRACKED, res.inlier_fraction, res.residual_m, 0.0)
+            elif f2f is not None:
+                est = FrameEstimate(index, f2f.T_world_cam, STATUS_TRACKED, f2f.inlier_fraction, f2f.residual_m, 0.0,
+                                    note=NOTE_FRAME_TO_FRAME)
             elif self.cfg.relocalize:
                 est = self._relocalize(index, fp, [self._last[1]], fallback=(guess, res))
             else:
@@ -177,18 +199,48 @@ class SequenceTracker:
                     fallback: tuple[np.ndarray, TrackResult] | None = None) -> FrameEstimate:
         if len(self.model) == 0:
             return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, 0.0, float("nan"), 0.0, note="empty map")
+        if self._reloc_wait > 0:  # bounded cost: see RELOCALIZATION_BACKOFF_MAX_FRAMES
+            self._reloc_wait -= 1
+            if fallback is not None:
+                guess, res = fallback
+                return FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0,
+                                     note=NOTE_BACKING_OFF)
+            return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, 0.0, float("nan"), 0.0,
+                                 note=NOTE_BACKING_OFF)
         r = self.relocalizer.relocalize(fp, extra)
         if r.ok:
+            self._reloc_failures = self._reloc_wait = 0
             return FrameEstimate(index, r.T_world_cam, STATUS_RELOCALIZED, r.inlier_fraction, r.residual_m, 0.0,
                                  note=f"relocalized from {r.source} hypothesis, confidence {r.confidence:.2f}")
+        self._reloc_failures += 1
+        self._reloc_wait = min(2 ** (self._reloc_failures - 1), RELOCALIZATION_BACKOFF_MAX_FRAMES)
         if fallback is not None:
             guess, res = fallback
             return FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0, note="poor alignment")
         return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, r.inlier_fraction, r.residual_m, 0.0,
                              note="relocalization failed")
 
+    def _align_to_last_frame(self, fp, guess: np.ndarray) -> TrackResult | None:
+        """Mapping: align to the previous accepted frame's points when the map does not explain the
+        frame (it looks where no keyframe has looked yet). None when that fails too."""
+        if self._last_frame is None:
+            return None
+        prev, T_prev = self._last_frame
+        pts, _ = backproject(prev.depth[0], None, self.camera, FRAME_TO_FRAME_STRIDE, *self.depth_range_m)
+        if len(pts) < _MIN_VALID_DEPTH:
+            return None
+        pw = pts.astype(np.float64) @ T_prev[:3, :3].T + T_prev[:3, 3]
+        model = SurfelModel.from_field(pw, self.builder.voxel_size_m)
+        if len(model) == 0:
+            return None
+        res = self.tracker.align(fp, model, guess, (prev, T_prev) if self.cfg.photometric_weight > 0 else None)
+        return res if res.ok else None
+
     def _accept(self, index: int, fp, est: FrameEstimate, timestamp_s: float | None) -> None:
         T = est.T_world_cam
+        self._last_frame = (fp, T)
+        if est.status in PLACED_STATUSES:
+            self._reloc_failures = self._reloc_wait = 0
         consecutive = self._last is not None and abs(index - self._last[0]) == 1 and est.status == STATUS_TRACKED
         self._prev = self._last if consecutive else None
         self._t_prev = self._t_last if consecutive else None
@@ -197,7 +249,10 @@ class SequenceTracker:
         if self._ref is None or est.status != STATUS_TRACKED or _moved(self._ref[1], T, self.cfg.reference_translation_m,
                                                                         self.cfg.reference_rotation_deg):
             self._ref = (fp, T)
-        if self.builder is not None and (self._last_kf_pose is None or _moved(self._last_kf_pose, T, self.kf_t, self.kf_r)):
+        # A frame placed frame-to-frame sees what the map lacks: it becomes a keyframe at once.
+        beyond_map = est.note == NOTE_FRAME_TO_FRAME
+        if self.builder is not None and (self._last_kf_pose is None or beyond_map
+                                         or _moved(self._last_kf_pose, T, self.kf_t, self.kf_r)):
             self._integrate(index, fp, T)
             est.keyframe = True
             self._ref = (fp, T)

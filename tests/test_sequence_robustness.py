@@ -1,0 +1,61 @@
+"""Issue 11.2: being lost has a bounded cost, and mapping follows the camera into unmapped space."""
+
+import numpy as np
+
+from atlas_pipeline.config import load_profile
+from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+from atlas_pipeline.localization import sequence as seq
+from atlas_pipeline.localization.relocalize import RelocalizationResult
+from atlas_pipeline.localization.tracker import TrackResult
+
+
+def _failing_align(frame, model, T_init, reference=None):
+    return TrackResult(np.asarray(T_init, np.float64), 0.0, float("nan"), 0, False)
+
+
+def test_relocalization_backs_off_while_lost(small_manifest, monkeypatch):
+    """40 frames nothing can place: global relocalization is tried at frames 0, 2, 5, 10, 19, 36
+    (waits of 1, 2, 4, 8, 16 frames), not 40 times; a success resets the wait."""
+    m = small_manifest
+    cfg = load_profile("default")
+    st = seq.SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), builder=VoxelGaussianBuilder(0.02))
+    rgb, depth = m.read_rgb(0), m.read_depth_m(0)
+    st.process(0, rgb, depth, T_given=np.eye(4))
+    calls = []
+
+    def failing_reloc(fp, extra=()):
+        calls.append(1)
+        return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "global", 0)
+
+    monkeypatch.setattr(st.tracker, "align", _failing_align)
+    monkeypatch.setattr(st, "_align_to_last_frame", lambda fp, guess: None)
+    monkeypatch.setattr(type(st.relocalizer), "relocalize", lambda self, fp, extra=(): failing_reloc(fp, extra))
+    notes = [st.process(1 + k, rgb, depth).note for k in range(40)]
+    assert len(calls) == 6, len(calls)
+    assert notes.count(seq.NOTE_BACKING_OFF) == 34
+    assert seq.RELOCALIZATION_BACKOFF_MAX_FRAMES == 16
+
+
+def test_mapping_tracks_frame_to_frame_where_the_map_ends(small_manifest, monkeypatch):
+    """When the map does not explain a frame (here: the map-alignment is forced to fail), mapping
+    aligns it to the previous frame, keeps it tracked and makes it a keyframe."""
+    m = small_manifest
+    cfg = load_profile("default")
+    st = seq.SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), builder=VoxelGaussianBuilder(0.02))
+    st.process(0, m.read_rgb(0), m.read_depth_m(0), T_given=np.eye(4))
+    real_align = st.tracker.align
+    to_map = {"n": 0}
+
+    def align(frame, model, T_init, reference=None):
+        if model is st.model:  # the map: pretend it does not cover the frame
+            to_map["n"] += 1
+            return _failing_align(frame, model, T_init)
+        return real_align(frame, model, T_init, reference)
+
+    monkeypatch.setattr(st.tracker, "align", align)
+    est = st.process(1, m.read_rgb(1), m.read_depth_m(1), timestamp_s=float(m.timestamps_s[1]))
+    assert to_map["n"] >= 1
+    assert est.status == seq.STATUS_TRACKED and est.note == seq.NOTE_FRAME_TO_FRAME and est.keyframe
+    # the ground truth of the small synthetic sequence is exact; frame 0 is at the identity here
+    T_gt = np.linalg.inv(m.T_world_cam_gt[0]) @ m.T_world_cam_gt[1]
+    assert np.linalg.norm(est.T_world_cam[:3, 3] - T_gt[:3, 3]) < 0.01
