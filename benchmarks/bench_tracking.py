@@ -37,6 +37,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+# Shared with bench_robustness.py: frames in memory, grading, our SLAM loop, Open3D's odometry.
+from benchmarks.common import grade as _grade  # noqa: E402
+from benchmarks.common import load_frames as _frames  # noqa: E402
+from benchmarks.common import run_open3d_odometry  # noqa: E402
+from benchmarks.common import run_slam as bench_slam  # noqa: E402
+
 TEDDY = ROOT.parent / "shared" / "data" / "tum_fr3_teddy_100"
 
 
@@ -55,42 +61,6 @@ def _load(name: str, n_frames: int | None = None):
     if not (root / "rgb.txt").is_file():
         generate_synthetic_dataset(root, spec)
     return load_tum_sequence(root, spec.camera(), "synthetic", n_frames)
-
-
-def _frames(manifest):
-    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
-
-    return [(read_rgb(manifest.rgb_path(i), manifest.camera), read_depth_m(manifest.depth_path(i), manifest.camera, allow_empty=True))
-            for i in range(manifest.n_frames)]
-
-
-def _grade(manifest, poses) -> dict:
-    from atlas_pipeline.localization.metrics import evaluate_trajectories
-
-    return evaluate_trajectories(manifest.timestamps_s, poses, manifest.timestamps_s, manifest.T_world_cam_gt)
-
-
-def bench_slam(manifest, frames, cfg) -> dict:
-    """Our tracking and mapping on preloaded frames (the same loop as ``slam_poses``)."""
-    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
-    from atlas_pipeline.localization.sequence import SequenceTracker
-
-    st = SequenceTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-                         builder=VoxelGaussianBuilder(cfg.mapping.voxel_size_m),
-                         keyframe_translation_m=cfg.mapping.keyframe_translation_m,
-                         keyframe_rotation_deg=cfg.mapping.keyframe_rotation_deg, fusion_stride=cfg.fusion.stride)
-    poses = np.full((manifest.n_frames, 4, 4), np.nan)
-    status = []
-    t0 = time.perf_counter()
-    for i, (rgb, depth) in enumerate(frames):
-        e = st.process(i, rgb, depth, T_given=np.eye(4) if i == 0 else None, timestamp_s=float(manifest.timestamps_s[i]))
-        poses[i] = e.T_world_cam
-        status.append(e.status)
-    dt = time.perf_counter() - t0
-    out = _grade(manifest, poses)
-    out.update({"frames_per_s": (len(frames) - 1) / dt, "n_keyframes": len(st.keyframe_indices),
-                "n_lost": status.count("lost"), "n_relocalized": status.count("relocalized")})
-    return out, st
 
 
 def bench_localization(manifest, frames, cfg, builder, keyframe_poses) -> dict:
@@ -115,29 +85,8 @@ def bench_localization(manifest, frames, cfg, builder, keyframe_poses) -> dict:
 
 
 def bench_open3d(manifest, frames) -> dict:
-    """Open3D tensor RGB-D odometry, hybrid, frame to frame, chained."""
-    from atlas_pipeline._open3d import open3d
-
-    o3d = open3d()
-    odo = o3d.t.pipelines.odometry
-    K = o3d.core.Tensor(manifest.camera.K, o3d.core.Dtype.Float64)
-    crit = [odo.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
-
-    def rgbd(rgb, depth):
-        return o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(np.ascontiguousarray(rgb)),
-                                        o3d.t.geometry.Image((depth * 1000.0).astype(np.uint16)))
-
-    images = [rgbd(*f) for f in frames]
-    poses = np.tile(np.eye(4), (len(frames), 1, 1))
-    t0 = time.perf_counter()
-    for i in range(1, len(frames)):
-        r = odo.rgbd_odometry_multi_scale(images[i], images[i - 1], K, o3d.core.Tensor(np.eye(4)), 1000.0, 3.0,
-                                          crit, odo.Method.Hybrid)
-        poses[i] = poses[i - 1] @ r.transformation.numpy()
-    dt = time.perf_counter() - t0
-    out = _grade(manifest, poses)
-    out["frames_per_s"] = (len(frames) - 1) / dt
-    return out
+    """Open3D tensor RGB-D odometry, hybrid, frame to frame, chained, depth cut at 3 m."""
+    return run_open3d_odometry(manifest, frames, depth_max_m=3.0)
 
 
 def bench_relocalization(manifest, frames, cfg) -> dict:

@@ -30,6 +30,29 @@ same continuous path at ``gt_rate_hz``, so it is exact.
 Determinism: the same spec gives byte-identical files. Per-pixel code uses only IEEE-exact
 elementwise arithmetic (no BLAS, no transcendental functions), so results do not depend on SIMD
 code paths; PNGs are written by Pillow with fixed settings and no metadata.
+
+Realistic sensor and motion (optional; every new :class:`SyntheticSpec` field defaults to "off",
+and a spec that leaves them all at their defaults writes exactly the files it always did):
+
+* **Depth** (Kinect v1 structured light, see :data:`KINECT_V1_SENSOR` for the constants and their
+  sources): axial noise ``sigma_z = a + b (z - 0.4)^2 + c / sqrt(z) * theta^2 / (pi/2 - theta)^2``
+  (Nguyen, Izadi, Lovell 2012, ``theta`` = angle of incidence), mostly spatially correlated (block
+  matching over a 9x9 window); disparity quantisation (1/z rounded to a fixed step, so steps grow
+  with z^2; the Gaussian part is reduced so that noise plus quantisation has the model's total
+  std); projector shadows (no reading where the projector, a baseline to the side, cannot see
+  the surface: left of foreground objects) and dropped or laterally jittered pixels at depth
+  discontinuities; no reading on dark surfaces (low IR reflectance), on shiny surfaces seen
+  head-on (spheres: saturated speckle) and at grazing incidence.
+* **Colour**: motion blur (the mean of sub-frame renders over the exposure time), exposure drift
+  with auto exposure, white-balance drift, Gaussian sensor noise, and a fixed shift of the colour
+  image against depth (imperfect registration).
+* **Timing**: dropped frames (bursts of 1-3 missing sensor frames: gaps in the timestamps).
+* **Motion**: a slower walk with sustained pans (``pan_rate_deg_per_s``, camera yaw rate in the
+  world during a pan) and hand shake (a few mm and a fraction of a degree at 5-10 Hz); or a closed
+  loop (``loop_revolutions``) that goes around the room and ends 3 mm from its start pose.
+
+All randomness comes from ``numpy.random.default_rng`` streams keyed by the seed (and the frame
+index), so noisy datasets are as reproducible as clean ones.
 """
 
 from __future__ import annotations
@@ -41,7 +64,7 @@ import math
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from functools import lru_cache
 from pathlib import Path
 
@@ -61,6 +84,13 @@ __all__ = [
     "render_synthetic_frame",
     "generate_synthetic_dataset",
     "spec_hash",
+    "frame_times_s",
+    "depth_noise_sigma_m",
+    "apply_depth_sensor_model",
+    "KINECT_V1_SENSOR",
+    "HANDHELD_MOTION",
+    "LOOP_MOTION",
+    "SYNTHETIC_PRESETS",
     "TIMESTAMP_START_S",
     "DEPTH_OFFSET_S",
     "ROOM_MIN",
@@ -109,6 +139,32 @@ _T_C0, _T_C1, _T_SCALE, _T_OFF, _T_CHK, _T_STRIPE = 0, 3, 6, 7, 10, 12
 _T_ROWS = 16
 _EPS_T = 1e-6
 
+# ---- Optional motion (hand-held pans and shakes, closed loop) ----------------------------------
+_PAN_HALF_ANGLE_DEG = 40.0  # pans sweep 80 deg: from 40 deg one side of the room centre to the other
+_PAN_RAMP_S = 0.15  # time to reach / leave the pan rate: a wrist starts a pan quickly (~400 deg/s^2)
+_PAN_HOLD_S = 0.8  # looking to one side between two pans
+_SHAKE_BAND_HZ = (5.0, 10.0)  # hand tremor and walking jitter frequencies
+_LOOP_GAP_M = 0.003  # a loop ends this far from its start pose: a revisit, not the same frame
+_LOOP_ENVELOPE_S = 1.0  # pans and shakes fade in/out over this long at the ends of a loop
+_MOTION_STREAM = 104729  # rng stream ids: keep the streams of different effects independent
+_DROP_STREAM = 130363
+_SENSOR_STREAM = 155921
+_MAX_DROP_BURST = 3  # a drop loses 1-3 consecutive sensor frames (USB hiccups come in bursts)
+
+# ---- Optional sensor model ---------------------------------------------------------------------
+_NGUYEN_Z0_M = 0.4  # Nguyen et al. 2012: sigma_z = a + b (z - 0.4 m)^2
+_MAX_NOISE_ANGLE_RAD = math.radians(80.0)  # the angle term diverges at 90 deg: capped here
+_EDGE_JUMP_REL = 0.04  # a neighbour farther by > 4 % of depth is a discontinuity (a slanted floor
+#                        at 6 m changes < 1 % per pixel)
+_CORRELATED_NOISE_FRACTION = 0.75  # of the noise variance, when correlated; the rest is per-pixel
+#                                    flicker (an assumption: Nguyen et al. measured the total only)
+_SHADOW_TOL_PX = 0.5  # projector-ordering tolerance: rounding on slanted planes is not a shadow
+_SHINY_KINDS = ("sphere",)  # glossy objects: no depth where seen head-on
+_AE_TARGET_LUMA = 0.45  # auto exposure pulls the mean luma toward this (halfway, in log terms)
+_AE_GAIN_RANGE = (0.7, 1.4)
+_EXPOSURE_DRIFT_HZ = (0.11, 0.29)  # slow gain wander on top of auto exposure
+_WHITE_BALANCE_HZ = (0.07, 0.05)  # red and blue gains drift independently (green is the reference)
+
 
 @dataclass(frozen=True)
 class SyntheticSpec:
@@ -127,15 +183,69 @@ class SyntheticSpec:
     gt_rate_hz: float = 100.0
     max_depth_m: float = 8.0  # farther returns are written as 0 (no reading)
 
+    # -- Motion (defaults: the smooth orbit above). See HANDHELD_MOTION and LOOP_MOTION. --
+    orbit_rate_deg_per_s: float = 36.0  # speed along the ellipse (the wobbles keep their shape)
+    loop_revolutions: int = 0  # > 0: exactly this many turns, the last frame 3 mm from the first
+    pan_rate_deg_per_s: float = 0.0  # > 0: sustained pans, camera yaw rate in the world frame
+    shake_m: float = 0.0  # hand shake: translation amplitude per axis, 5-10 Hz
+    shake_deg: float = 0.0  # hand shake: rotation amplitude per axis, 5-10 Hz
+
+    # -- Depth sensor model (defaults: exact depth). See KINECT_V1_SENSOR. --
+    depth_noise_a_m: float = 0.0  # sigma_z = a + b (z - 0.4)^2 + c / sqrt(z) theta^2/(pi/2-theta)^2
+    depth_noise_b_per_m: float = 0.0
+    depth_noise_angle_m: float = 0.0  # c, metres * sqrt(metres)
+    depth_noise_corr_px: float = 0.0  # > 0: noise correlated over a box this wide (px at 640 width)
+    inverse_depth_step_per_m: float = 0.0  # disparity quantisation: 1/z rounded to this step
+    depth_lateral_noise_px: float = 0.0  # std of the pixel jitter at depth discontinuities
+    edge_dropout_prob: float = 0.0  # chance of no reading on a pixel at a depth discontinuity
+    projector_baseline_m: float = 0.0  # projector shadows (projector to the camera's +x)
+    dark_dropout_luma: float = 0.0  # below this surface luma [0, 1] readings drop out (ramp to 0)
+    shiny_dropout_deg: float = 0.0  # no reading on shiny surfaces within this incidence angle
+    grazing_dropout_deg: float = 0.0  # no reading beyond this incidence angle (0: off)
+
+    # -- Colour sensor model (defaults: exact colour) --
+    rgb_shift_x_px: float = 0.0  # colour image shifted against depth (registration error)
+    rgb_shift_y_px: float = 0.0
+    motion_blur_samples: int = 0  # >= 2: colour is the mean of this many renders over the exposure
+    exposure_time_s: float = 0.0
+    exposure_drift: float = 0.0  # > 0: auto exposure plus a slow relative gain wander of this size
+    white_balance_drift: float = 0.0  # relative red / blue gain wander
+    rgb_noise_std: float = 0.0  # Gaussian noise, 8-bit levels
+
+    # -- Timing --
+    dropped_frame_rate: float = 0.0  # chance per sensor frame that a drop burst (1-3 frames) starts
+
     def __post_init__(self) -> None:
         # Canonical types (YAML may give 525 for 525.0): equal specs hash equally, seeds are ints.
-        for name in ("seed", "n_frames", "width", "height"):
+        for name in ("seed", "n_frames", "width", "height", "loop_revolutions", "motion_blur_samples"):
             v = getattr(self, name)
             if isinstance(v, bool) or not float(v).is_integer():
                 raise ConfigError(f"synthetic: {name} must be an integer, got {v!r}")
             object.__setattr__(self, name, int(v))
         for name in ("fx", "fy", "cx", "cy", "depth_scale", "fps", "gt_rate_hz", "max_depth_m"):
             object.__setattr__(self, name, float(getattr(self, name)))
+        for name in _EXTENSION_FLOAT_FIELDS:
+            v = getattr(self, name)
+            signed = name.startswith("rgb_shift_")
+            if isinstance(v, bool) or not math.isfinite(float(v)) or (float(v) < 0 and not signed):
+                raise ConfigError(f"synthetic: {name} must be a finite {'' if signed else 'non-negative '}"
+                                  f"number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        for name in ("loop_revolutions", "motion_blur_samples"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"synthetic: {name} must be >= 0, got {getattr(self, name)}")
+        if self.dropped_frame_rate >= 0.5:
+            raise ConfigError(f"synthetic: dropped_frame_rate must be < 0.5, got {self.dropped_frame_rate}")
+        if self.edge_dropout_prob > 1.0 or self.dark_dropout_luma > 1.0:
+            raise ConfigError("synthetic: edge_dropout_prob and dark_dropout_luma must be <= 1")
+        if self.shiny_dropout_deg >= 90.0 or self.grazing_dropout_deg > 90.0:
+            raise ConfigError("synthetic: shiny_dropout_deg must be < 90 and grazing_dropout_deg <= 90")
+        if self.orbit_rate_deg_per_s <= 0:
+            raise ConfigError(
+                f"synthetic: orbit_rate_deg_per_s must be positive, got {self.orbit_rate_deg_per_s}"
+            )
+        if self.loop_revolutions and self.n_frames < 2:
+            raise ConfigError("synthetic: a loop needs at least 2 frames")
         if self.n_frames <= 0:
             raise ConfigError(f"synthetic: n_frames must be positive, got {self.n_frames}")
         if self.fps <= 0 or self.gt_rate_hz <= 0:
@@ -150,6 +260,23 @@ class SyntheticSpec:
                 f"depth_scale={self.depth_scale}"
             )
         self.camera()  # validates size and focal lengths
+        if self.pan_rate_deg_per_s > 0:
+            orbit_deg_s = math.degrees(_orbit_rate_rad_s(self))
+            if self.pan_rate_deg_per_s < orbit_deg_s + 5.0:
+                raise ConfigError(
+                    f"synthetic: pan_rate_deg_per_s={self.pan_rate_deg_per_s} must exceed the orbit "
+                    f"rate ({orbit_deg_s:.1f} deg/s) by at least 5 deg/s"
+                )
+
+    @property
+    def custom_motion(self) -> bool:
+        """True when any motion field differs from the default orbit."""
+        return any(getattr(self, n) != _FIELD_DEFAULTS[n] for n in _MOTION_FIELDS)
+
+    @property
+    def sensor_model(self) -> bool:
+        """True when any sensor or timing effect is on (an ideal sensor otherwise)."""
+        return any(getattr(self, n) != _FIELD_DEFAULTS[n] for n in _SENSOR_FIELDS)
 
     def camera(self) -> CameraIntrinsics:
         """Intrinsics of the rendered (undistorted) camera."""
@@ -162,6 +289,78 @@ class SyntheticSpec:
             cy=self.cy,
             depth_scale=self.depth_scale,
         )
+
+
+# Fields of generator version 1; every later field is optional and left out of the hash and of
+# synthetic_spec.json while at its default, so the default dataset stays byte-identical.
+_V1_FIELDS = ("seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "depth_scale", "fps",
+              "gt_rate_hz", "max_depth_m")
+_MOTION_FIELDS = ("orbit_rate_deg_per_s", "loop_revolutions", "pan_rate_deg_per_s", "shake_m",
+                  "shake_deg")
+_FIELD_DEFAULTS = {f.name: f.default for f in fields(SyntheticSpec)}
+_SENSOR_FIELDS = tuple(n for n in _FIELD_DEFAULTS if n not in _V1_FIELDS and n not in _MOTION_FIELDS)
+_EXTENSION_FLOAT_FIELDS = tuple(
+    n for n in _FIELD_DEFAULTS
+    if n not in _V1_FIELDS and n not in ("loop_revolutions", "motion_blur_samples")
+)
+
+# A Kinect v1 / Xtion-class structured-light RGB-D camera (the sensor of the TUM RGB-D benchmark).
+KINECT_V1_SENSOR: dict[str, float | int] = {
+    # Axial noise, Nguyen, Izadi & Lovell, "Modeling Kinect Sensor Noise for Improved 3D
+    # Reconstruction and Tracking", 3DIMPVT 2012, eq. for theta < 60 deg:
+    # sigma_z(z, theta) = 0.0012 + 0.0019 (z - 0.4)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2
+    # (metres): 1.9 mm at 1 m, 1.4 cm at 3 m.
+    "depth_noise_a_m": 0.0012,
+    "depth_noise_b_per_m": 0.0019,
+    "depth_noise_angle_m": 0.0001,
+    # Disparity comes from block matching with a 9x9 window, so neighbouring pixels share most of
+    # their error: noise is mostly a smooth field (terraces once quantised), not per-pixel salt.
+    "depth_noise_corr_px": 9.0,
+    # Disparity is measured in 1/8 pixel steps by an IR camera with f = 580 px and a 7.5 cm
+    # baseline (Khoshelham & Elberink, Sensors 2012): 1/z steps of 0.125 / (580 * 0.075) =
+    # 0.002874 per metre, i.e. depth steps of 2.9 mm at 1 m and 2.6 cm at 3 m.
+    "inverse_depth_step_per_m": 0.002874,
+    # Nguyen et al.: lateral noise ~0.8 px; applied at depth discontinuities (jagged silhouettes).
+    "depth_lateral_noise_px": 0.8,
+    "edge_dropout_prob": 0.5,  # the 9x9 correlation window straddling an edge often fails
+    "projector_baseline_m": 0.075,  # IR projector 7.5 cm from the IR camera: occlusion shadows
+    "dark_dropout_luma": 0.12,  # very dark (low IR reflectance) texture drops out
+    "shiny_dropout_deg": 15.0,  # glossy surfaces seen within 15 deg of head-on: saturated speckle
+    "grazing_dropout_deg": 78.0,  # the speckle pattern is unreadable at grazing incidence
+    # Colour camera: 1-2 px registration error against depth, ~10 ms exposure indoors (blur),
+    # auto exposure and white balance that drift, ~2 levels of sensor noise, and a USB stream
+    # that drops a frame now and then (TUM's fr1 sequences have gaps of 1-3 frames).
+    "rgb_shift_x_px": 1.5,
+    "rgb_shift_y_px": -1.0,
+    "motion_blur_samples": 3,
+    "exposure_time_s": 0.010,
+    "exposure_drift": 0.15,
+    "white_balance_drift": 0.05,
+    "rgb_noise_std": 2.0,
+    "dropped_frame_rate": 0.02,
+}
+
+# A person walking slowly around the room (12 deg/s of orbit: ~1.4 cm per frame at 30 fps) who
+# pans the camera 80 deg at 60 deg/s (2 deg per frame, the speed at which tracking was lost on a
+# real kitchen sequence, issue 11) and shakes it by 3 mm / 0.15 deg at 5-10 Hz.
+HANDHELD_MOTION: dict[str, float | int] = {
+    "orbit_rate_deg_per_s": 12.0,
+    "pan_rate_deg_per_s": 60.0,
+    "shake_m": 0.003,
+    "shake_deg": 0.15,
+}
+
+# One full turn around the room (~12 m of path) ending 3 mm from the start: loop closure tests.
+LOOP_MOTION: dict[str, float | int] = {"loop_revolutions": 1}
+
+# The registry presets of configs/datasets.yaml, as spec keyword arguments (a test keeps them equal).
+SYNTHETIC_PRESETS: dict[str, dict[str, float | int]] = {
+    "synthetic-noisy": {"seed": 0, "n_frames": 60, "width": 640, "height": 480, **KINECT_V1_SENSOR},
+    "synthetic-handheld": {"seed": 0, "n_frames": 150, "width": 640, "height": 480,
+                           **KINECT_V1_SENSOR, **HANDHELD_MOTION},
+    "synthetic-loop": {"seed": 0, "n_frames": 300, "width": 320, "height": 240, "fx": 262.5, "fy": 262.5,
+                       "cx": 159.5, "cy": 119.5, **KINECT_V1_SENSOR, **LOOP_MOTION},
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -432,15 +631,197 @@ def _pose_at(t: float, ph: np.ndarray) -> np.ndarray:
     return T
 
 
+def frame_times_s(spec: SyntheticSpec) -> np.ndarray:
+    """Capture times ``[n_frames]`` of the frames, seconds from the first.
+
+    Frame ``i`` is at ``i / fps`` unless ``dropped_frame_rate`` > 0: then each sensor frame slot
+    starts a drop burst of 1-3 slots with that probability (never before the first frame), and
+    the frames that remain keep their slot times, so the timestamps have gaps.
+    """
+    n = spec.n_frames
+    if spec.dropped_frame_rate <= 0.0:
+        return np.arange(n, dtype=np.float64) / spec.fps
+    rng = np.random.default_rng([spec.seed, _DROP_STREAM])
+    slots = [0]
+    k = 1
+    while len(slots) < n:
+        if rng.random() < spec.dropped_frame_rate:
+            k += int(rng.integers(1, _MAX_DROP_BURST + 1))
+        slots.append(k)
+        k += 1
+    return np.asarray(slots, dtype=np.float64) / spec.fps
+
+
+def _orbit_rate_rad_s(spec: SyntheticSpec) -> float:
+    """Angular speed along the ellipse: the spec's, or one that closes ``loop_revolutions`` turns
+    exactly at the last frame."""
+    if spec.loop_revolutions > 0:
+        return 2.0 * math.pi * spec.loop_revolutions / float(frame_times_s(spec)[-1])
+    return math.radians(spec.orbit_rate_deg_per_s)
+
+
+@dataclass(frozen=True)
+class _Motion:
+    """Parameters of a non-default path (see :func:`_motion_of`)."""
+
+    rate: float  # orbit, rad/s
+    time_scale: float  # path-shape time per second: wobbles keep their shape at any orbit speed
+    freqs: tuple[float, ...]  # bob, target x/y/z, roll (Hz of path-shape time)
+    t_end: float  # loop: time of the last frame (0 otherwise)
+    pan_up: float  # pan sweeps relative to the look-at direction, rad/s (0: no pans)
+    pan_down: float
+    pan_phase_s: float
+    shake_m: float
+    shake_rad: float
+    shake_f: np.ndarray  # [6, 2] Hz: x, y, z, rx, ry, rz, two sines each
+    shake_ph: np.ndarray  # [6, 2]
+
+
+@lru_cache(maxsize=8)
+def _motion_of(spec: SyntheticSpec) -> _Motion:
+    """Path parameters of ``spec`` (cached: camera_path is called per frame and sub-frame)."""
+    rate = _orbit_rate_rad_s(spec)
+    scale = rate / _PATH_RATE_RAD_S
+    freqs = (0.35, 0.21, 0.17, 0.27, 0.23)
+    t_end = 0.0
+    if spec.loop_revolutions > 0:
+        t_end = float(frame_times_s(spec)[-1])
+        # Whole cycles over the loop, so bob, wobble and roll return to their start values.
+        tau_end = t_end * scale
+        freqs = tuple(round(f * tau_end) / tau_end for f in freqs)
+    rng = np.random.default_rng([spec.seed, _MOTION_STREAM])
+    pan_phase = float(rng.uniform(0.0, 1.0))
+    shake_f = rng.uniform(*_SHAKE_BAND_HZ, size=(6, 2))
+    shake_ph = rng.uniform(0.0, 2.0 * math.pi, size=(6, 2))
+    pan_up = pan_down = 0.0
+    if spec.pan_rate_deg_per_s > 0:
+        # The look-at direction itself turns with the orbit (+rate about z): sweeps against and
+        # with it get different relative speeds, so the world yaw rate is the pan rate both ways.
+        v = math.radians(spec.pan_rate_deg_per_s)
+        pan_up, pan_down = v - rate, v + rate
+    return _Motion(rate, scale, freqs, t_end, pan_up, pan_down, pan_phase, spec.shake_m,
+                   math.radians(spec.shake_deg), shake_f, shake_ph)
+
+
+def _sweep_rad(tau: float, v: float, amp2: float) -> float:
+    """Angle covered ``tau`` s into a sweep of ``amp2`` rad at top speed ``v`` rad/s, with linear
+    speed ramps of ``_PAN_RAMP_S`` at both ends (trapezoidal velocity: C1 angle)."""
+    r = _PAN_RAMP_S
+    c = amp2 / v - r  # cruise time: v (r + c) = amp2
+    if tau <= 0.0:
+        return 0.0
+    if tau < r:
+        return v * tau * tau / (2.0 * r)
+    if tau < r + c:
+        return v * r / 2.0 + v * (tau - r)
+    if tau < 2.0 * r + c:
+        u = tau - r - c
+        return v * r / 2.0 + v * c + v * u - v * u * u / (2.0 * r)
+    return amp2
+
+
+def _pan_rad(t: float, m: _Motion) -> float:
+    """Pan yaw offset (rad) at time ``t``: sweep left, hold, sweep right, hold, periodically."""
+    a = math.radians(_PAN_HALF_ANGLE_DEG)
+    d_up = 2.0 * a / m.pan_up + _PAN_RAMP_S
+    d_down = 2.0 * a / m.pan_down + _PAN_RAMP_S
+    period = d_up + d_down + 2.0 * _PAN_HOLD_S
+    tau = (t + m.pan_phase_s * period) % period  # Python's % is non-negative for period > 0
+    if tau < d_up:
+        return -a + _sweep_rad(tau, m.pan_up, 2.0 * a)
+    tau -= d_up
+    if tau < _PAN_HOLD_S:
+        return a
+    tau -= _PAN_HOLD_S
+    if tau < d_down:
+        return a - _sweep_rad(tau, m.pan_down, 2.0 * a)
+    return -a
+
+
+def _smoothstep(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _rot3(axis: int, ang: float) -> np.ndarray:
+    """``[3, 3]`` rotation by ``ang`` rad about coordinate axis ``axis``."""
+    c, s = math.cos(ang), math.sin(ang)
+    i, j = (axis + 1) % 3, (axis + 2) % 3
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+def _mul3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    # Explicit products instead of BLAS matmul: bitwise reproducible everywhere.
+    return (A[:, :, None] * B[None, :, :]).sum(axis=1)
+
+
+def _pose_at_motion(t: float, ph: np.ndarray, m: _Motion) -> np.ndarray:
+    """``T_world_cam`` ``[4, 4]`` of a non-default path at time ``t`` (scalar math).
+
+    The orbit of :func:`_pose_at` travelled at ``m.rate``, with the bob, wobble and roll on a time
+    axis scaled to the same shape; then pans (yaw about the vertical through the eye), hand shake,
+    and for loops a 3 mm linear offset and an envelope that keeps the ends free of pans and shake.
+    """
+    tau = t * m.time_scale
+    f_bob, f_x, f_y, f_z, f_roll = m.freqs
+    th = float(ph[0]) + m.rate * t
+    eye = np.array(
+        [
+            _PATH_A_M * math.cos(th),
+            _PATH_B_M * math.sin(th),
+            _PATH_HEIGHT_M + _PATH_BOB_M * math.sin(2.0 * math.pi * f_bob * tau + float(ph[1])),
+        ]
+    )
+    target = np.array(
+        [
+            0.35 * math.sin(2.0 * math.pi * f_x * tau + float(ph[2])),
+            0.30 * math.sin(2.0 * math.pi * f_y * tau + float(ph[3])),
+            0.55 + 0.10 * math.sin(2.0 * math.pi * f_z * tau + float(ph[4])),
+        ]
+    )
+    env = 1.0
+    if m.t_end > 0.0:
+        ramp = min(_LOOP_ENVELOPE_S, m.t_end / 4.0)
+        env = _smoothstep(t / ramp) * _smoothstep((m.t_end - t) / ramp)
+        frac = min(max(t / m.t_end, 0.0), 1.0)
+        eye = eye + _LOOP_GAP_M * frac * np.array([0.6, 0.0, 0.8])
+    T = look_at(eye, target, up=(0.0, 0.0, 1.0))
+    R = T[:3, :3]
+    if m.pan_up > 0.0:
+        R = _mul3(_rot3(2, env * _pan_rad(t, m)), R)  # world yaw about the eye
+    roll = math.radians(3.0) * math.sin(2.0 * math.pi * f_roll * tau + float(ph[5]))
+    R = _mul3(R, _rot3(2, roll))
+    if m.shake_m > 0.0 or m.shake_rad > 0.0:
+        w = [
+            0.5 * env * sum(math.sin(2.0 * math.pi * float(m.shake_f[a, k]) * t + float(m.shake_ph[a, k]))
+                            for k in range(2))
+            for a in range(6)
+        ]
+        for a in range(3):
+            R = _mul3(R, _rot3(a, m.shake_rad * w[3 + a]))
+        T[:3, 3] = eye + m.shake_m * np.array(w[:3])
+    T[:3, :3] = R
+    return T
+
+
 def camera_path(spec: SyntheticSpec, t_s: np.ndarray) -> np.ndarray:
     """Camera poses ``T_world_cam`` ``[N, 4, 4]`` at times ``t_s`` ``[N]`` (seconds from start).
 
-    Smooth (C-infinity) in time, defined for any real ``t`` (negative included), and always more
-    than 0.5 m from every wall and object of ``build_scene(spec.seed)``.
+    Smooth (C-infinity) in time for the default motion (pans are C1), defined for any real ``t``
+    (negative included), and always more than 0.5 m from every wall and object of
+    ``build_scene(spec.seed)``. A loop (``loop_revolutions``) returns to within 3 mm of its start
+    pose at the last frame time.
     """
     t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
     ph = _path_phases(spec.seed)
     out = np.empty((t.shape[0], 4, 4), dtype=np.float64)
+    if spec.custom_motion:
+        m = _motion_of(spec)
+        for i, ti in enumerate(t):
+            out[i] = _pose_at_motion(float(ti), ph, m)
+        return out
     for i, ti in enumerate(t):
         out[i] = _pose_at(float(ti), ph)
     return out
@@ -683,16 +1064,12 @@ def _screen_rect(
     return slice(v0, v1), slice(u0, u1)
 
 
-def render_synthetic_frame(
-    spec: SyntheticSpec, scene: SyntheticScene, T_world_cam: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-cast one RGB-D frame from ``T_world_cam`` ``[4, 4]`` (camera inside the room).
+def _trace(spec: SyntheticSpec, scene: SyntheticScene, T_world_cam: np.ndarray):
+    """Nearest hit of every pixel's ray.
 
-    Returns:
-        ``(rgb, depth_m)``: ``rgb`` uint8 ``[H, W, 3]``; ``depth_m`` float32 ``[H, W]``, the camera
-        z of the hit (not the ray length), 0 where there is no hit or the hit is farther than
-        ``spec.max_depth_m``. Colour and depth come from the same nearest hit per pixel, whose
-        centre is at integer pixel coordinates.
+    Returns ``(idx [M], t [M], d, nrm [M, 3], sid [M], col [M, 3])``: flat indices of the pixels
+    with a hit, their ray parameter (= camera z), the world ray directions ``d`` (3 arrays
+    ``[H*W]``, camera z = 1), unit normals, surface ids and shaded colour (float32, unclipped).
     """
     H, W = spec.height, spec.width
     T = np.asarray(T_world_cam, dtype=np.float64)
@@ -735,27 +1112,336 @@ def render_synthetic_frame(
         prim2[rect][closer] = j
 
     hit = np.isfinite(t_best)
+    idx = np.flatnonzero(hit)
+    th = t_best[idx]
+    P = np.stack([o[a] + th * d[a][idx] for a in range(3)], axis=1)  # [M, 3] world points
+    nrm, sid = _surface_normals(scene, P, prim[idx], room_axis[idx])
+    col = _albedo(scene, P, sid) * _shade(nrm)[:, None]
+    return idx, th, d, nrm, sid, col
+
+
+def render_synthetic_frame(
+    spec: SyntheticSpec, scene: SyntheticScene, T_world_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast one RGB-D frame from ``T_world_cam`` ``[4, 4]`` (camera inside the room).
+
+    Returns:
+        ``(rgb, depth_m)``: ``rgb`` uint8 ``[H, W, 3]``; ``depth_m`` float32 ``[H, W]``, the camera
+        z of the hit (not the ray length), 0 where there is no hit or the hit is farther than
+        ``spec.max_depth_m``. Colour and depth come from the same nearest hit per pixel, whose
+        centre is at integer pixel coordinates. An ideal sensor: no noise, blur or dropouts.
+    """
+    H, W = spec.height, spec.width
+    idx, th, _d, _nrm, _sid, col = _trace(spec, scene, T_world_cam)
     rgb = np.zeros((H * W, 3), dtype=np.uint8)
     depth = np.zeros(H * W, dtype=np.float32)
-    idx = np.flatnonzero(hit)
     if idx.size:
-        th = t_best[idx]
-        P = np.stack([o[a] + th * d[a][idx] for a in range(3)], axis=1)  # [M, 3] world points
-        nrm, sid = _surface_normals(scene, P, prim[idx], room_axis[idx])
-        col = _albedo(scene, P, sid) * _shade(nrm)[:, None]
         rgb[idx] = np.round(np.clip(col, 0.0, 1.0) * 255.0).astype(np.uint8)
         # d_cam has z = 1, so t is the camera-frame depth directly.
         depth[idx] = np.where(th <= spec.max_depth_m, th, 0.0).astype(np.float32)
     return rgb.reshape(H, W, 3), depth.reshape(H, W)
 
 
+@dataclass
+class _Layers:
+    """What the sensor model needs from one render (all ``[H, W]`` unless noted).
+
+    Attributes:
+        col: ``[H, W, 3]`` float32 shaded colour in [0, ~1.1] (unclipped), 0 where no hit.
+        depth_m: float32 camera z, 0 where no hit or beyond ``max_depth_m``.
+        cos_incidence: float32 cosine of the angle between the ray and the surface normal.
+        shiny: bool, the pixel shows a glossy surface (:data:`_SHINY_KINDS`).
+    """
+
+    col: np.ndarray
+    depth_m: np.ndarray
+    cos_incidence: np.ndarray
+    shiny: np.ndarray
+
+
+def _render_colour(spec: SyntheticSpec, scene: SyntheticScene, T_world_cam: np.ndarray) -> np.ndarray:
+    """Unclipped float32 colour ``[H, W, 3]`` (a motion-blur sub-frame)."""
+    H, W = spec.height, spec.width
+    idx, _th, _d, _nrm, _sid, col = _trace(spec, scene, T_world_cam)
+    out = np.zeros((H * W, 3), dtype=np.float32)
+    out[idx] = col
+    return out.reshape(H, W, 3)
+
+
+def _render_layers(spec: SyntheticSpec, scene: SyntheticScene, T_world_cam: np.ndarray) -> _Layers:
+    H, W = spec.height, spec.width
+    idx, th, d, nrm, sid, col = _trace(spec, scene, T_world_cam)
+    out_col = np.zeros((H * W, 3), dtype=np.float32)
+    depth = np.zeros(H * W, dtype=np.float32)
+    cos_inc = np.zeros(H * W, dtype=np.float32)
+    shiny = np.zeros(H * W, dtype=bool)
+    if idx.size:
+        out_col[idx] = col
+        depth[idx] = np.where(th <= spec.max_depth_m, th, 0.0).astype(np.float32)
+        dx, dy, dz = d[0][idx], d[1][idx], d[2][idx]
+        dn = dx * nrm[:, 0] + dy * nrm[:, 1] + dz * nrm[:, 2]
+        cos_inc[idx] = np.clip(-dn / np.sqrt(dx * dx + dy * dy + dz * dz), 0.0, 1.0)
+        shiny_ids = [o.surface_id for o in scene.objects if o.kind in _SHINY_KINDS]
+        shiny[idx] = np.isin(sid, shiny_ids)
+    return _Layers(out_col.reshape(H, W, 3), depth.reshape(H, W), cos_inc.reshape(H, W),
+                   shiny.reshape(H, W))
+
+
+# ----------------------------------------------------------------------------------------------
+# Sensor model (only for specs with sensor fields set; see KINECT_V1_SENSOR)
+
+
+def _acos01(x: np.ndarray) -> np.ndarray:
+    """arccos of ``x`` in [0, 1], Abramowitz & Stegun 4.4.45 (|error| < 7e-5 rad): only IEEE-exact
+    operations, so noisy datasets stay bitwise reproducible across SIMD code paths."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.sqrt(1.0 - x) * (1.5707288 + x * (-0.2121144 + x * (0.0742610 + x * -0.0187293)))
+
+
+def depth_noise_sigma_m(
+    spec: SyntheticSpec, z_m: np.ndarray, cos_incidence: np.ndarray | float = 1.0
+) -> np.ndarray:
+    """Axial depth noise std (metres) at depth ``z_m`` and incidence cosine (same shapes):
+    ``a + b (z - 0.4)^2 + c / sqrt(z) * theta^2 / (pi/2 - theta)^2`` (Nguyen et al. 2012), with
+    ``theta`` capped at 80 deg. Includes the disparity quantisation (the std that is written)."""
+    z = np.asarray(z_m, dtype=np.float64)
+    dz = z - _NGUYEN_Z0_M
+    sigma = spec.depth_noise_a_m + spec.depth_noise_b_per_m * dz * dz
+    if spec.depth_noise_angle_m > 0:
+        theta = np.minimum(_acos01(np.asarray(cos_incidence, dtype=np.float64)), _MAX_NOISE_ANGLE_RAD)
+        q = theta / (0.5 * math.pi - theta)
+        sigma = sigma + spec.depth_noise_angle_m / np.sqrt(np.maximum(z, 1e-3)) * q * q
+    return sigma
+
+
+def _depth_edges(z: np.ndarray) -> np.ndarray:
+    """Pixels ``[H, W]`` next to a depth discontinuity (relative jump > 4 %, or valid next to
+    missing)."""
+    edge = np.zeros(z.shape, dtype=bool)
+    for a, b, sl_a, sl_b in (
+        (z[:, :-1], z[:, 1:], (slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+        (z[:-1, :], z[1:, :], (slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+    ):
+        jump = np.abs(a - b) > _EDGE_JUMP_REL * np.minimum(a, b)
+        jump |= (a > 0) != (b > 0)
+        edge[sl_a] |= jump
+        edge[sl_b] |= jump
+    return edge
+
+
+def _dilate(mask: np.ndarray) -> np.ndarray:
+    """3x3 binary dilation of ``mask`` ``[H, W]``."""
+    out = mask.copy()
+    out[1:, :] |= mask[:-1, :]
+    out[:-1, :] |= mask[1:, :]
+    m = out.copy()
+    out[:, 1:] |= m[:, :-1]
+    out[:, :-1] |= m[:, 1:]
+    return out
+
+
+def _projector_shadow(z: np.ndarray, fx: float, baseline_m: float) -> np.ndarray:
+    """Pixels ``[H, W]`` the projector (``baseline_m`` to the camera's +x) cannot light.
+
+    A point at column ``u`` and depth ``z`` is lit from projector column ``u - fx b / z``; along a
+    row a nearer surface to the right that reaches a smaller projector column hides it (the
+    ordering test of stereo matching). Shadows fall left of foreground objects, ``fx b (1/z_near -
+    1/z_far)`` pixels wide.
+    """
+    W = z.shape[1]
+    u = np.arange(W, dtype=np.float64)[None, :]
+    up = np.where(z > 0, u - fx * baseline_m / np.where(z > 0, z, 1.0), np.inf)
+    suffix_min = np.minimum.accumulate(up[:, ::-1], axis=1)[:, ::-1]  # min over q >= p
+    right_min = np.full_like(up, np.inf)
+    right_min[:, :-1] = suffix_min[:, 1:]  # min over q > p
+    return (z > 0) & (up > right_min + _SHADOW_TOL_PX)
+
+
+def _box_sum(a: np.ndarray, k: int) -> np.ndarray:
+    """Sums over every k x k window of ``a`` ``[H + k - 1, W + k - 1]``: ``[H, W]`` (cumulative
+    sums: exact order, deterministic)."""
+    c = np.zeros((a.shape[0] + 1, a.shape[1]))
+    np.cumsum(a, axis=0, out=c[1:])
+    rows = c[k:] - c[:-k]
+    c = np.zeros((rows.shape[0], rows.shape[1] + 1))
+    np.cumsum(rows, axis=1, out=c[:, 1:])
+    return c[:, k:] - c[:, :-k]
+
+
+def _unit_noise(spec: SyntheticSpec, shape: tuple[int, int], frame_index: int) -> np.ndarray:
+    """Zero-mean unit-variance noise ``[H, W]``: per pixel, or (``depth_noise_corr_px`` > 0) mostly a
+    box-filtered field correlated over ``depth_noise_corr_px * W / 640`` pixels."""
+    H, W = shape
+    white = _effect_rng(spec, frame_index, 4).standard_normal((H, W))
+    k = int(round(spec.depth_noise_corr_px * W / 640.0))
+    if k <= 1:
+        return white
+    field = _effect_rng(spec, frame_index, 6).standard_normal((H + k - 1, W + k - 1))
+    smooth = _box_sum(field, k) / k  # a sum of k^2 unit normals has std k
+    f = _CORRELATED_NOISE_FRACTION
+    return math.sqrt(f) * smooth + math.sqrt(1.0 - f) * white
+
+
+def _effect_rng(spec: SyntheticSpec, frame_index: int, effect: int) -> np.random.Generator:
+    # One stream per (frame, effect): switching one effect off leaves the others' noise unchanged.
+    return np.random.default_rng([spec.seed, _SENSOR_STREAM, frame_index, effect])
+
+
+def apply_depth_sensor_model(
+    spec: SyntheticSpec,
+    depth_m: np.ndarray,
+    cos_incidence: np.ndarray,
+    luma: np.ndarray,
+    shiny: np.ndarray,
+    frame_index: int = 0,
+) -> np.ndarray:
+    """The depth a structured-light sensor reports for an exact depth map.
+
+    Args:
+        depth_m: ``[H, W]`` exact camera z, 0 = no surface.
+        cos_incidence: ``[H, W]`` cosine of the incidence angle at each pixel.
+        luma: ``[H, W]`` surface brightness in [0, 1] (albedo x shading, a proxy of IR reflectance).
+        shiny: ``[H, W]`` bool, glossy surface.
+        frame_index: keys the random streams (with ``spec.seed``).
+
+    Returns:
+        ``[H, W]`` float64 depth in metres, 0 = no reading (not yet rounded to ``depth_scale``).
+    """
+    z0 = np.asarray(depth_m, dtype=np.float64)
+    H, W = z0.shape
+    z = z0.copy()
+    cos_i = np.array(cos_incidence, dtype=np.float64)  # copies: the jitter below writes into them
+    lum = np.array(luma, dtype=np.float64)
+    shn = np.array(shiny, dtype=bool)
+    edge = _depth_edges(z0)
+    if spec.depth_lateral_noise_px > 0:
+        # Jagged silhouettes: pixels near a discontinuity read a neighbour's depth.
+        band = np.flatnonzero(_dilate(edge))
+        rng = _effect_rng(spec, frame_index, 1)
+        off = np.rint(rng.standard_normal((2, band.size)) * spec.depth_lateral_noise_px).astype(np.int64)
+        v, u = np.divmod(band, W)
+        src = np.clip(v + off[0], 0, H - 1) * W + np.clip(u + off[1], 0, W - 1)
+        for arr in (z, cos_i, lum, shn):
+            flat = arr.reshape(-1)
+            flat[band] = flat[src] if arr is not z else z0.reshape(-1)[src]
+    valid = z > 0
+    if spec.edge_dropout_prob > 0:
+        valid &= ~(edge & (_effect_rng(spec, frame_index, 2).random((H, W)) < spec.edge_dropout_prob))
+    if spec.projector_baseline_m > 0:
+        valid &= ~_projector_shadow(z0, spec.fx, spec.projector_baseline_m)
+    if spec.dark_dropout_luma > 0:
+        # Certain loss at black, none at or above the threshold, a linear ramp between.
+        p_drop = np.clip(1.0 - lum / spec.dark_dropout_luma, 0.0, 1.0)
+        valid &= ~(_effect_rng(spec, frame_index, 3).random((H, W)) < p_drop)
+    if spec.shiny_dropout_deg > 0:
+        valid &= ~(shn & (cos_i > math.cos(math.radians(spec.shiny_dropout_deg))))
+    if spec.grazing_dropout_deg > 0:
+        valid &= cos_i >= math.cos(math.radians(spec.grazing_dropout_deg))
+    z = np.where(valid, z, 0.0)
+
+    q = spec.inverse_depth_step_per_m
+    if spec.depth_noise_a_m > 0 or spec.depth_noise_b_per_m > 0 or spec.depth_noise_angle_m > 0:
+        sigma = depth_noise_sigma_m(spec, np.where(valid, z, 1.0), np.where(valid, cos_i, 1.0))
+        # The model's std is the sensor's total: the Gaussian part leaves room for the
+        # quantisation below (uniform steps of q z^2 have variance (q z^2)^2 / 12).
+        step = q * z * z
+        sd = np.sqrt(np.maximum(sigma * sigma - step * step / 12.0, 0.0))
+        z = np.where(valid, z + sd * _unit_noise(spec, (H, W), frame_index), 0.0)
+        valid &= z > 0
+    if q > 0:
+        inv_q = np.rint(1.0 / np.where(valid, z, 1.0) / q)
+        z = np.where(valid & (inv_q > 0), 1.0 / (np.maximum(inv_q, 1.0) * q), 0.0)
+    return np.where((z > 0) & (z <= spec.max_depth_m), z, 0.0)
+
+
+def _shift_image(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``img`` ``[H, W, C]`` moved by ``(dx, dy)`` pixels (bilinear, edges repeated):
+    ``out[v, u] = img[v - dy, u - dx]``."""
+    H, W = img.shape[:2]
+    out = img
+    for axis, shift, n in ((1, dx, W), (0, dy, H)):
+        if shift == 0.0:
+            continue
+        i = math.floor(shift)
+        f = np.float32(shift - i)
+        idx = np.arange(n)
+        a = np.take(out, np.clip(idx - i, 0, n - 1), axis=axis)  # weight 1 - f
+        b = np.take(out, np.clip(idx - i - 1, 0, n - 1), axis=axis)  # weight f
+        out = a * (np.float32(1.0) - f) + b * f
+    return out
+
+
+def _colour_gain(spec: SyntheticSpec, t: float, mean_luma: float) -> np.ndarray:
+    """Per-channel gain ``[3]`` float32 at time ``t``: auto exposure, exposure and white-balance
+    drift (slow sines with phases from the seed)."""
+    ph = np.random.default_rng([spec.seed, _SENSOR_STREAM, 0xC0]).uniform(0.0, 2.0 * math.pi, size=4)
+    gain = np.ones(3)
+    if spec.exposure_drift > 0:
+        # Auto exposure halves the log distance to the target brightness (no lag), then drifts.
+        ae = math.sqrt(_AE_TARGET_LUMA / max(mean_luma, 1e-3))
+        ae = min(max(ae, _AE_GAIN_RANGE[0]), _AE_GAIN_RANGE[1])
+        f1, f2 = _EXPOSURE_DRIFT_HZ
+        drift = 0.6 * math.sin(2 * math.pi * f1 * t + ph[0]) + 0.4 * math.sin(2 * math.pi * f2 * t + ph[1])
+        gain *= ae * (1.0 + spec.exposure_drift * drift)
+    if spec.white_balance_drift > 0:
+        fr, fb = _WHITE_BALANCE_HZ
+        gain[0] *= 1.0 + spec.white_balance_drift * math.sin(2 * math.pi * fr * t + ph[2])
+        gain[2] *= 1.0 + spec.white_balance_drift * math.sin(2 * math.pi * fb * t + ph[3])
+    return gain.astype(np.float32)
+
+
+def _luma(col: np.ndarray) -> np.ndarray:
+    """Rec. 601 luma ``[H, W]`` of a colour image ``[H, W, 3]``."""
+    return (np.float32(0.299) * col[..., 0] + np.float32(0.587) * col[..., 1]
+            + np.float32(0.114) * col[..., 2])
+
+
+def _sensor_frame(
+    spec: SyntheticSpec, scene: SyntheticScene, t: float, frame_index: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """One frame through the sensor model: ``(rgb uint8 [H, W, 3], depth_m float64 [H, W])``.
+
+    Depth is sensed at the pose of time ``t``; colour integrates the exposure around ``t``.
+    """
+    T = camera_path(spec, np.array([t]))[0]
+    lay = _render_layers(spec, scene, T)
+    luma = _luma(lay.col)
+    depth = apply_depth_sensor_model(spec, lay.depth_m, lay.cos_incidence, luma, lay.shiny, frame_index)
+
+    col = lay.col
+    n = spec.motion_blur_samples
+    if n >= 2 and spec.exposure_time_s > 0:
+        offsets = [spec.exposure_time_s * (k / (n - 1) - 0.5) for k in range(n)]
+        sub = camera_path(spec, t + np.array(offsets))
+        acc = np.zeros_like(col)
+        for off, Tk in zip(offsets, sub):  # fixed order: deterministic float sums
+            acc += col if off == 0.0 else _render_colour(spec, scene, Tk)
+        col = acc * np.float32(1.0 / n)
+    if spec.exposure_drift > 0 or spec.white_balance_drift > 0:
+        col = col * _colour_gain(spec, t, float(_luma(col).mean()))
+    if spec.rgb_shift_x_px or spec.rgb_shift_y_px:
+        col = _shift_image(col, spec.rgb_shift_x_px, spec.rgb_shift_y_px)
+    if spec.rgb_noise_std > 0:
+        noise = _effect_rng(spec, frame_index, 5).standard_normal(col.shape, dtype=np.float32)
+        col = col + noise * np.float32(spec.rgb_noise_std / 255.0)
+    rgb = np.round(np.clip(col, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return rgb, depth
+
+
 # ----------------------------------------------------------------------------------------------
 # Dataset writing
 
 
+def _spec_dict(spec: SyntheticSpec) -> dict:
+    """The spec's fields, less the optional ones still at their defaults (a default spec gives the
+    same dictionary, hash and ``synthetic_spec.json`` as generator version 1 always did)."""
+    d = asdict(spec)
+    return {k: v for k, v in d.items() if k in _V1_FIELDS or v != _FIELD_DEFAULTS[k]}
+
+
 def spec_hash(spec: SyntheticSpec) -> str:
     """Hex sha256 of the spec and generator version: the content of the ``.complete`` marker."""
-    payload = json.dumps({"generator_version": GENERATOR_VERSION, **asdict(spec)}, sort_keys=True)
+    payload = json.dumps({"generator_version": GENERATOR_VERSION, **_spec_dict(spec)}, sort_keys=True)
     return hashlib.sha256(payload.encode("utf-8")).hexdigest()
 
 
@@ -797,8 +1483,12 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     (root / "depth").mkdir()
     label = f"atlas-gs synthetic seed={spec.seed}"
 
-    t_rel = np.arange(spec.n_frames, dtype=np.float64) / spec.fps  # [F] seconds from start
-    poses = camera_path(spec, t_rel)  # [F, 4, 4]
+    t_rel = frame_times_s(spec)  # [F] seconds from start (i / fps unless frames are dropped)
+    sensor = spec.sensor_model
+    poses = None if sensor else camera_path(spec, t_rel)  # [F, 4, 4]
+    if sensor:
+        logger.info("synthetic: sensor model on (%s)", ", ".join(
+            f"{k}={getattr(spec, k):g}" for k in _SENSOR_FIELDS if getattr(spec, k) != _FIELD_DEFAULTS[k]))
     rgb_rows: list[str] = []
     depth_rows: list[str] = []
     t0 = time.perf_counter()
@@ -809,8 +1499,12 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
         for i in range(spec.n_frames):
             ts_rgb = _ts(TIMESTAMP_START_S + t_rel[i])
             ts_depth = _ts(TIMESTAMP_START_S + t_rel[i] + DEPTH_OFFSET_S)
-            # Both images at the rgb timestamp pose: colour and depth stay exactly consistent.
-            rgb, depth_m = render_synthetic_frame(spec, scene, poses[i])
+            if sensor:
+                # Depth at the rgb timestamp pose, colour exposed around it.
+                rgb, depth_m = _sensor_frame(spec, scene, float(t_rel[i]), i)
+            else:
+                # Both images at the rgb timestamp pose: colour and depth stay exactly consistent.
+                rgb, depth_m = render_synthetic_frame(spec, scene, poses[i])
             raw = np.round(depth_m.astype(np.float64) * spec.depth_scale)
             raw = np.where((depth_m > 0) & (depth_m <= spec.max_depth_m), raw, 0.0)
             pending.append(
@@ -859,7 +1553,7 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     )
     info = {
         "generator_version": GENERATOR_VERSION,
-        "spec": asdict(spec),
+        "spec": _spec_dict(spec),
         "camera": spec.camera().to_dict(),
     }
     (root / "synthetic_spec.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
