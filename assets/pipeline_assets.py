@@ -100,7 +100,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
 
     @atlas_asset(description="Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
                              "no ground truth) the RGB-D tracker's own trajectory and keyframes.",
-                 code_version="4", **common)
+                 code_version="5", **common)
     def keyframes(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                   fused_frames: FusedFrames) -> KeyframeSet:
         kf = lib.select_keyframes_stage(raw_dataset, fused_frames, atlas.load(), log=context.log.info)
@@ -132,7 +132,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
 
     @atlas_asset(description="Per-frame pose tracked against the world (frame-to-model, no ground truth used): status, "
                              "residual, time; ATE and RPE where ground truth exists; trajectory plot.",
-                 code_version="4", checks=[ATE_CHECK], **common)
+                 code_version="5", checks=[ATE_CHECK], **common)
     def localization_report(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                             gaussian_world: GaussianWorld) -> LocalizationReport:
         report = lib.localize(raw_dataset, gaussian_world, atlas.load(), log=context.log.info)

@@ -191,6 +191,7 @@ def _accumulate_range(
     pts_cam, inten_cur, T,
     model_pts, model_nrm, T_ref, mfx, mfy, mcx, mcy, max_dist_m, delta_g,
     ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m,
+    noise_a, noise_b, noise_z0, noise_ref,
 ):
     """One chunk of :func:`accumulate_normal_equations`: adds points ``lo:hi`` into ``H``
     (upper triangle), ``g`` and ``stats``.
@@ -230,8 +231,16 @@ def _accumulate_range(
                     nwy = Rr[1, 0] * nrx + Rr[1, 1] * nry + Rr[1, 2] * nrz
                     nwz = Rr[2, 0] * nrx + Rr[2, 1] * nry + Rr[2, 2] * nrz
                     ar = abs(r)
-                    wgt = 1.0 if ar <= delta_g else delta_g / ar
-                    _add_residual(H, g, J, px, py, pz, nwx, nwy, nwz, wgt, r)
+                    # Sensor model: the residual is whitened by this point's depth noise relative
+                    # to a point at the reference depth (weight ratio^2, Huber threshold / ratio).
+                    ratio = 1.0
+                    if noise_a > 0.0:
+                        zc = pts_cam[k, 2]
+                        dz_ = zc - noise_z0 if zc > noise_z0 else 0.0
+                        ratio = noise_ref / (noise_a + noise_b * dz_ * dz_)
+                    dg = delta_g / ratio
+                    wgt = 1.0 if ar <= dg else dg / ar
+                    _add_residual(H, g, J, px, py, pz, nwx, nwy, nwz, wgt * ratio * ratio, r)
                     stats[0] += wgt * r * r
                     stats[1] += 1
                     stats[4] += r * r
@@ -284,6 +293,7 @@ def accumulate_normal_equations(
     pts_cam, inten_cur, T,
     model_pts, model_nrm, T_ref, mfx, mfy, mcx, mcy, max_dist_m, delta_g,
     ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m,
+    noise_a=0.0, noise_b=0.0, noise_z0=0.0, noise_ref=1.0,
 ):
     """Gauss-Newton normal equations of the hybrid residual for a left world-frame update
     ``T <- exp(xi) T`` with ``xi = (v, omega)``.
@@ -292,6 +302,8 @@ def accumulate_normal_equations(
     pixels of ``model_pts`` / ``model_nrm`` in the camera ``T_ref``). Photometric: intensity of the
     reference image ``ref_I`` at the point's projection minus the point's own intensity, weighted
     by ``w_photo`` (0 disables it). Huber weights with thresholds ``delta_g`` (m) and ``delta_p``.
+    With ``noise_a > 0`` each geometric residual is weighted by the depth-noise model
+    ``sigma(z) = noise_a + noise_b (z - noise_z0)^2`` relative to ``noise_ref = sigma(reference depth)``.
     Points are split into chunks summed in parallel, then added in chunk order (deterministic).
 
     Returns ``(H [6, 6], g [6], stats [7])`` with stats = (sum w r^2 geometric, n geometric,
@@ -310,7 +322,8 @@ def accumulate_normal_equations(
         if lo < hi:
             _accumulate_range(lo, hi, Hs[c], gs[c], ss[c], pts_cam, inten_cur, T,
                               model_pts, model_nrm, T_ref, mfx, mfy, mcx, mcy, max_dist_m, delta_g,
-                              ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m)
+                              ref_I, ref_gx, ref_gy, ref_D, T_pref, pfx, pfy, pcx, pcy, dist, w_photo, delta_p, occl_m,
+                              noise_a, noise_b, noise_z0, noise_ref)
     H = np.zeros((6, 6))
     g = np.zeros(6)
     stats = np.zeros(7)

@@ -49,6 +49,16 @@ _SIGMA_DEPTH_M = 0.01
 _MODEL_LEVEL_OFFSET = 1
 _MODEL_MIN_WIDTH = 160
 _SIGMA_INTENSITY = 0.05
+# Axial depth noise of a structured-light RGB-D camera (Kinect v1 class: TUM, 7-Scenes, ScanNet):
+# sigma(z) = A + B (z - Z0)^2 (Nguyen, Izadi and Lovell 2012). The geometric residual of each point
+# is weighted by (sigma(reference) / sigma(z))^2, so far, noisy depth counts as the sensor says
+# instead of pulling the pose with the weight of near, precise depth.
+DEPTH_NOISE_A_M = 0.0012
+DEPTH_NOISE_B_PER_M = 0.0019
+DEPTH_NOISE_Z0_M = 0.4
+DEPTH_NOISE_REFERENCE_M = 1.0  # points nearer than this keep (about) full weight
+_DEPTH_NOISE_ARGS = (DEPTH_NOISE_A_M, DEPTH_NOISE_B_PER_M, DEPTH_NOISE_Z0_M,
+                     DEPTH_NOISE_A_M + DEPTH_NOISE_B_PER_M * (DEPTH_NOISE_REFERENCE_M - DEPTH_NOISE_Z0_M) ** 2)
 
 
 @functools.lru_cache(maxsize=32)
@@ -311,6 +321,7 @@ class RGBDTracker:
                     pts, inten, T, m_pts, m_nrm, T_model, mfx, mfy, mcx, mcy,
                     max_dist, cfg.huber_depth_m,
                     ref_I, ref_gx, ref_gy, ref_D, T_ref, *pK, self.dist, w_photo, _SIGMA_INTENSITY * 2.0, 0.05,
+                    *_DEPTH_NOISE_ARGS,
                 )
                 total_it += 1
                 if stats[1] < 12:
