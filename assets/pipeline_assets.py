@@ -100,7 +100,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition,
 
     @atlas_asset(description="Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
                              "no ground truth) the RGB-D tracker's own trajectory and keyframes.",
-                 code_version="5", **common)
+                 code_version="6", **common)
     def keyframes(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                   fused_frames: FusedFrames) -> KeyframeSet:
         kf = lib.select_keyframes_stage(raw_dataset, fused_frames, atlas.load(), log=context.log.info)

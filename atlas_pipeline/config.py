@@ -129,6 +129,11 @@ class MappingConfig:
     optimization_max_steps: int = _setting(600, AT_LEAST_ONE)
     optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
     optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
+    # Tracked poses (pose_source estimated): loops to earlier keyframes verified by the tracker,
+    # then a pose graph of the keyframes (atlas_pipeline/mapping/loop_closure.py).
+    loop_closure: bool = True
+    loop_min_keyframe_gap: int = _setting(10, AT_LEAST_ONE)  # a loop's keyframes are at least this many keyframes apart
+    loop_search_radius_m: float = _setting(0.3, POSITIVE)  # candidates: camera centres within this distance
 
 
 @dataclass(frozen=True)

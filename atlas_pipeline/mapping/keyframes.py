@@ -53,12 +53,16 @@ def select_keyframes(T_world_cam: np.ndarray, valid: np.ndarray, translation_m: 
 
 def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: LocalizationConfig,
                depth_range_m: tuple[float, float], fusion_stride: int,
-               log: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[str], np.ndarray]:
+               log: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[str], np.ndarray, dict | None]:
     """Track and map the sequence with no ground truth: frame-to-model RGB-D tracking against the
-    keyframes merged so far (:class:`SequenceTracker`). The first frame defines the world.
+    keyframes merged so far (:class:`SequenceTracker`). The first frame defines the world. With
+    ``mapping.loop_closure``, loops to earlier keyframes are then closed and every pose corrected
+    (:func:`atlas_pipeline.mapping.loop_closure.close_loops`).
 
-    Returns ``(T_world_cam [N, 4, 4], status [N], keyframe indices [K])``; lost frames keep
-    their predicted pose and are never keyframes. Frames are read one at a time.
+    Returns ``(T_world_cam [N, 4, 4], status [N], keyframe indices [K], loop record)``; lost frames
+    keep their predicted pose and are never keyframes. The loop record
+    (:meth:`LoopClosureResult.record`: loops, how far the trajectory moved) is None when loop
+    closure is off. Frames are read one at a time.
     """
     from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
     from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
@@ -86,7 +90,15 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     n_lost = status.count(STATUS_LOST)
     if n_lost:
         logger.warning("%s: %d of %d frames lost while tracking", manifest.dataset, n_lost, n)
-    return poses, status, np.asarray(st.keyframe_indices, np.int64)
+    idx = np.asarray(st.keyframe_indices, np.int64)
+    if not mapping.loop_closure:
+        return poses, status, idx, None
+    from atlas_pipeline.mapping.loop_closure import close_loops
+
+    valid = np.array([s != STATUS_LOST for s in status]) & np.isfinite(poses).all(axis=(1, 2))
+    lc = close_loops(manifest, poses, valid, idx, localization, depth_range_m, fusion_stride, mapping.voxel_size_m,
+                     mapping.loop_min_keyframe_gap, mapping.loop_search_radius_m, log=log)
+    return lc.T_world_cam, status, idx, lc.record(idx)
 
 
 def uses_ground_truth(manifest: FrameManifest, cfg: MappingConfig) -> bool:
@@ -107,12 +119,15 @@ class KeyframeSet:
         valid: ``[N]`` bool, frames with a mapping pose.
         indices: ``[K]`` int64 keyframe indices, increasing.
         pose_source: ``ground_truth`` or ``estimated``.
+        loop_closure: what loop closure did (:meth:`LoopClosureResult.record`: the loops, how far
+            the trajectory moved), or None (ground truth, loop closure off, an older artifact).
     """
 
     T_world_cam: np.ndarray
     valid: np.ndarray
     indices: np.ndarray
     pose_source: str
+    loop_closure: dict | None = None
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
@@ -122,6 +137,7 @@ class KeyframeSet:
         meta = write_json_atomic(directory / "keyframes.json", {
             "pose_source": self.pose_source, "n_frames": int(len(self.valid)),
             "n_keyframes": int(len(self.indices)), "indices": [int(i) for i in self.indices],
+            **({} if self.loop_closure is None else {"loop_closure": self.loop_closure}),
         })
         return [path, meta]
 
@@ -132,7 +148,8 @@ class KeyframeSet:
         path, meta_path = directory / "keyframes.npz", directory / "keyframes.json"
         if not path.is_file() or not meta_path.is_file():
             raise ArtifactError(f"{directory}: keyframes missing keyframes.npz or keyframes.json")
-        pose_source = load_json_object_checked(meta_path).get("pose_source")
+        meta = load_json_object_checked(meta_path)
+        pose_source = meta.get("pose_source")
         if pose_source not in POSE_SOURCES:
             raise ArtifactError(f"{meta_path}: pose_source must be one of {list(POSE_SOURCES)}, got {str(pose_source)[:40]!r}")
         z = load_npz_checked(path, _KEYFRAME_MEMBERS, error_type=ArtifactError)
@@ -144,7 +161,10 @@ class KeyframeSet:
             raise ArtifactError(f"{path}: T_world_cam has NaN or infinite values in a frame marked valid")
         if len(idx) and (idx.min() < 0 or int(idx.max()) >= n or (np.diff(idx.astype(np.int64)) <= 0).any()):
             raise ArtifactError(f"{path}: indices must be increasing frame indices in [0, {n})")
-        return cls(T.astype(np.float64), valid, idx.astype(np.int64), pose_source)
+        loops = meta.get("loop_closure")  # optional: artifacts written before loop closure lack it
+        if loops is not None and not isinstance(loops, dict):
+            raise ArtifactError(f"{meta_path}: loop_closure must be an object, got {type(loops).__name__}")
+        return cls(T.astype(np.float64), valid, idx.astype(np.int64), pose_source, loops)
 
 
 def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingConfig,
@@ -157,6 +177,8 @@ def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingCon
         if len(idx) == 0:
             raise DatasetError(manifest.root, "no frame has a pose to map with")
         return KeyframeSet(poses, valid, idx, "ground_truth")
-    poses, status, idx = slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m), fused.stride, log)
+    poses, status, idx, loops = slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m),
+                                           fused.stride, log)
     valid = np.array([s != "lost" for s in status]) & np.isfinite(poses).all(axis=(1, 2))
-    return KeyframeSet(poses, valid, idx, "estimated")
+    # The corrected poses (loop closure) are the mapping poses: build_world re-fuses the map from them.
+    return KeyframeSet(poses, valid, idx, "estimated", loops)

@@ -1,0 +1,416 @@
+"""Loop closure: loops found between keyframes, and the keyframe poses corrected by a pose graph.
+
+Frame-to-model tracking (:class:`atlas_pipeline.localization.sequence.SequenceTracker`) drifts
+slowly over a long sequence: when the camera returns to a place it mapped long ago, the new
+keyframes sit a few centimetres (or degrees) away from the old ones. This module runs after
+tracking and mapping:
+
+1. **Detection** (:func:`loop_candidates`): for each keyframe ``i``, earlier keyframes ``j`` at
+   least ``min_gap`` keyframes back whose poses are near (camera centres within ``radius_m``, optical
+   axes within :data:`LOOP_MAX_VIEW_ANGLE_DEG`): the views overlap if the drift is smaller than the
+   radius.
+2. **Verification** (:func:`verify_loop`): keyframe ``i`` is aligned with the RGB-D tracker to the
+   geometry of the candidate and its neighbours as they were mapped (a :class:`SurfelModel` from
+   their own points), from the drifted pose and from the candidate's pose; when both fail, the
+   :class:`Relocalizer` (no initial pose needed) searches that local map. A loop is accepted only
+   when the tracker judges the fit good (``ok``: inlier fraction, agreement, residual) and the
+   inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION`.
+3. **Pose graph** (:func:`optimize_pose_graph`): Open3D's ``PoseGraph`` with one odometry edge
+   between consecutive keyframes (the tracked relative pose) and one uncertain edge per verified
+   loop, solved by ``global_optimization`` (Levenberg-Marquardt with a line process that prunes
+   loops inconsistent with the rest, Choi et al. 2015); keyframe 0 stays fixed.
+4. **Propagation** (:func:`propagate_correction`): every other frame moves with its nearest earlier
+   keyframe (``T_new = T_kf_new @ inv(T_kf_old) @ T_old``).
+
+The map is then re-fused from the corrected keyframe poses (:func:`refuse_keyframes`;
+``gaussian_world`` does the same from the corrected :class:`KeyframeSet`).
+
+Conventions (as Open3D's multiway registration): poses ``T_world_cam`` ``[4, 4]`` camera-to-world;
+an edge ``(source, target, T)`` measures ``T = inv(T_target) @ T_source`` (source camera to target
+camera). Math functions take arrays and do no IO; :func:`close_loops` reads the frames.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["LoopEdge", "LoopClosureResult", "loop_candidates", "relative_poses", "optimize_pose_graph",
+           "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
+           "refuse_keyframes"]
+
+# Optical axes of two keyframes more than this apart rarely see the same surfaces from the short
+# range of an indoor RGB-D camera (a 57-degree field of view): not a candidate.
+LOOP_MAX_VIEW_ANGLE_DEG = 45.0
+# Candidates tried per keyframe (nearest first): each costs one or two tracker alignments.
+LOOP_MAX_CANDIDATES = 3
+# The local map a keyframe is verified against: the candidate and this many keyframes either side
+# (all older than the gap), so a view a little off the candidate's still overlaps it.
+LOOP_MODEL_WINDOW = 2
+# A loop edge is added to the graph only when this share of the keyframe's points fit the old
+# geometry: stricter than tracking's ``min_fitness`` (a wrong loop bends the whole trajectory).
+LOOP_MIN_INLIER_FRACTION = 0.3
+# After a keyframe closes a loop, the next this-many keyframes do not search: they would add
+# near-duplicate edges, costing time but no information.
+LOOP_COOLDOWN_KEYFRAMES = 2
+# Relocalizer fallback (seconds per try): at most this many per sequence.
+LOOP_MAX_RELOCALIZATIONS = 8
+# Pose graph: Open3D's line process keeps an uncertain (loop) edge whose error, weighted by its
+# information, is within about this distance; edges whose line-process weight ends below the
+# prune threshold are dropped as false loops. A floor: close_loops uses the search radius when
+# larger (a 40 cm drift with a 5 cm tolerance prunes the true loop: see tests/test_loop_closure.py).
+POSE_GRAPH_MAX_CORRESPONDENCE_M = 0.05
+POSE_GRAPH_EDGE_PRUNE_THRESHOLD = 0.25
+# Points per keyframe used for the information matrices (Open3D counts correspondences): voxel
+# downsampling at twice the map voxel keeps them cheap.
+INFO_VOXEL_FACTOR = 2.0
+
+
+@dataclass
+class LoopEdge:
+    """A verified loop: keyframe ``source`` (later) seen again from keyframe ``target`` (earlier).
+
+    Attributes:
+        source, target: positions in the keyframe list (not frame indices).
+        T_target_source: ``[4, 4]`` measured relative pose ``inv(T_target) @ T_source``.
+        inlier_fraction, residual_m: the verifying alignment's quality.
+        method: ``tracker`` (aligned from a pose guess) or ``relocalizer`` (found with no prior).
+        kept: the pose graph kept the edge (False: pruned as inconsistent).
+    """
+
+    source: int
+    target: int
+    T_target_source: np.ndarray
+    inlier_fraction: float
+    residual_m: float
+    method: str = "tracker"
+    kept: bool = True
+
+
+@dataclass
+class LoopClosureResult:
+    """Outcome of :func:`close_loops`.
+
+    Attributes:
+        T_world_cam: ``[N, 4, 4]`` corrected poses of all frames (rows not valid left as given).
+        T_keyframes_before, T_keyframes_after: ``[K, 4, 4]``.
+        loops: the verified loops (``kept`` says which the graph kept).
+        max_translation_change_m, mean_translation_change_m: how far the correction moved the
+            frames' camera centres (valid frames).
+        time_s: wall time of detection, verification and optimisation.
+    """
+
+    T_world_cam: np.ndarray
+    T_keyframes_before: np.ndarray
+    T_keyframes_after: np.ndarray
+    loops: list[LoopEdge] = field(default_factory=list)
+    max_translation_change_m: float = 0.0
+    mean_translation_change_m: float = 0.0
+    n_candidates: int = 0
+    time_s: float = 0.0
+
+    def record(self, keyframe_indices: np.ndarray) -> dict:
+        """A JSON-able summary (frame indices, not keyframe positions) for artifacts and reports."""
+        kf = np.asarray(keyframe_indices)
+        return {
+            "n_candidates": int(self.n_candidates),
+            "n_loops": int(sum(lp.kept for lp in self.loops)),
+            "loops": [{"frame": int(kf[lp.source]), "matched_frame": int(kf[lp.target]),
+                       "keyframe": int(lp.source), "matched_keyframe": int(lp.target),
+                       "inlier_fraction": round(float(lp.inlier_fraction), 4),
+                       "residual_m": round(float(lp.residual_m), 5), "method": lp.method, "kept": bool(lp.kept)}
+                      for lp in self.loops],
+            "max_translation_change_m": round(float(self.max_translation_change_m), 5),
+            "mean_translation_change_m": round(float(self.mean_translation_change_m), 5),
+            "time_s": round(float(self.time_s), 3),
+        }
+
+
+# -- pure math ---------------------------------------------------------------------------------------
+
+def loop_candidates(T_kf: np.ndarray, i: int, min_gap: int, radius_m: float,
+                    max_view_angle_deg: float = LOOP_MAX_VIEW_ANGLE_DEG,
+                    max_candidates: int = LOOP_MAX_CANDIDATES) -> np.ndarray:
+    """Earlier keyframes that may see what keyframe ``i`` sees, nearest first.
+
+    Args:
+        T_kf: ``[K, 4, 4]`` keyframe poses (camera-to-world).
+        i: the keyframe searching; candidates are ``j <= i - min_gap``.
+        radius_m: camera centres at most this far apart; optical axes at most
+            ``max_view_angle_deg`` apart.
+    Returns:
+        ``[C]`` int64 keyframe positions, ``C <= max_candidates``.
+    """
+    last = i - min_gap
+    if last < 0:
+        return np.zeros(0, np.int64)
+    old = T_kf[: last + 1]
+    d = np.linalg.norm(old[:, :3, 3] - T_kf[i, :3, 3], axis=1)
+    cos_axes = old[:, :3, 2] @ T_kf[i, :3, 2]
+    ok = (d <= radius_m) & (cos_axes >= np.cos(np.radians(max_view_angle_deg))) & np.isfinite(d)
+    idx = np.flatnonzero(ok)
+    return idx[np.argsort(d[idx], kind="stable")][:max_candidates].astype(np.int64)
+
+
+def relative_poses(T_kf: np.ndarray) -> np.ndarray:
+    """Odometry measurements between consecutive keyframes: ``[K-1, 4, 4]``, element ``k`` is
+    ``inv(T_kf[k + 1]) @ T_kf[k]`` (keyframe k's camera to keyframe k+1's)."""
+    return np.einsum("kij,kjl->kil", np.stack([invert_se3(T) for T in T_kf[1:]]), T_kf[:-1]) if len(T_kf) > 1 \
+        else np.zeros((0, 4, 4))
+
+
+def optimize_pose_graph(T_kf: np.ndarray, odometry: np.ndarray, loops: list[tuple[int, int, np.ndarray]],
+                        odometry_information: np.ndarray | None = None,
+                        loop_information: np.ndarray | None = None,
+                        max_correspondence_m: float = POSE_GRAPH_MAX_CORRESPONDENCE_M,
+                        edge_prune_threshold: float = POSE_GRAPH_EDGE_PRUNE_THRESHOLD) -> tuple[np.ndarray, list[bool]]:
+    """Keyframe poses that best agree with odometry and loop measurements (Open3D's solver).
+
+    Args:
+        T_kf: ``[K, 4, 4]`` initial poses (the tracked ones); keyframe 0 stays fixed.
+        odometry: ``[K-1, 4, 4]`` edge ``k -> k+1`` measurements (:func:`relative_poses`), certain.
+        loops: ``(source, target, T_target_source [4, 4])`` per loop, uncertain (may be pruned).
+        odometry_information: ``[K-1, 6, 6]`` (default identity); loop_information ``[L, 6, 6]``.
+    Returns:
+        ``(T_kf_optimised [K, 4, 4], kept [L])``: ``kept[l]`` is False where the line process
+        pruned loop ``l``.
+    """
+    from atlas_pipeline._open3d import open3d
+
+    o3d = open3d()
+    reg = o3d.pipelines.registration
+    K = len(T_kf)
+    if K < 2 or not loops:
+        return np.array(T_kf, np.float64), [True] * len(loops)
+    info_o = np.broadcast_to(np.eye(6), (K - 1, 6, 6)) if odometry_information is None else odometry_information
+    info_l = np.broadcast_to(np.eye(6), (len(loops), 6, 6)) if loop_information is None else loop_information
+    graph = reg.PoseGraph()
+    for T in T_kf:
+        graph.nodes.append(reg.PoseGraphNode(np.asarray(T, np.float64)))
+    for k in range(K - 1):
+        graph.edges.append(reg.PoseGraphEdge(k, k + 1, np.asarray(odometry[k], np.float64),
+                                             np.asarray(info_o[k], np.float64), uncertain=False))
+    for (s, t, T), info in zip(loops, info_l):
+        graph.edges.append(reg.PoseGraphEdge(int(s), int(t), np.asarray(T, np.float64),
+                                             np.asarray(info, np.float64), uncertain=True))
+    option = reg.GlobalOptimizationOption(max_correspondence_distance=max_correspondence_m,
+                                          edge_prune_threshold=edge_prune_threshold, reference_node=0)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
+                                reg.GlobalOptimizationConvergenceCriteria(), option)
+    out = np.stack([np.asarray(n.pose, np.float64) for n in graph.nodes])
+    remaining = {(e.source_node_id, e.target_node_id) for e in graph.edges if e.uncertain}
+    kept = [(int(s), int(t)) in remaining for s, t, _ in loops]
+    return out, kept
+
+
+def propagate_correction(T_all: np.ndarray, valid: np.ndarray, kf_indices: np.ndarray,
+                         T_kf_old: np.ndarray, T_kf_new: np.ndarray) -> np.ndarray:
+    """Move every frame with its nearest earlier keyframe (the first keyframe for frames before it).
+
+    Args:
+        T_all: ``[N, 4, 4]`` poses of all frames; valid ``[N]`` bool (others are returned as given).
+        kf_indices: ``[K]`` increasing frame indices of the keyframes.
+        T_kf_old, T_kf_new: ``[K, 4, 4]`` keyframe poses before and after the correction.
+    Returns:
+        ``[N, 4, 4]``: ``T_new = T_kf_new @ inv(T_kf_old) @ T_old`` per valid frame (keyframes get
+        exactly their new pose).
+    """
+    out = np.array(T_all, np.float64)
+    if len(kf_indices) == 0:
+        return out
+    corr = np.einsum("kij,kjl->kil", T_kf_new, np.stack([invert_se3(T) for T in T_kf_old]))  # [K, 4, 4]
+    which = np.clip(np.searchsorted(kf_indices, np.arange(len(T_all)), side="right") - 1, 0, len(kf_indices) - 1)
+    v = np.asarray(valid, bool)
+    out[v] = np.einsum("nij,njl->nil", corr[which[v]], out[v])
+    out[np.asarray(kf_indices)] = T_kf_new
+    out[:, 3] = (0.0, 0.0, 0.0, 1.0)
+    out[~v] = T_all[~v]
+    return out
+
+
+def trajectory_change(T_before: np.ndarray, T_after: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
+    """``(max, mean)`` camera-centre displacement (m) between two ``[N, 4, 4]`` trajectories."""
+    d = np.linalg.norm(T_after[:, :3, 3] - T_before[:, :3, 3], axis=1)
+    if valid is not None:
+        d = d[np.asarray(valid, bool)]
+    d = d[np.isfinite(d)]
+    return (float(d.max()), float(d.mean())) if len(d) else (0.0, 0.0)
+
+
+def information_matrix(points_source: np.ndarray, points_target: np.ndarray, T_target_source: np.ndarray,
+                       max_correspondence_m: float) -> np.ndarray:
+    """Open3D's ``[6, 6]`` information matrix of an edge from the two keyframes' camera-frame
+    points ``[M, 3]`` (it grows with the number of correspondences within the distance)."""
+    from atlas_pipeline._open3d import open3d
+
+    o3d = open3d()
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_source, np.float64)))
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_target, np.float64)))
+    return np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        src, dst, max_correspondence_m, np.asarray(T_target_source, np.float64)))
+
+
+def _voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One point (the mean) per occupied voxel: ``[M, 3]`` -> ``[V, 3]`` float32."""
+    if len(points) == 0:
+        return np.zeros((0, 3), np.float32)
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inv.ravel(), points)
+    return (sums / counts[:, None]).astype(np.float32)
+
+
+# -- verification (tracker) ----------------------------------------------------------------------------
+
+def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_factory=None,
+                min_inlier_fraction: float = LOOP_MIN_INLIER_FRACTION):
+    """Align ``frame`` (a :class:`FramePyramid`) to ``model`` from each guess pose ``[4, 4]``; the
+    best good fit, or, when none is good and ``relocalizer_factory`` is given, the relocalizer's.
+
+    Returns ``(TrackResult-like with T_world_cam, inlier_fraction, residual_m, method)`` or None.
+    """
+    best = None
+    for g in guesses:
+        r = tracker.align(frame, model, g, None)
+        if r.ok and r.inlier_fraction >= min_inlier_fraction and (best is None or r.inlier_fraction > best.inlier_fraction):
+            best = r
+    if best is not None:
+        return best.T_world_cam, best.inlier_fraction, best.residual_m, "tracker"
+    if relocalizer_factory is not None:
+        r = relocalizer_factory().relocalize(frame, guesses)
+        if r.ok and r.inlier_fraction >= min_inlier_fraction:
+            return r.T_world_cam, r.inlier_fraction, r.residual_m, "relocalizer"
+    return None
+
+
+# -- the whole step (reads frames) -------------------------------------------------------------------
+
+def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices: np.ndarray, localization,
+                depth_range_m: tuple[float, float], fusion_stride: int, voxel_size_m: float, min_gap: int,
+                radius_m: float, use_relocalizer: bool = True,
+                log: Callable[[str], None] | None = None) -> LoopClosureResult:
+    """Detect and verify loops between the keyframes, optimise the pose graph, correct all frames.
+
+    Args:
+        manifest: the sequence (:class:`FrameManifest`; frames are read again, keyframes only).
+        T_world_cam: ``[N, 4, 4]`` tracked poses; valid ``[N]`` bool; kf_indices ``[K]`` increasing.
+        localization: :class:`LocalizationConfig` (the tracker that verifies loops).
+        min_gap: candidates are at least this many keyframes older; radius_m: search radius.
+    """
+    from atlas_pipeline.localization.relocalize import Relocalizer
+    from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel
+    from atlas_pipeline.perception.rgbd import backproject
+
+    t0 = time.perf_counter()
+    kf = np.asarray(kf_indices, np.int64)
+    T_kf = np.array(T_world_cam[kf], np.float64)
+    K = len(kf)
+    result = LoopClosureResult(np.array(T_world_cam, np.float64), T_kf.copy(), T_kf.copy())
+    if K < min_gap + 1:
+        result.time_s = time.perf_counter() - t0
+        return result
+    tracker = RGBDTracker(manifest.camera, localization, depth_range_m)
+    # Camera-frame points of every keyframe, one per map voxel: the local maps and the information
+    # matrices are made from these (each a few thousand points; frames are not kept).
+    pts: list[np.ndarray] = []
+    for k in kf:
+        depth = manifest.read_depth_m(int(k), allow_empty=True)
+        p, _ = backproject(depth, None, manifest.camera, fusion_stride, *depth_range_m)
+        pts.append(_voxel_means(p.astype(np.float64), voxel_size_m))
+
+    def local_model(j: int, i: int):
+        lo, hi = max(0, j - LOOP_MODEL_WINDOW), min(i - min_gap, j + LOOP_MODEL_WINDOW)
+        world = [pts[m].astype(np.float64) @ T_kf[m, :3, :3].T + T_kf[m, :3, 3] for m in range(lo, hi + 1)]
+        return SurfelModel.from_field(np.concatenate(world), voxel_size_m), T_kf[lo:hi + 1]
+
+    loops: list[LoopEdge] = []
+    n_reloc = 0
+    cooldown = 0
+    n_cand = 0
+    for i in range(K):
+        if cooldown > 0:
+            cooldown -= 1
+            continue
+        cands = loop_candidates(T_kf, i, min_gap, radius_m)
+        if len(cands) == 0:
+            continue
+        n_cand += len(cands)
+        frame = tracker.prepare(manifest.read_rgb(int(kf[i])), manifest.read_depth_m(int(kf[i]), allow_empty=True))
+        for j in cands:
+            model, priors = local_model(int(j), i)
+            if len(model) == 0:
+                continue
+            factory = None
+            if use_relocalizer and n_reloc < LOOP_MAX_RELOCALIZATIONS:
+                def factory(model=model, priors=priors):
+                    nonlocal n_reloc
+                    n_reloc += 1
+                    return Relocalizer(tracker, model, priors)
+            found = verify_loop(tracker, frame, model, [T_kf[i], T_kf[j]], factory)
+            if found is None:
+                continue
+            T_i_in_old, frac, res, method = found
+            edge = LoopEdge(i, int(j), invert_se3(T_kf[j]) @ T_i_in_old, frac, res, method)
+            loops.append(edge)
+            logger.info("loop: keyframe %d (frame %d) matches keyframe %d (frame %d), %.2f inliers, %.1f mm, %s",
+                        i, kf[i], j, kf[j], frac, 1000 * res, method)
+            cooldown = LOOP_COOLDOWN_KEYFRAMES
+            break
+    result.n_candidates = n_cand
+    result.loops = loops
+    if not loops:
+        result.time_s = time.perf_counter() - t0
+        logger.info("loop closure: %d candidates, no loop verified", n_cand)
+        return result
+    odo = relative_poses(T_kf)
+    info_d = INFO_VOXEL_FACTOR * voxel_size_m
+    coarse = [_voxel_means(p.astype(np.float64), info_d) for p in pts]
+    info_o = np.stack([information_matrix(coarse[k], coarse[k + 1], odo[k], info_d) for k in range(K - 1)])
+    info_l = np.stack([information_matrix(coarse[lp.source], coarse[lp.target], lp.T_target_source, info_d)
+                       for lp in loops])
+    # The line process must tolerate loop errors up to the search radius (a larger drift would not
+    # have produced the candidate); false loops are kept out by the verification.
+    T_new, kept = optimize_pose_graph(T_kf, odo, [(lp.source, lp.target, lp.T_target_source) for lp in loops],
+                                      info_o, info_l, max_correspondence_m=max(radius_m, POSE_GRAPH_MAX_CORRESPONDENCE_M))
+    for lp, k in zip(loops, kept):
+        lp.kept = bool(k)
+    result.T_keyframes_after = T_new
+    result.T_world_cam = propagate_correction(T_world_cam, valid, kf, T_kf, T_new)
+    result.max_translation_change_m, result.mean_translation_change_m = trajectory_change(
+        T_world_cam, result.T_world_cam, valid)
+    result.time_s = time.perf_counter() - t0
+    msg = (f"loop closure: {sum(kept)} of {len(loops)} loops kept, trajectory moved by "
+           f"{100 * result.max_translation_change_m:.1f} cm at most ({100 * result.mean_translation_change_m:.1f} cm "
+           f"mean), {result.time_s:.1f} s")
+    logger.info(msg)
+    if log is not None:
+        log(msg)
+    return result
+
+
+def refuse_keyframes(manifest, kf_indices: np.ndarray, T_kf: np.ndarray, depth_range_m: tuple[float, float],
+                     fusion_stride: int, voxel_size_m: float):
+    """A new :class:`VoxelGaussianBuilder` with every keyframe's points merged at its (corrected)
+    pose ``T_kf [K, 4, 4]``, as :meth:`SequenceTracker._integrate` merges them while tracking."""
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+    from atlas_pipeline.perception.rgbd import backproject
+
+    builder = VoxelGaussianBuilder(voxel_size_m)
+    for k, T in zip(np.asarray(kf_indices), T_kf):
+        rgb = manifest.read_rgb(int(k))
+        pts, cols = backproject(manifest.read_depth_m(int(k), allow_empty=True), rgb, manifest.camera,
+                                fusion_stride, *depth_range_m)
+        if cols is None:
+            cols = np.full((len(pts), 3), 128, np.uint8)
+        builder.integrate(pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3], cols)
+    return builder
