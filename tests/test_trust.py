@@ -383,3 +383,27 @@ def test_temporary_files_of_a_killed_writer_are_swept(tmp_path):
 
     write_json_atomic(target, {"ok": True})
     assert not stale.exists() and live.exists() and json.loads(target.read_text()) == {"ok": True}
+
+
+def test_localize_refuses_to_rewrite_a_dagster_artifact_folder(tmp_path):
+    """The world_bundle artifact belongs to the IO manager; a CLI update would drop its record."""
+    import numpy as np
+
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+    from atlas_pipeline.io_utils import commit_dir, stage_dir
+    from atlas_pipeline.scene_memory.bundle import update_world_bundle, write_world_bundle
+
+    b = VoxelGaussianBuilder(0.05)
+    rng = np.random.default_rng(0)
+    b.integrate(rng.uniform(-1, 1, (2000, 3)), rng.integers(0, 255, (2000, 3)))
+    src = write_world_bundle(tmp_path / "src", b.to_field(), {})
+    art = tmp_path / "artifact"
+    staged = stage_dir(art)
+    for p in src.iterdir():
+        if p.name != MARKER_NAME:
+            shutil.copy2(p, staged / p.name)
+    commit_dir(staged, art, "artifact")
+    before = _snapshot(art)
+    with pytest.raises(BundleFormatError, match="managed by the Dagster IO manager"):
+        update_world_bundle(art)
+    assert _snapshot(art) == before
