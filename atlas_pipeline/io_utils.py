@@ -386,17 +386,23 @@ def check_output_dir(path: str | Path, kind: str, inputs: Iterable[str | Path] =
     if not force:
         raise OutputPolicyError(path, f"{what} {reason}; refusing to replace it. Choose a new or empty folder, "
                                       "or pass --force to move it aside (it is never deleted)")
+    backup = _move_aside(path, path.name, "")
+    logger.warning("%s %s; moved it aside to %s (--force)", path, reason, backup)
+    return backup
+
+
+def _move_aside(path: Path, stem: str, suffix: str) -> Path:
+    """Rename ``path`` to a free, visible ``<stem>.replaced-<UTC time>[-n]<suffix>`` beside it."""
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    backup = path.with_name(f"{path.name}.replaced-{stamp}")
+    backup = path.with_name(f"{stem}.replaced-{stamp}{suffix}")
     n = 1
     while os.path.lexists(backup):
         n += 1
-        backup = path.with_name(f"{path.name}.replaced-{stamp}-{n}")
+        backup = path.with_name(f"{stem}.replaced-{stamp}-{n}{suffix}")
     try:
         os.replace(path, backup)
     except OSError as exc:
         raise _write_error(path, exc) from exc
-    logger.warning("%s %s; moved it aside to %s (--force)", path, reason, backup)
     return backup
 
 
@@ -422,16 +428,7 @@ def check_output_file(path: str | Path, inputs: Iterable[str | Path] = (), force
     if not force:
         raise OutputPolicyError(path, f"{what} exists and was not written by atlas-gs; refusing to overwrite it. "
                                       "Choose another name, or pass --force to move it aside (it is never deleted)")
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    backup = path.with_name(f"{path.stem}.replaced-{stamp}{path.suffix}")
-    n = 1
-    while os.path.lexists(backup):
-        n += 1
-        backup = path.with_name(f"{path.stem}.replaced-{stamp}-{n}{path.suffix}")
-    try:
-        os.replace(path, backup)
-    except OSError as exc:
-        raise _write_error(path, exc) from exc
+    backup = _move_aside(path, path.stem, path.suffix)
     logger.warning("%s was not written by atlas-gs; moved it aside to %s (--force)", path, backup)
     return backup
 

@@ -407,3 +407,17 @@ def test_localize_refuses_to_rewrite_a_dagster_artifact_folder(tmp_path):
     with pytest.raises(BundleFormatError, match="managed by the Dagster IO manager"):
         update_world_bundle(art)
     assert _snapshot(art) == before
+
+
+def test_force_on_a_foreign_file_moves_it_aside(tmp_path):
+    from atlas_pipeline.io_utils import check_output_file
+
+    mine = tmp_path / "holiday.mp4"
+    mine.write_bytes(b"my own video")
+    with pytest.raises(OutputPolicyError, match="not written by atlas-gs"):
+        check_output_file(mine)
+    backup = check_output_file(mine, force=True)
+    assert not mine.exists() and backup.read_bytes() == b"my own video"
+    assert backup.name.startswith("holiday.replaced-") and backup.suffix == ".mp4"
+    with pytest.raises(OutputPolicyError, match="input"):
+        check_output_file(tmp_path / "in.mp4", inputs=[tmp_path / "in.mp4"], force=True)
