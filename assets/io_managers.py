@@ -257,8 +257,7 @@ class ArtifactIOManager(ConfigurableIOManager):
         sure the folder is writable with room for the new version (fails in milliseconds, not
         after the work)."""
         target = self.directory(asset, partition)
-        recover_dir(target)
-        check_output_dir(target, ARTIFACT_KIND, what=f"artifact folder of {asset}")
+        check_output_dir(target, ARTIFACT_KIND, what=f"artifact folder of {asset}")  # repairs swaps first
         previous = sum(p.stat().st_size for p in target.iterdir() if p.is_file()) if target.is_dir() else 0
         check_writable(target.parent, max(MIN_FREE_BYTES, FREE_SPACE_FACTOR * previous))
 

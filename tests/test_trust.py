@@ -291,7 +291,7 @@ def test_full_disk_is_found_before_the_work_and_named(tmp_path, monkeypatch):
 def test_an_os_error_while_writing_names_the_file(tmp_path):
     target = tmp_path / "out.json"
     with pytest.raises(WriteError, match=str(target)):
-        with atomic_path(target) as tmp:
+        with atomic_path(target):
             raise OSError(28, "No space left on device")
     assert list(tmp_path.iterdir()) == []
 
@@ -309,18 +309,25 @@ def test_run_into_an_unwritable_artifacts_folder_fails_at_once(isolated, monkeyp
 # ---- 8. concurrency -------------------------------------------------------------------------------
 
 
-def test_a_lock_is_exclusive_across_processes_and_dies_with_its_holder(tmp_path):
-    lock = tmp_path / "p.lock"
+def _hold_lock_in_another_process(lock: Path, what: str) -> subprocess.Popen:
+    """A child process that takes ``lock`` (as ``what``) and sleeps; returns once it holds it.
+    The caller kills it (the sleep bounds its life if the test dies first)."""
     holder = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(f"""
-            import sys, time
+            import time
             from atlas_pipeline.io_utils import ProcessLock
-            ProcessLock({str(lock)!r}).acquire({{"what": "test holder"}})
+            ProcessLock({str(lock)!r}).acquire({{"what": {what!r}}})
             print("held", flush=True)
-            time.sleep(60)
+            time.sleep(120)
         """)], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_a_lock_is_exclusive_across_processes_and_dies_with_its_holder(tmp_path):
+    lock = tmp_path / "p.lock"
+    holder = _hold_lock_in_another_process(lock, "test holder")
     try:
-        assert holder.stdout.readline().strip() == "held"
         with pytest.raises(LockedError, match="test holder"):
             ProcessLock(lock).acquire({"what": "second"})
     finally:
@@ -332,16 +339,8 @@ def test_a_lock_is_exclusive_across_processes_and_dies_with_its_holder(tmp_path)
 
 def test_a_second_run_of_a_busy_partition_fails_clearly(isolated, capsys):
     lock = isolated / "artifacts" / ".locks" / "synth-small.lock"
-    holder = subprocess.Popen(
-        [sys.executable, "-c", textwrap.dedent(f"""
-            import time
-            from atlas_pipeline.io_utils import ProcessLock
-            ProcessLock({str(lock)!r}).acquire({{"what": "Dagster run other-run"}})
-            print("held", flush=True)
-            time.sleep(120)
-        """)], stdout=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1])
+    holder = _hold_lock_in_another_process(lock, "Dagster run other-run")
     try:
-        assert holder.stdout.readline().strip() == "held"
         assert main(["run", "synth-small"]) == 1
         out = json.loads(capsys.readouterr().out)
         assert any("being materialized by another run" in e and "other-run" in e for e in out["errors"])

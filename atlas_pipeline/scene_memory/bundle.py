@@ -234,8 +234,9 @@ def update_world_bundle(directory: str | Path, localization: LocalizationReport 
     """
     directory = Path(directory)
     meta = verify_bundle_files(directory)
-    if folder_kind(directory) not in (None, BUNDLE_KIND):
-        raise BundleFormatError(directory, f"is a {folder_kind(directory)} folder managed by the Dagster IO manager "
+    kind = folder_kind(directory)
+    if kind not in (None, BUNDLE_KIND):
+        raise BundleFormatError(directory, f"is a {kind} folder managed by the Dagster IO manager "
                                            "(`atlas-gs run` rewrites it); copy it to a folder of your own and "
                                            "localize into the copy, nothing was changed")
     foreign = [n for n in foreign_entries(directory) if n not in meta["files"] and n not in ("metadata.json", "_artifact.json")]

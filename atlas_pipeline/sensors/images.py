@@ -112,14 +112,20 @@ def _where(list_file: Path | None, line: int | None) -> str:
     return f" ({list_file.name} line {line})" if line is not None else f" ({list_file.name})"
 
 
-def check_rgb_header(path: Path, width: int, height: int, list_file: Path | None = None,
-                     line: int | None = None) -> ImageHeader:
-    """Header of a colour image, which must be 8-bit RGB/RGBA (PNG) or colour JPEG of ``width x height``.
-    ``list_file``/``line`` (the list that named the image) are added to the error."""
+def _sized_header(path: Path, width: int, height: int, list_file: Path | None, line: int | None) -> ImageHeader:
+    """:func:`image_header`, which must be ``width x height``."""
     hd = image_header(path)
     if (hd.width, hd.height) != (width, height):
         raise DatasetError(path, f"image is {hd.width}x{hd.height}, camera expects {width}x{height}"
                                  f"{_where(list_file, line)}")
+    return hd
+
+
+def check_rgb_header(path: Path, width: int, height: int, list_file: Path | None = None,
+                     line: int | None = None) -> ImageHeader:
+    """Header of a colour image, which must be 8-bit RGB/RGBA (PNG) or colour JPEG of ``width x height``.
+    ``list_file``/``line`` (the list that named the image) are added to the error."""
+    hd = _sized_header(path, width, height, list_file, line)
     if not hd.is_rgb8:
         detail = (f"bit depth {hd.bits}, colour type {hd.png_colour_type}" if hd.format == "png"
                   else f"mode {hd.jpeg_mode}")
@@ -130,10 +136,7 @@ def check_rgb_header(path: Path, width: int, height: int, list_file: Path | None
 def check_depth_header(path: Path, width: int, height: int, list_file: Path | None = None,
                        line: int | None = None) -> ImageHeader:
     """Header of a depth image, which must be a 16-bit greyscale PNG of ``width x height``."""
-    hd = image_header(path)
-    if (hd.width, hd.height) != (width, height):
-        raise DatasetError(path, f"image is {hd.width}x{hd.height}, camera expects {width}x{height}"
-                                 f"{_where(list_file, line)}")
+    hd = _sized_header(path, width, height, list_file, line)
     if not hd.is_depth16:
         detail = (f"bit depth {hd.bits}, colour type {hd.png_colour_type}" if hd.format == "png"
                   else "a JPEG")

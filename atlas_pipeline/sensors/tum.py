@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,7 +49,6 @@ __all__ = [
     "lookup_groundtruth",
     "load_tum_sequence",
     "check_tum_layout",
-    "png_header",
 ]
 
 
@@ -234,21 +232,6 @@ def lookup_groundtruth(
             out[k] = gt_poses[best]
             has[k] = True
     return out, has
-
-
-def png_header(path: Path) -> tuple[int, int, int, int]:
-    """``(width, height, bit_depth, colour_type)`` from a PNG's IHDR chunk, without decoding it."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(33)
-    except FileNotFoundError:
-        raise DatasetError(path, "image file not found") from None
-    except OSError as exc:
-        raise DatasetError(path, f"cannot read image ({exc.strerror or exc})") from None
-    if len(head) < 33 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        raise DatasetError(path, "not a PNG file")
-    w, h, depth, ctype = struct.unpack(">IIBB", head[16:26])
-    return w, h, depth, ctype
 
 
 @dataclass
