@@ -134,6 +134,9 @@ class MappingConfig:
     loop_closure: bool = True
     loop_min_keyframe_gap: int = _setting(10, AT_LEAST_ONE)  # a loop's keyframes are at least this many keyframes apart
     loop_search_radius_m: float = _setting(0.3, POSITIVE)  # candidates: camera centres within this distance
+    # Tracked poses: after this many lost frames in a row a new map is started and merged with the
+    # old one when the place is recognised (ORB-SLAM3's Atlas); 0 = stay lost until relocalized.
+    new_map_after_lost_frames: int = _setting(5, NON_NEGATIVE)
 
 
 @dataclass(frozen=True)

@@ -9,11 +9,13 @@ on disk (any layout the registry reads; nothing is downloaded), and any ``--sequ
 Per sequence, on the same in-memory frames (decoding excluded from every timing) and the same
 depth range (``fusion.min_depth_m`` .. ``fusion.max_depth_m`` of the profile):
 
-* **ours**: tracking and mapping with no ground truth (``mapping.pose_source: estimated``, the loop
-  of ``slam_poses``): ATE RMSE (rigid alignment, TUM conventions), RPE per second, lost and
-  relocalized frames, frames/s. Maps and loop closures print ``-`` until the tracker has them.
-  A sequence that exceeds ``--budget-s`` (default 300 s; lost frames retry relocalization at
-  seconds each) is stopped and graded on the frames reached ("stopped at" in the table).
+* **ours**: tracking and mapping with no ground truth (``mapping.pose_source: estimated``:
+  ``slam_poses`` itself, with multiple maps and loop closure, both inside the timing): ATE RMSE
+  (rigid alignment, TUM conventions), RPE per second, the end-to-start error (estimated against
+  true position of the last frame relative to the first: a loop's closing error), lost and
+  relocalized frames, maps started (and merged), loops kept by the pose graph (``-``: loop closure
+  off), frames/s. A sequence that exceeds ``--budget-s`` is stopped and graded on the frames
+  reached ("of N (budget)" in the table).
 * **Open3D F2F**: tensor RGB-D odometry, hybrid term, multi-scale 10/5/3, frame to frame, chained.
 * **Open3D F2M**: Open3D's dense frame-to-model SLAM (``open3d.t.pipelines.slam.Model``: track
   against the ray-cast TSDF model, integrate, ray-cast; voxel 5.8 mm, on the CPU).
@@ -51,8 +53,8 @@ from benchmarks.common import (  # noqa: E402
 SHARED_DATA = ROOT.parent / "shared" / "data"
 SHARED_SEQUENCES = (("tum_fr1_xyz_10", "freiburg1"), ("tum_fr3_teddy_100", "freiburg3"))
 QUICK_MAX_FRAMES = 30
-# Relocalization has no bounded cost per frame yet (issue 11: 2-18 s per lost frame), so a lost
-# sequence could run for hours; past this budget the row reports the frames ours reached.
+# A safety net for unknown recordings (relocalization backs off, but a sequence may be long):
+# past this budget the row reports the frames ours reached.
 DEFAULT_BUDGET_S = 300.0
 
 logger = logging.getLogger("bench_robustness")
@@ -122,10 +124,10 @@ def _real_sequences(user: list[str], builtin: bool = True) -> list[Sequence]:
     return out
 
 
-def _maps_and_loops(st) -> tuple[str, str]:
-    """Maps started and loops closed by the tracker: '-' until multiple maps and loop closure
-    exist (issue 11, items 2 and 3); report them here once the SequenceTracker exposes them."""
-    return "-", "-"
+def _maps_and_loops(ours: dict) -> tuple[str, str]:
+    """'maps started (merged)' and 'loops closed' of our run."""
+    maps = f"{ours['n_maps']}" + (f" ({ours['n_maps_merged']} merged)" if ours["n_maps_merged"] else "")
+    return maps, "-" if ours["n_loops"] is None else str(ours["n_loops"])
 
 
 def bench_sequence(seq: Sequence, cfg, max_frames: int | None, with_model: bool, budget_s: float | None) -> dict:
@@ -140,7 +142,7 @@ def bench_sequence(seq: Sequence, cfg, max_frames: int | None, with_model: bool,
     t0 = time.perf_counter()
     ours, st = run_slam(manifest, frames, cfg, budget_s)
     row["ours"] = ours
-    row["maps"], row["loops"] = _maps_and_loops(st)
+    row["maps"], row["loops"] = _maps_and_loops(ours)
     logger.info("%s: ours ATE %s m, %.1f frames/s (%.1f s)", seq.name, ours.get("ate_rmse_m"), ours["frames_per_s"],
                 time.perf_counter() - t0)
     if ours["n_attempted"] < manifest.n_frames:  # stopped by the budget: the references get the same frames
@@ -173,7 +175,7 @@ def _ratio(a, b, spec: str = ".2f") -> str:
 
 
 def format_table(rows: list[dict]) -> str:
-    head = ["sequence", "frames", "ATE cm", "RPE cm/s", "lost", "reloc", "maps", "loops", "fps",
+    head = ["sequence", "frames", "ATE cm", "RPE cm/s", "end err cm", "lost", "reloc", "maps", "loops", "fps",
             "O3D F2F ATE cm", "F2F fps", "O3D F2M ATE cm", "F2M fps",
             "ATE ours/F2F", "ATE ours/F2M", "speed ours/F2F", "speed ours/F2M"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
@@ -183,7 +185,8 @@ def format_table(rows: list[dict]) -> str:
         cells = [
             r["sequence"], (f"{r['n_frames']}" if o["n_attempted"] == r["n_frames"]  # budget: all on the first k
                             else f"{o['n_attempted']} of {r['n_frames']} (budget)") + f" ({r['size']})",
-            _f(o.get("ate_rmse_m"), 100), _f(o.get("rpe_trans_rmse_m"), 100), str(o["n_lost"]),
+            _f(o.get("ate_rmse_m"), 100), _f(o.get("rpe_trans_rmse_m"), 100), _f(o.get("end_to_start_error_m"), 100),
+            str(o["n_lost"]),
             str(o["n_relocalized"]), r["maps"], r["loops"], _f(o["frames_per_s"], spec=".1f"),
             _f(a.get("ate_rmse_m"), 100), _f(a["frames_per_s"], spec=".1f"),
             _f(m.get("ate_rmse_m"), 100) if m else "skipped", _f(m.get("frames_per_s"), spec=".1f") if m else "-",

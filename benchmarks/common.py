@@ -3,8 +3,8 @@
 Frames are decoded once into memory, so every tracker below is timed on the same in-memory frames
 (decoding excluded). No tracker reads ground truth; :func:`grade` is the only place it is used.
 
-* :func:`run_slam`: our tracking and mapping, the loop of ``atlas_pipeline.mapping.keyframes.
-  slam_poses`` (``mapping.pose_source: estimated``) on preloaded frames.
+* :func:`run_slam`: our tracking and mapping, ``atlas_pipeline.mapping.keyframes.slam_poses``
+  (``mapping.pose_source: estimated``) on preloaded frames.
 * :func:`run_open3d_odometry`: Open3D's tensor RGB-D odometry, hybrid term, multi-scale
   10/5/3 iterations, frame to frame, poses chained.
 * :func:`run_open3d_model`: Open3D's dense frame-to-model SLAM (``open3d.t.pipelines.slam``, the
@@ -41,41 +41,45 @@ def grade(manifest, poses: np.ndarray) -> dict:
     return evaluate_trajectories(manifest.timestamps_s, poses, manifest.timestamps_s, manifest.T_world_cam_gt)
 
 
+def end_to_start_error_m(manifest, poses: np.ndarray) -> float | None:
+    """How far the estimated last frame is from where it should be relative to the first
+    (translation of ``inv(T_0) T_last``, estimate against ground truth): a loop's closing error.
+    None without ground truth or a pose at both ends."""
+    gt, ok = manifest.T_world_cam_gt, manifest.has_gt
+    placed = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
+    if len(placed) < 2 or not (ok[placed[0]] and ok[placed[-1]]):
+        return None
+    a, b = placed[0], placed[-1]
+    rel_est = np.linalg.solve(poses[a], poses[b])
+    rel_gt = np.linalg.solve(gt[a], gt[b])
+    return float(np.linalg.norm(rel_est[:3, 3] - rel_gt[:3, 3]))
+
+
 def run_slam(manifest, frames, cfg, budget_s: float | None = None) -> tuple[dict, object]:
-    """Our tracking and mapping on preloaded frames, as ``slam_poses`` runs it: the first frame with
-    depth anchors the world at the identity, every later frame is tracked frame-to-model while
-    keyframes are merged into the map. Returns ``(figures, SequenceTracker)``.
+    """Our tracking and mapping on preloaded frames: ``slam_poses`` itself (multiple maps and loop
+    closure included in the time; loop closure reads its keyframes from disk again). Returns
+    ``(figures, SequenceTracker)``; the figures cover the ``n_attempted`` frames when ``budget_s``
+    stopped the run."""
+    from atlas_pipeline.localization.sequence import STATUS_LOST, STATUS_RELOCALIZED
+    from atlas_pipeline.mapping.keyframes import slam_poses
 
-    ``budget_s``: stop after this many seconds (relocalization has no bounded cost per frame yet,
-    issue 11); the figures then cover the ``n_attempted`` frames processed so far."""
-    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
-    from atlas_pipeline.localization.sequence import STATUS_LOST, STATUS_RELOCALIZED, SequenceTracker
-
-    st = SequenceTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-                         builder=VoxelGaussianBuilder(cfg.mapping.voxel_size_m),
-                         keyframe_translation_m=cfg.mapping.keyframe_translation_m,
-                         keyframe_rotation_deg=cfg.mapping.keyframe_rotation_deg, fusion_stride=cfg.fusion.stride)
-    poses = np.full((len(frames), 4, 4), np.nan)
-    status = []
-    started = False
-    t0 = time.perf_counter()
-    for i, (rgb, depth) in enumerate(frames):
-        anchor = None if started or np.count_nonzero(depth) < 200 else np.eye(4)  # as slam_poses
-        e = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]))
-        started = started or anchor is not None
-        poses[i] = e.T_world_cam
-        status.append(e.status)
-        if budget_s is not None and time.perf_counter() - t0 > budget_s and i + 1 < len(frames):
-            logger.warning("%s: time budget of %.0f s spent after %d of %d frames; stopping", manifest.dataset,
-                           budget_s, i + 1, len(frames))
-            break
-    dt = time.perf_counter() - t0
+    slam = slam_poses(manifest, cfg.mapping, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+                      cfg.fusion.stride, frames=frames, budget_s=budget_s)
+    n = slam.n_attempted
+    poses = slam.T_world_cam.copy()
+    poses[n:] = np.nan
     out = grade(manifest, poses)
-    n = len(status)
-    out.update({"frames_per_s": (n - 1) / dt if n > 1 else float("nan"), "n_attempted": n,
-                "n_keyframes": len(st.keyframe_indices), "n_lost": status.count(STATUS_LOST),
-                "n_relocalized": status.count(STATUS_RELOCALIZED)})
-    return out, st
+    status = slam.status[:n]
+    loops = slam.loop_closure
+    out.update({"frames_per_s": (n - 1) / slam.time_s if n > 1 else float("nan"), "n_attempted": n,
+                "n_keyframes": len(slam.keyframe_indices), "n_lost": status.count(STATUS_LOST),
+                "n_relocalized": status.count(STATUS_RELOCALIZED), "n_maps": slam.maps["n_maps"],
+                "n_maps_merged": slam.maps["n_merged"], "n_loops": None if loops is None else loops["n_loops"],
+                "loop_max_change_m": None if loops is None else loops["max_translation_change_m"],
+                "end_to_start_error_m": end_to_start_error_m(manifest, poses),
+                "n_outside_main_map": int(sum(1 for i in range(n) if not slam.valid[i]
+                                              and status[i] not in (STATUS_LOST,)))})
+    return out, slam.tracker
 
 
 def _o3d_depth(depth_m: np.ndarray, depth_min_m: float) -> np.ndarray:

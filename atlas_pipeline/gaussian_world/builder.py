@@ -42,6 +42,18 @@ def unpack_voxel_ids(ids: np.ndarray) -> np.ndarray:
     return out.astype(np.int64) - _OFFSET
 
 
+# Order of the six second moments kept per voxel (xx xy xz yy yz zz).
+_MOMENT_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _moments_to_matrices(sum_sq: np.ndarray) -> np.ndarray:
+    """Six second moments per voxel ``[M, 6]`` to symmetric matrices ``[M, 3, 3]``."""
+    Q = np.empty((len(sum_sq), 3, 3))
+    for k, (a, b) in enumerate(_MOMENT_PAIRS):
+        Q[:, a, b] = Q[:, b, a] = sum_sq[:, k]
+    return Q
+
+
 _MIN_POINTS_OWN_SHAPE = 5  # fewer points than this: the voxel's own covariance is too noisy
 _MIN_SCALE = 0.05  # voxels: thickness floor along the normal (1 mm at 2 cm voxels)
 _MAX_SCALE = 0.75  # voxels: no Gaussian spreads much past its voxel
@@ -89,9 +101,44 @@ class VoxelGaussianBuilder:
         cnt = np.bincount(inv, minlength=nk).astype(np.int64)
         sxyz = np.stack([bsum(p[:, k]) for k in range(3)], axis=1)
         srgb = np.stack([bsum(c[:, k]) for k in range(3)], axis=1)
-        pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-        ssq = np.stack([bsum(p[:, a] * p[:, b]) for a, b in pairs], axis=1)
+        ssq = np.stack([bsum(p[:, a] * p[:, b]) for a, b in _MOMENT_PAIRS], axis=1)
+        return self._add(uk, cnt, sxyz, srgb, ssq, np.ones(nk, np.int32))
 
+    def merge(self, other: "VoxelGaussianBuilder", T_self_other: np.ndarray) -> int:
+        """Add ``other``'s statistics, moved by ``T_self_other [4, 4]`` (other's frame to this
+        one's), as when two maps of one place are joined; returns the new voxel count.
+
+        The sums move exactly (``sum p' = R sum p + n t``, and likewise the second moments), so a
+        voxel's mean, colour and covariance are what integrating its points at the new pose gives;
+        each moved voxel lands in the voxel holding its mean (two may share one).
+        """
+        if len(other) == 0:
+            return 0
+        T = np.asarray(T_self_other, np.float64)
+        R, t = T[:3, :3], T[:3, 3]
+        n = other.count.astype(np.float64)
+        s_old = other.sum_xyz
+        s_new = s_old @ R.T + n[:, None] * t
+        Q = _moments_to_matrices(other.sum_sq)  # [M, 3, 3] sum of p p^T
+        Rs = s_old @ R.T  # [M, 3]
+        Q_new = (R @ Q @ R.T + Rs[:, :, None] * t[None, None, :] + t[None, :, None] * Rs[:, None, :]
+                 + n[:, None, None] * np.outer(t, t)[None])
+        keys = pack_voxel_ids(np.floor(s_new / n[:, None] / self.voxel_size_m).astype(np.int64))
+        uk, inv = np.unique(keys, return_inverse=True)
+        nk = len(uk)
+
+        def bsum(w: np.ndarray) -> np.ndarray:
+            return np.bincount(inv, weights=w, minlength=nk)
+
+        ssq6 = np.stack([Q_new[:, a, b] for a, b in _MOMENT_PAIRS], axis=1)
+        return self._add(uk, bsum(n).astype(np.int64), np.stack([bsum(s_new[:, k]) for k in range(3)], axis=1),
+                         np.stack([bsum(other.sum_rgb[:, k]) for k in range(3)], axis=1),
+                         np.stack([bsum(ssq6[:, k]) for k in range(6)], axis=1),
+                         bsum(other.n_keyframes.astype(np.float64)).astype(np.int32))
+
+    def _add(self, uk: np.ndarray, cnt: np.ndarray, sxyz: np.ndarray, srgb: np.ndarray, ssq: np.ndarray,
+             nkf: np.ndarray) -> int:
+        """Merge per-voxel sums for the sorted unique ids ``uk [M]`` into the state; returns new voxels."""
         # Merge sorted key sets: existing voxels accumulate, new ones are inserted in id order.
         all_ids, inv2 = np.unique(np.concatenate([self.ids, uk]), return_inverse=True)
         n_new = len(all_ids) - len(self.ids)
@@ -107,7 +154,7 @@ class VoxelGaussianBuilder:
         self.sum_xyz = merged(self.sum_xyz, sxyz)
         self.sum_rgb = merged(self.sum_rgb, srgb)
         self.sum_sq = merged(self.sum_sq, ssq)
-        self.n_keyframes = merged(self.n_keyframes, np.ones(nk, np.int32))
+        self.n_keyframes = merged(self.n_keyframes, nkf)
         self.ids = all_ids
         return n_new
 

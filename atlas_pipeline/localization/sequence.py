@@ -17,15 +17,28 @@ Per frame the status is one of:
   the pose is the motion-model prediction, and the frame never touches the map. After a failed
   relocalization the next tries back off (1, 2, 4 ... frames, at most
   :data:`RELOCALIZATION_BACKOFF_MAX_FRAMES`), so being lost has a bounded cost per frame;
+* ``new_map`` (mapping with ``new_map_after_lost_frames``): after that many lost frames in a row,
+  a new map is started from the frame, as ORB-SLAM3's Atlas does: its pose is the last placed
+  pose (nothing better is known) and tracking goes on in the new map.
 * ``not_attempted``: never processed (set by callers such as
   :func:`atlas_pipeline.localization.localizer.localize_sequence` when they stop early); NaN pose.
+
+**Multiple maps.** Every frame's estimate carries the ``map_id`` it was tracked in. While a map
+other than the first is active, each of its keyframes is aligned to every older map from its own
+pose (milliseconds: a brief loss leaves the maps close), and every
+:data:`MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES` keyframes relocalized in them (no prior needed). A fit
+the tracker accepts with at least :data:`MAP_MERGE_MIN_INLIER_FRACTION` of the frame's points
+merges the active map into the old one: voxel statistics moved exactly
+(:meth:`VoxelGaussianBuilder.merge`), keyframes joined, tracking goes on there. Estimates already
+returned keep their map's frame; :meth:`SequenceTracker.to_root` maps a ``(map_id, T)`` into the
+frame of the map it ended in, and :meth:`SequenceTracker.map_record` says what happened.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,13 +56,14 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["STATUS_ANCHOR", "STATUS_TRACKED", "STATUS_RELOCALIZED", "STATUS_LOST", "STATUS_NOT_ATTEMPTED",
-           "PLACED_STATUSES", "NOTE_NO_DEPTH", "FrameEstimate", "SequenceTracker"]
+__all__ = ["STATUS_ANCHOR", "STATUS_TRACKED", "STATUS_RELOCALIZED", "STATUS_LOST", "STATUS_NEW_MAP",
+           "STATUS_NOT_ATTEMPTED", "PLACED_STATUSES", "NOTE_NO_DEPTH", "FrameEstimate", "MapInfo", "SequenceTracker"]
 
 STATUS_ANCHOR = "anchor"
 STATUS_TRACKED = "tracked"
 STATUS_RELOCALIZED = "relocalized"
 STATUS_LOST = "lost"
+STATUS_NEW_MAP = "new_map"  # mapping: the first frame of a new map, started after a loss
 STATUS_NOT_ATTEMPTED = "not_attempted"  # a run stopped before this frame (never produced by process())
 # Statuses of frames the map itself placed (an anchor's pose is given, so it says nothing about the map).
 PLACED_STATUSES = (STATUS_TRACKED, STATUS_RELOCALIZED)
@@ -65,6 +79,27 @@ RELOCALIZATION_BACKOFF_MAX_FRAMES = 16
 # Mapping only: the points of the previous frame that a frame is tracked against when the map does
 # not cover it (a pan into unmapped space). One point per this many pixels in u and v.
 FRAME_TO_FRAME_STRIDE = 2
+# Map merging (see the module doc). As strict as a loop edge (mapping/loop_closure.py): a wrong
+# merge bends one map onto another for good.
+MAP_MERGE_MIN_INLIER_FRACTION = 0.3
+# Relocalization into older maps costs seconds: tried on every this-many keyframes of a new map.
+MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES = 5
+
+
+@dataclass
+class MapInfo:
+    """One map of a mapping session: where it started and where it went.
+
+    ``merged_into`` is the map it was joined to (None: still its own), ``T_into_map [4, 4]`` moves
+    its coordinates into that map's, ``merged_at_frame`` is the frame that recognised the place.
+    """
+
+    id: int
+    first_frame: int | None
+    merged_into: int | None = None
+    T_into_map: np.ndarray = field(default_factory=lambda: np.eye(4))
+    merged_at_frame: int | None = None
+    method: str = ""
 
 
 @dataclass
@@ -79,6 +114,7 @@ class FrameEstimate:
     time_s: float
     keyframe: bool = False
     note: str = ""
+    map_id: int = 0
 
 
 class SequenceTracker:
@@ -94,11 +130,14 @@ class SequenceTracker:
         keyframe_translation_m, keyframe_rotation_deg: motion between keyframes (mapping).
         fusion_stride: pixel stride of the points merged per keyframe (as the fused frames use).
         prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (e.g. the map's keyframe poses).
+        new_map_after_lost_frames: mapping only; after this many lost frames in a row (with depth)
+            a new map is started; 0 = never (a session inside a saved world keeps to that world).
     """
 
     def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
                  model: SurfelModel | None = None, builder=None, keyframe_translation_m: float = 0.08,
-                 keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None):
+                 keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None,
+                 new_map_after_lost_frames: int = 0):
         if model is None and builder is None:
             raise ValueError("SequenceTracker needs a model (localization) or a builder (mapping)")
         self.camera = camera
@@ -113,6 +152,13 @@ class SequenceTracker:
         self.keyframe_indices: list[int] = []
         self.keyframe_poses: list[np.ndarray] = []
         self._relocalizer: Relocalizer | None = None
+        self.new_map_after_lost_frames = int(new_map_after_lost_frames)
+        self.map_id = 0
+        self.maps: list[MapInfo] = [MapInfo(0, None)]
+        # Older maps not merged yet: id -> (builder, model, keyframe indices, keyframe poses, relocalizer).
+        self._old_maps: dict[int, dict] = {}
+        self._lost_run = 0  # lost frames in a row (with depth)
+        self._kf_in_map = 0  # keyframes of the active map since it started (merge relocalization cadence)
         self.reset()
 
     # -- state ---------------------------------------------------------------------------------
@@ -190,10 +236,111 @@ class SequenceTracker:
             else:
                 est = FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0,
                                     note="poor alignment")
+        if self.builder is not None and self.new_map_after_lost_frames > 0:
+            self._lost_run = self._lost_run + 1 if (est.status == STATUS_LOST and fp.n_valid >= _MIN_VALID_DEPTH) else 0
+            if self._lost_run >= self.new_map_after_lost_frames and np.isfinite(est.T_world_cam).all():
+                self._start_new_map(index)
+                est = FrameEstimate(index, est.T_world_cam, STATUS_NEW_MAP, float("nan"), float("nan"), 0.0,
+                                    note=f"new map {self.map_id} after {self._lost_run} lost frames; pose of the last placed frame")
+                self._lost_run = 0
+        est.map_id = self.map_id
         if est.status != STATUS_LOST:
             self._accept(index, fp, est, timestamp_s)
+            if est.keyframe and self._old_maps and est.status != STATUS_NEW_MAP:
+                self._try_merge(index, fp, est.T_world_cam)
         est.time_s = time.perf_counter() - t0
         return est
+
+    # -- multiple maps -------------------------------------------------------------------------
+    def _start_new_map(self, index: int) -> None:
+        """Put the active map aside and start an empty one; the frame becomes its first keyframe."""
+        from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+
+        self._old_maps[self.map_id] = {"builder": self.builder, "model": self.model,
+                                       "kf_idx": self.keyframe_indices, "kf_T": self.keyframe_poses,
+                                       "relocalizer": None}
+        self.map_id = len(self.maps)
+        self.maps.append(MapInfo(self.map_id, index))
+        logger.info("frame %d: lost for %d frames, starting map %d", index, self._lost_run, self.map_id)
+        self.builder = VoxelGaussianBuilder(self.builder.voxel_size_m)
+        self.model = SurfelModel.from_builder(self.builder)
+        self.keyframe_indices, self.keyframe_poses = [], []
+        self._relocalizer = None
+        self._kf_in_map = 0
+        last = self._last
+        self.reset()
+        self._last = last  # the new map's first pose is the last placed one
+
+    def _try_merge(self, index: int, fp, T_world_cam: np.ndarray) -> None:
+        """Recognise an older map from this keyframe and join the active map to it (module doc)."""
+        self._kf_in_map += 1
+        relocalize = self._kf_in_map % MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES == 0
+        for old_id in sorted(self._old_maps):
+            old = self._old_maps[old_id]
+            if len(old["model"]) == 0:
+                continue
+            res = self.tracker.align(fp, old["model"], T_world_cam, None)
+            method = "tracking"
+            if not (res.ok and res.inlier_fraction >= MAP_MERGE_MIN_INLIER_FRACTION) and relocalize:
+                if old["relocalizer"] is None:
+                    old["relocalizer"] = Relocalizer(self.tracker, old["model"], np.array(self.priors + old["kf_T"]))
+                res = old["relocalizer"].relocalize(fp, [T_world_cam])
+                method = "relocalization"
+            if res.ok and res.inlier_fraction >= MAP_MERGE_MIN_INLIER_FRACTION:
+                self._merge_into(old_id, res.T_world_cam @ np.linalg.inv(T_world_cam), index, method)
+                return
+
+    def _merge_into(self, old_id: int, T_old_cur: np.ndarray, index: int, method: str) -> None:
+        """Join the active map to map ``old_id``; ``T_old_cur [4, 4]`` moves active-map coordinates there."""
+        old = self._old_maps.pop(old_id)
+        cur = self.maps[self.map_id]
+        cur.merged_into, cur.T_into_map, cur.merged_at_frame, cur.method = old_id, T_old_cur.copy(), index, method
+        dt, dr = pose_change(np.eye(4), T_old_cur)
+        logger.info("frame %d: map %d recognised in map %d (%s), merged; the maps were %.1f cm / %.1f deg apart",
+                    index, self.map_id, old_id, method, 100 * dt, dr)
+        old["builder"].merge(self.builder, T_old_cur)
+        pairs = sorted(zip(old["kf_idx"] + self.keyframe_indices,
+                           old["kf_T"] + [T_old_cur @ T for T in self.keyframe_poses]), key=lambda p: p[0])
+        self.builder = old["builder"]
+        self.model = SurfelModel.from_builder(self.builder)
+        self.keyframe_indices = [int(i) for i, _ in pairs]
+        self.keyframe_poses = [T for _, T in pairs]
+        self._relocalizer = None
+        self.map_id = old_id
+        self._kf_in_map = 0
+        # Motion state follows the frame into the old map's coordinates.
+        move = (lambda T: T_old_cur @ T)
+        self._last = None if self._last is None else (self._last[0], move(self._last[1]))
+        self._prev = None if self._prev is None else (self._prev[0], move(self._prev[1]))
+        self._ref = None if self._ref is None else (self._ref[0], move(self._ref[1]))
+        self._last_frame = None if self._last_frame is None else (self._last_frame[0], move(self._last_frame[1]))
+        self._last_kf_pose = None if self._last_kf_pose is None else move(self._last_kf_pose)
+
+    def to_root(self, map_id: int, T_map_cam: np.ndarray) -> tuple[int, np.ndarray]:
+        """``(root map id, T [4, 4])``: a pose of map ``map_id`` in the frame of the map it was
+        finally merged into (itself when never merged)."""
+        T = np.asarray(T_map_cam, np.float64)
+        m = map_id
+        while self.maps[m].merged_into is not None:
+            T = self.maps[m].T_into_map @ T
+            m = self.maps[m].merged_into
+        return m, T
+
+    def map_record(self) -> dict:
+        """What happened to the maps, for reports: one entry per map."""
+        out = []
+        for m in self.maps:
+            dt, dr = pose_change(np.eye(4), m.T_into_map)
+            out.append({"id": m.id, "first_frame": m.first_frame, "merged_into": m.merged_into,
+                        "merged_at_frame": m.merged_at_frame, "method": m.method or None,
+                        "correction_m": round(float(dt), 4), "correction_deg": round(float(dr), 3)})
+        return {"n_maps": len(self.maps), "n_merged": sum(m.merged_into is not None for m in self.maps), "maps": out}
+
+    def all_keyframes(self) -> list[tuple[int, list[int], list[np.ndarray]]]:
+        """``[(map id, keyframe indices, T_map_cam poses)]`` of the active map and every map not merged."""
+        out = [(self.map_id, self.keyframe_indices, self.keyframe_poses)]
+        out += [(k, v["kf_idx"], v["kf_T"]) for k, v in sorted(self._old_maps.items())]
+        return out
 
     def _relocalize(self, index: int, fp, extra: list[np.ndarray],
                     fallback: tuple[np.ndarray, TrackResult] | None = None) -> FrameEstimate:

@@ -20,13 +20,15 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["KeyframeSet", "select_keyframes", "slam_poses", "uses_ground_truth", "build_keyframes"]
+__all__ = ["KeyframeSet", "SlamResult", "select_keyframes", "slam_poses", "uses_ground_truth", "build_keyframes"]
 
 
 # Where mapping poses come from (KeyframeSet.pose_source, GaussianWorld.pose_source).
 POSE_SOURCES = ("ground_truth", "estimated")
 # keyframes.npz members: (dtype kinds, ndim) -- T_world_cam [N, 4, 4], valid [N], indices [K].
 _KEYFRAME_MEMBERS = {"T_world_cam": ("f", 3), "valid": ("b", 1), "indices": ("iu", 1)}
+# Fewer valid depth pixels than this: the frame cannot anchor the world (as the tracker's floor).
+_MIN_ANCHOR_DEPTH_PIXELS = 200
 
 
 def select_keyframes(T_world_cam: np.ndarray, valid: np.ndarray, translation_m: float,
@@ -51,54 +53,111 @@ def select_keyframes(T_world_cam: np.ndarray, valid: np.ndarray, translation_m: 
     return np.asarray(keys, dtype=np.int64)
 
 
+@dataclass
+class SlamResult:
+    """What :func:`slam_poses` found.
+
+    Attributes:
+        T_world_cam: ``[N, 4, 4]`` poses in the frame of the main map (NaN where never placed;
+            frames of a map never merged keep that map's own frame, seeded at the last placed pose).
+        status: ``[N]`` per-frame status (:mod:`atlas_pipeline.localization.sequence`).
+        valid: ``[N]`` frames placed in the main map (not lost, not in a map of their own).
+        keyframe_indices: ``[K]`` keyframes of the main map, increasing.
+        loop_closure: :meth:`LoopClosureResult.record`, or None when loop closure is off.
+        maps: :meth:`SequenceTracker.map_record` plus ``main``, the main map's id.
+        n_attempted: frames processed (fewer than N when a time budget stopped the run).
+        time_s: wall time of tracking, mapping and loop closure (frame decoding included).
+        tracker: the :class:`SequenceTracker` at the end (its active map), for benchmarks.
+    """
+
+    T_world_cam: np.ndarray
+    status: list[str]
+    valid: np.ndarray
+    keyframe_indices: np.ndarray
+    loop_closure: dict | None
+    maps: dict
+    n_attempted: int
+    time_s: float
+    tracker: object = None
+
+
 def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: LocalizationConfig,
                depth_range_m: tuple[float, float], fusion_stride: int,
-               log: Callable[[str], None] | None = None) -> tuple[np.ndarray, list[str], np.ndarray, dict | None]:
+               log: Callable[[str], None] | None = None, frames=None, budget_s: float | None = None) -> SlamResult:
     """Track and map the sequence with no ground truth: frame-to-model RGB-D tracking against the
-    keyframes merged so far (:class:`SequenceTracker`). The first frame defines the world. With
-    ``mapping.loop_closure``, loops to earlier keyframes are then closed and every pose corrected
-    (:func:`atlas_pipeline.mapping.loop_closure.close_loops`).
+    keyframes merged so far (:class:`SequenceTracker`). The first frame with depth defines the
+    world. After ``mapping.new_map_after_lost_frames`` lost frames a new map starts and is merged
+    back when the place is recognised; the map with the most keyframes is the main one. With
+    ``mapping.loop_closure``, loops between the main map's keyframes are then closed and every
+    pose corrected (:func:`atlas_pipeline.mapping.loop_closure.close_loops`).
 
-    Returns ``(T_world_cam [N, 4, 4], status [N], keyframe indices [K], loop record)``; lost frames
-    keep their predicted pose and are never keyframes. The loop record
-    (:meth:`LoopClosureResult.record`: loops, how far the trajectory moved) is None when loop
-    closure is off. Frames are read one at a time.
+    Args:
+        frames: optional ``[(rgb, depth_m)]`` already in memory (benchmarks: decoding not timed);
+            by default frames are read one at a time.
+        budget_s: stop tracking after this many seconds (benchmarks); ``n_attempted`` says where.
     """
+    import time
+
     from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
     from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
 
+    t0 = time.perf_counter()
     n = manifest.n_frames
     poses = np.full((n, 4, 4), np.nan)
+    map_ids = np.zeros(n, np.int64)
     status: list[str] = []
     st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=VoxelGaussianBuilder(mapping.voxel_size_m),
                          keyframe_translation_m=mapping.keyframe_translation_m,
-                         keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride)
+                         keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
+                         new_map_after_lost_frames=mapping.new_map_after_lost_frames)
     progress = Progress("tracking and mapping", n, log)
     started = False
     for i in range(n):
-        rgb = manifest.read_rgb(i)
-        depth = manifest.read_depth_m(i, allow_empty=True)
+        if frames is not None:
+            rgb, depth = frames[i]
+        else:
+            rgb, depth = manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)
         # The first frame with depth anchors the world at the identity.
-        anchor = None if started or np.count_nonzero(depth) < 200 else np.eye(4)
+        anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
         est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]))
         started = started or anchor is not None
-        poses[i] = est.T_world_cam
+        poses[i], map_ids[i] = est.T_world_cam, est.map_id
         status.append(est.status)
-        progress.update(extra=f"{est.status}, {len(st.keyframe_indices)} keyframes")
-    if not st.keyframe_indices:
+        progress.update(extra=f"{est.status}, {len(st.keyframe_indices)} keyframes, map {st.map_id}")
+        if budget_s is not None and time.perf_counter() - t0 > budget_s and i + 1 < n:
+            logger.warning("%s: time budget of %.0f s spent after %d of %d frames; stopping", manifest.dataset,
+                           budget_s, i + 1, n)
+            break
+    n_done = len(status)
+    status += ["not_attempted"] * (n - n_done)
+    if not any(len(kf) for _, kf, _ in st.all_keyframes()):
         raise DatasetError(manifest.root, "tracking found no frame with valid depth to start the map")
+    # Every pose into the frame of the map it ended in; the main map is the one with most keyframes.
+    roots = np.full(n, -1, np.int64)
+    for i in range(n_done):
+        if np.isfinite(poses[i]).all():
+            roots[i], poses[i] = st.to_root(int(map_ids[i]), poses[i])
+    maps = st.all_keyframes()
+    main_id, kf_idx, _ = max(maps, key=lambda m: (len(m[1]), -m[0]))
+    record = {**st.map_record(), "main": int(main_id)}
+    if len(maps) > 1:
+        logger.warning("%s: %d maps were never merged; frames outside the main map (%d) are left out of the world",
+                       manifest.dataset, len(maps) - 1, main_id)
     n_lost = status.count(STATUS_LOST)
     if n_lost:
         logger.warning("%s: %d of %d frames lost while tracking", manifest.dataset, n_lost, n)
-    idx = np.asarray(st.keyframe_indices, np.int64)
-    if not mapping.loop_closure:
-        return poses, status, idx, None
-    from atlas_pipeline.mapping.loop_closure import close_loops
+    idx = np.asarray(kf_idx, np.int64)
+    valid = (np.array([s not in (STATUS_LOST, "not_attempted") for s in status]) & (roots == main_id)
+             & np.isfinite(poses).all(axis=(1, 2)))
+    loops = None
+    if mapping.loop_closure:
+        from atlas_pipeline.mapping.loop_closure import close_loops
 
-    valid = np.array([s != STATUS_LOST for s in status]) & np.isfinite(poses).all(axis=(1, 2))
-    lc = close_loops(manifest, poses, valid, idx, localization, depth_range_m, fusion_stride, mapping.voxel_size_m,
-                     mapping.loop_min_keyframe_gap, mapping.loop_search_radius_m, log=log)
-    return lc.T_world_cam, status, idx, lc.record(idx)
+        lc = close_loops(manifest, poses, valid, idx, localization, depth_range_m, fusion_stride, mapping.voxel_size_m,
+                         mapping.loop_min_keyframe_gap, mapping.loop_search_radius_m, log=log)
+        poses = np.where(valid[:, None, None], lc.T_world_cam, poses)
+        loops = lc.record(idx)
+    return SlamResult(poses, status, valid, idx, loops, record, n_done, time.perf_counter() - t0, st)
 
 
 def uses_ground_truth(manifest: FrameManifest, cfg: MappingConfig) -> bool:
@@ -121,6 +180,7 @@ class KeyframeSet:
         pose_source: ``ground_truth`` or ``estimated``.
         loop_closure: what loop closure did (:meth:`LoopClosureResult.record`: the loops, how far
             the trajectory moved), or None (ground truth, loop closure off, an older artifact).
+        maps: the maps of the session (:attr:`SlamResult.maps`), or None (ground truth, older artifact).
     """
 
     T_world_cam: np.ndarray
@@ -128,6 +188,7 @@ class KeyframeSet:
     indices: np.ndarray
     pose_source: str
     loop_closure: dict | None = None
+    maps: dict | None = None
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
@@ -138,6 +199,7 @@ class KeyframeSet:
             "pose_source": self.pose_source, "n_frames": int(len(self.valid)),
             "n_keyframes": int(len(self.indices)), "indices": [int(i) for i in self.indices],
             **({} if self.loop_closure is None else {"loop_closure": self.loop_closure}),
+            **({} if self.maps is None else {"maps": self.maps}),
         })
         return [path, meta]
 
@@ -164,7 +226,10 @@ class KeyframeSet:
         loops = meta.get("loop_closure")  # optional: artifacts written before loop closure lack it
         if loops is not None and not isinstance(loops, dict):
             raise ArtifactError(f"{meta_path}: loop_closure must be an object, got {type(loops).__name__}")
-        return cls(T.astype(np.float64), valid, idx.astype(np.int64), pose_source, loops)
+        maps = meta.get("maps")  # optional: artifacts written before multiple maps lack it
+        if maps is not None and not isinstance(maps, dict):
+            raise ArtifactError(f"{meta_path}: maps must be an object, got {type(maps).__name__}")
+        return cls(T.astype(np.float64), valid, idx.astype(np.int64), pose_source, loops, maps)
 
 
 def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingConfig,
@@ -177,8 +242,6 @@ def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingCon
         if len(idx) == 0:
             raise DatasetError(manifest.root, "no frame has a pose to map with")
         return KeyframeSet(poses, valid, idx, "ground_truth")
-    poses, status, idx, loops = slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m),
-                                           fused.stride, log)
-    valid = np.array([s != "lost" for s in status]) & np.isfinite(poses).all(axis=(1, 2))
+    slam = slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m), fused.stride, log)
     # The corrected poses (loop closure) are the mapping poses: build_world re-fuses the map from them.
-    return KeyframeSet(poses, valid, idx, "estimated", loops)
+    return KeyframeSet(slam.T_world_cam, slam.valid, slam.keyframe_indices, "estimated", slam.loop_closure, slam.maps)

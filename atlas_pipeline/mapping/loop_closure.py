@@ -130,8 +130,7 @@ class LoopClosureResult:
                       for lp in self.loops],
             "max_translation_change_m": round(float(self.max_translation_change_m), 5),
             "mean_translation_change_m": round(float(self.mean_translation_change_m), 5),
-            "time_s": round(float(self.time_s), 3),
-        }
+        }  # no time: the record is artifact content, which must not change when nothing else does
 
 
 # -- pure math ---------------------------------------------------------------------------------------
