@@ -149,3 +149,48 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     # The map re-fused from the corrected keyframe poses.
     builder = refuse_keyframes(m, kf[:5], res.T_keyframes_after[:5], (0.1, 4.0), 2, 0.02)
     assert len(builder) > 0
+
+
+def test_thumbnails_recognise_a_place_not_a_different_view(loop_sequence):
+    """Place recognition: a frame correlates with itself shifted by a few pixels far above the
+    threshold, and with the view half a turn away far below it."""
+    from atlas_pipeline.mapping.loop_closure import LOOP_MIN_APPEARANCE_NCC, appearance_candidates, keyframe_thumbnail
+
+    m = loop_sequence
+    rgb0, d0 = m.read_rgb(0), m.read_depth_m(0)
+    shifted = np.roll(rgb0, 3, axis=1)
+    far = m.n_frames // 2
+    t = np.stack([keyframe_thumbnail(rgb0, d0), keyframe_thumbnail(m.read_rgb(far), m.read_depth_m(far)),
+                  keyframe_thumbnail(shifted, d0)])
+    assert t[0] @ t[2] > 0.95
+    assert t[0] @ t[1] < LOOP_MIN_APPEARANCE_NCC
+    assert list(appearance_candidates(t, 2, min_gap=1)) == [0]
+    # no colour: the depth image is the descriptor
+    assert keyframe_thumbnail(None, d0) @ keyframe_thumbnail(None, np.roll(d0, 3, axis=1)) > 0.9
+
+
+def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
+    """With a search radius too small for the drift (no pose candidate), the loop back to the
+    start is still found, by place recognition, and the trajectory closes."""
+    from atlas_pipeline.config import LocalizationConfig
+    from atlas_pipeline.mapping.keyframes import select_keyframes
+    from atlas_pipeline.mapping.loop_closure import close_loops, loop_candidates
+
+    m = loop_sequence
+    gt = m.T_world_cam_gt
+    valid = m.has_gt.copy()
+    err = np.eye(4)
+    err[:3, :3] = so3_exp(np.radians([0.0, 0.08, 0.0]))
+    err[:3, 3] = (0.0, 0.0, 0.001)
+    drifted = _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
+    kf = select_keyframes(drifted, valid, 0.08, 8.0)
+    radius = 0.005
+    assert not any(len(loop_candidates(drifted[kf], i, 10, radius)) for i in range(len(kf)))
+    res = close_loops(m, drifted, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02, min_gap=10, radius_m=radius)
+    rec = res.record(kf)
+    assert rec["n_loops"] >= 1
+
+    def end_error(P):
+        return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
+
+    assert end_error(res.T_world_cam) < 0.5 * end_error(drifted)

@@ -5,10 +5,12 @@ slowly over a long sequence: when the camera returns to a place it mapped long a
 keyframes sit a few centimetres (or degrees) away from the old ones. This module runs after
 tracking and mapping:
 
-1. **Detection** (:func:`loop_candidates`): for each keyframe ``i``, earlier keyframes ``j`` at
-   least ``min_gap`` keyframes back whose poses are near (camera centres within ``radius_m``, optical
-   axes within :data:`LOOP_MAX_VIEW_ANGLE_DEG`): the views overlap if the drift is smaller than the
-   radius.
+1. **Detection**: for each keyframe ``i``, earlier keyframes ``j`` at least ``min_gap`` keyframes
+   back whose poses are near (:func:`loop_candidates`: camera centres within ``radius_m``, optical
+   axes within :data:`LOOP_MAX_VIEW_ANGLE_DEG`; the views overlap if the drift is smaller than the
+   radius), and, whatever the drift, those that *look* alike (:func:`appearance_candidates`: place
+   recognition by the "small blurry image" of PTAM's relocalizer, Klein and Murray 2008, a
+   normalised cross-correlation of 40x30 thumbnails).
 2. **Verification** (:func:`verify_loop`): keyframe ``i`` is aligned with the RGB-D tracker to the
    geometry of the candidate and its neighbours as they were mapped (a :class:`SurfelModel` from
    their own points), from the drifted pose and from the candidate's pose; when both fail, the
@@ -43,7 +45,8 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LoopEdge", "LoopClosureResult", "loop_candidates", "relative_poses", "optimize_pose_graph",
+__all__ = ["LoopEdge", "LoopClosureResult", "loop_candidates", "keyframe_thumbnail", "appearance_candidates",
+           "relative_poses", "optimize_pose_graph",
            "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
            "refuse_keyframes"]
 
@@ -61,6 +64,12 @@ LOOP_MIN_INLIER_FRACTION = 0.3
 # After a keyframe closes a loop, the next this-many keyframes do not search: they would add
 # near-duplicate edges, costing time but no information.
 LOOP_COOLDOWN_KEYFRAMES = 2
+# Place recognition (appearance_candidates): thumbnails of this size, blurred by a Gaussian of this
+# sigma (thumbnail pixels) so small shifts still correlate, and a candidate only above this
+# normalised cross-correlation (1 = the same image; unrelated indoor views are mostly below 0.6).
+THUMBNAIL_SIZE = (40, 30)
+THUMBNAIL_BLUR_PX = 1.0
+LOOP_MIN_APPEARANCE_NCC = 0.85
 # Relocalizer fallback (seconds per try): at most this many per sequence.
 LOOP_MAX_RELOCALIZATIONS = 8
 # Pose graph: Open3D's line process keeps an uncertain (loop) edge whose error, weighted by its
@@ -69,6 +78,9 @@ LOOP_MAX_RELOCALIZATIONS = 8
 # larger (a 40 cm drift with a 5 cm tolerance prunes the true loop: see tests/test_loop_closure.py).
 POSE_GRAPH_MAX_CORRESPONDENCE_M = 0.05
 POSE_GRAPH_EDGE_PRUNE_THRESHOLD = 0.25
+# ... and the distance the line process tolerates is at least this times the largest drift a
+# verified loop measured (loops found by appearance may exceed the search radius).
+LOOP_DRIFT_TOLERANCE_FACTOR = 1.25
 # Points per keyframe used for the information matrices (Open3D counts correspondences): voxel
 # downsampling at twice the map voxel keeps them cheap.
 INFO_VOXEL_FACTOR = 2.0
@@ -157,6 +169,46 @@ def loop_candidates(T_kf: np.ndarray, i: int, min_gap: int, radius_m: float,
     ok = (d <= radius_m) & (cos_axes >= np.cos(np.radians(max_view_angle_deg))) & np.isfinite(d)
     idx = np.flatnonzero(ok)
     return idx[np.argsort(d[idx], kind="stable")][:max_candidates].astype(np.int64)
+
+
+def keyframe_thumbnail(rgb: np.ndarray | None, depth_m: np.ndarray) -> np.ndarray:
+    """A place descriptor: the image (grey; depth when there is no colour) shrunk to
+    :data:`THUMBNAIL_SIZE` by area averaging, blurred, zero mean and unit norm. ``[w * h]`` float64.
+
+    Args:
+        rgb: ``[H, W, 3]`` uint8 or None; depth_m: ``[H, W]`` (used when ``rgb`` is None).
+    """
+    img = (np.asarray(rgb, np.float64) @ np.array([0.299, 0.587, 0.114]) if rgb is not None
+           else np.asarray(depth_m, np.float64))
+    tw, th = THUMBNAIL_SIZE
+    H, W = img.shape
+    ys = np.minimum((np.arange(H) * th) // H, th - 1)
+    xs = np.minimum((np.arange(W) * tw) // W, tw - 1)
+    small = np.zeros((th, tw))
+    np.add.at(small, (ys[:, None], xs[None, :]), img)
+    small /= np.maximum(np.bincount(ys, minlength=th)[:, None] * np.bincount(xs, minlength=tw)[None, :], 1)
+    r = int(np.ceil(3 * THUMBNAIL_BLUR_PX))
+    g = np.exp(-0.5 * (np.arange(-r, r + 1) / THUMBNAIL_BLUR_PX) ** 2)
+    g /= g.sum()
+    pad = np.pad(small, r, mode="edge")
+    small = np.apply_along_axis(lambda v: np.convolve(v, g, "valid"), 1, pad)
+    small = np.apply_along_axis(lambda v: np.convolve(v, g, "valid"), 0, small)
+    v = small.ravel() - small.mean()
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else v
+
+
+def appearance_candidates(thumbs: np.ndarray, i: int, min_gap: int, min_ncc: float = LOOP_MIN_APPEARANCE_NCC,
+                          max_candidates: int = LOOP_MAX_CANDIDATES) -> np.ndarray:
+    """Earlier keyframes (``j <= i - min_gap``) whose thumbnail correlates with keyframe ``i``'s
+    at least ``min_ncc``, best first. ``thumbs``: ``[K, D]`` from :func:`keyframe_thumbnail`.
+    Returns ``[C]`` int64, ``C <= max_candidates``."""
+    last = i - min_gap
+    if last < 0:
+        return np.zeros(0, np.int64)
+    ncc = thumbs[: last + 1] @ thumbs[i]
+    idx = np.flatnonzero(ncc >= min_ncc)
+    return idx[np.argsort(-ncc[idx], kind="stable")][:max_candidates].astype(np.int64)
 
 
 def relative_poses(T_kf: np.ndarray) -> np.ndarray:
@@ -322,10 +374,13 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
     # Camera-frame points of every keyframe, one per map voxel: the local maps and the information
     # matrices are made from these (each a few thousand points; frames are not kept).
     pts: list[np.ndarray] = []
+    thumbs = []
     for k in kf:
         depth = manifest.read_depth_m(int(k), allow_empty=True)
         p, _ = backproject(depth, None, manifest.camera, fusion_stride, *depth_range_m)
         pts.append(_voxel_means(p.astype(np.float64), voxel_size_m))
+        thumbs.append(keyframe_thumbnail(manifest.read_rgb(int(k)), depth))
+    thumbs = np.stack(thumbs)
 
     def local_model(j: int, i: int):
         lo, hi = max(0, j - LOOP_MODEL_WINDOW), min(i - min_gap, j + LOOP_MODEL_WINDOW)
@@ -340,7 +395,9 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
         if cooldown > 0:
             cooldown -= 1
             continue
-        cands = loop_candidates(T_kf, i, min_gap, radius_m)
+        near = loop_candidates(T_kf, i, min_gap, radius_m)
+        alike = appearance_candidates(thumbs, i, min_gap)
+        cands = np.concatenate([near, [j for j in alike if j not in set(near.tolist())]]).astype(np.int64)
         if len(cands) == 0:
             continue
         n_cand += len(cands)
@@ -377,10 +434,14 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
     info_o = np.stack([information_matrix(coarse[k], coarse[k + 1], odo[k], info_d) for k in range(K - 1)])
     info_l = np.stack([information_matrix(coarse[lp.source], coarse[lp.target], lp.T_target_source, info_d)
                        for lp in loops])
-    # The line process must tolerate loop errors up to the search radius (a larger drift would not
-    # have produced the candidate); false loops are kept out by the verification.
+    # The line process must tolerate loop errors up to the drift the loops found (at least the
+    # search radius); false loops are kept out by the verification.
+    drift = max(float(np.linalg.norm((T_kf[lp.target] @ lp.T_target_source)[:3, 3] - T_kf[lp.source, :3, 3]))
+                for lp in loops)
     T_new, kept = optimize_pose_graph(T_kf, odo, [(lp.source, lp.target, lp.T_target_source) for lp in loops],
-                                      info_o, info_l, max_correspondence_m=max(radius_m, POSE_GRAPH_MAX_CORRESPONDENCE_M))
+                                      info_o, info_l,
+                                      max_correspondence_m=max(radius_m, LOOP_DRIFT_TOLERANCE_FACTOR * drift,
+                                                               POSE_GRAPH_MAX_CORRESPONDENCE_M))
     for lp, k in zip(loops, kept):
         lp.kept = bool(k)
     result.T_keyframes_after = T_new
