@@ -229,11 +229,10 @@ class WorldBundleArtifact:
 
 
 def _render_size(width: int, height: int, K: np.ndarray, scale: float) -> tuple[int, int, np.ndarray]:
-    """Video size (even, for yuv420p) and the intrinsics scaled to it."""
-    w, h = int(round(width * scale)) // 2 * 2, int(round(height * scale)) // 2 * 2
-    K = np.asarray(K, np.float64).copy()
-    K[:2] *= np.array([[w / width], [h / height]])
-    return w, h, K
+    """Video size (even, for yuv420p) and the intrinsics scaled to it (pixel centres kept)."""
+    from atlas_pipeline.gaussian_world.raster import scale_camera
+
+    return scale_camera(K, width, height, scale, multiple=2)
 
 
 def orbit_trajectory(field: GaussianField, cfg: PipelineConfig) -> np.ndarray:

@@ -18,8 +18,10 @@ Coverage itself is the colour term's job. One keyframe per step, in a seeded ord
 parameter group (log scales, opacity logits, rotations as a local rotation vector composed onto the
 quaternion).
 
-The forward model is exactly the rasteriser's (:mod:`atlas_pipeline.gaussian_world.render`: same
-projection, 0.3 px low-pass, Jacobian clamp, 1/255 alpha floor, 0.99 alpha cap, early termination);
+The forward model is the rasteriser's by construction: projection, sorting, tiling and the per-pixel
+alpha come from :mod:`atlas_pipeline.gaussian_world.raster` (0.3 px low-pass, Jacobian clamp, 1/255
+alpha floor, 0.99 alpha cap, early termination), and the chain rule below recomputes the projection
+with the same device helpers;
 the backward pass visits the same Gaussians front to back a second time and gets each one's
 ``d colour / d alpha`` from the prefix sums (``C = prefix + T a c + T (1 - a) behind``), so nothing
 per pixel needs to be stored. Gradients are summed by a fixed number of workers in a fixed order:
@@ -39,8 +41,12 @@ from typing import Callable, Sequence
 import numpy as np
 from numba import njit, prange
 
-from atlas_pipeline.gaussian_world import render as R
+from atlas_pipeline.gaussian_world import raster
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
+from atlas_pipeline.gaussian_world.raster import (
+    ALPHA_MAX, DEPTH_MIN_ALPHA, T_MIN, jacobian_clamp_limits, pixel_alpha, pixel_covariance, projection_rows,
+    rotmat_from_quat, tile_pixel_bounds, world_to_camera,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -125,7 +131,7 @@ def _depth_slopes(order, pos, scl, quat, Rcw, tcw, fx, fy):
         smid = s0 + s1 + s2 - min(s0, min(s1, s2)) - max(s0, max(s1, s2))
         if scl[i, a] > 0.5 * smid:
             continue
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = R._rotmat_from_quat(quat, i)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotmat_from_quat(quat, i)
         if a == 0:  # the shortest axis: column a of the rotation
             n0, n1, n2 = r00, r10, r20
         elif a == 1:
@@ -135,7 +141,7 @@ def _depth_slopes(order, pos, scl, quat, Rcw, tcw, fx, fy):
         nx = Rcw[0, 0] * n0 + Rcw[0, 1] * n1 + Rcw[0, 2] * n2
         ny = Rcw[1, 0] * n0 + Rcw[1, 1] * n1 + Rcw[1, 2] * n2
         nz = Rcw[2, 0] * n0 + Rcw[2, 1] * n1 + Rcw[2, 2] * n2
-        x, y, z = R._world_to_camera(pos, i, Rcw, tcw)
+        x, y, z = world_to_camera(pos, i, Rcw, tcw)
         c = nx * x + ny * y + nz * z  # n . mu: z(u, v) = c / (n . ray(u, v))
         if abs(c) < 1e-9:
             continue
@@ -152,13 +158,10 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
     """Tiles ``worker, worker + n_workers, ...``: render each pixel, take its L1 loss against
     ``image [H, W, 3]`` (float64, [0, 1]) and ``depth_obs [H, W]`` (0 = no reading), and add the
     image-space gradient of every Gaussian it saw to ``grad [M, 10]`` (rows in ``feat`` order)."""
-    t_min = R.T_MIN
-    a_max = R.ALPHA_MAX
+    t_min = T_MIN
+    a_max = ALPHA_MAX
     for t in range(worker, n_tiles, n_workers):
-        px0 = (t % tiles_x) * R.TILE_SIZE
-        py0 = (t // tiles_x) * R.TILE_SIZE
-        px1 = min(px0 + R.TILE_SIZE, width) - 1
-        py1 = min(py0 + R.TILE_SIZE, height) - 1
+        px0, py0, px1, py1 = tile_pixel_bounds(t, tiles_x, width, height)
         k0 = tile_start[t]
         k1 = tile_start[t + 1]
         for py in range(py0, py1 + 1):
@@ -172,14 +175,14 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
                 last = k0
                 for k in range(k0, k1):
                     g = tile_ids[k]
-                    alpha, _, dx, dy = R._pixel_alpha(feat, box, g, px, py)
+                    alpha, _, dx, dy = pixel_alpha(feat, box, g, px, py)
                     if alpha == 0.0:
                         continue
                     w = alpha * T
-                    c0 += w * feat[g, R._F_R]
-                    c1 += w * feat[g, R._F_G]
-                    c2 += w * feat[g, R._F_BL]
-                    d += w * (feat[g, R._F_Z] + slope[g, 0] * dx + slope[g, 1] * dy)
+                    c0 += w * feat[g, raster.FEAT_RED]
+                    c1 += w * feat[g, raster.FEAT_GREEN]
+                    c2 += w * feat[g, raster.FEAT_BLUE]
+                    d += w * (feat[g, raster.FEAT_Z] + slope[g, 0] * dx + slope[g, 1] * dy)
                     T *= 1.0 - alpha
                     last = k + 1
                     if T < t_min:
@@ -199,7 +202,7 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
                 gd = 0.0
                 acc = 1.0 - T
                 dn = 0.0
-                if depth_obs[py, px] > 0.0 and acc >= R.DEPTH_MIN_ALPHA:
+                if depth_obs[py, px] > 0.0 and acc >= DEPTH_MIN_ALPHA:
                     dn = d / acc
                     rd = dn - depth_obs[py, px]
                     loss[worker] += w_depth * abs(rd)
@@ -220,17 +223,17 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, slope, box, w
                 pd = 0.0
                 for k in range(k0, last):
                     g = tile_ids[k]
-                    alpha, gauss, dx, dy = R._pixel_alpha(feat, box, g, px, py)
+                    alpha, gauss, dx, dy = pixel_alpha(feat, box, g, px, py)
                     if alpha == 0.0:
                         continue
-                    ca = np.float64(feat[g, R._F_A])
-                    cb = np.float64(feat[g, R._F_B])
-                    cc = np.float64(feat[g, R._F_C])
-                    raw = np.float64(feat[g, R._F_OP]) * gauss
-                    cr = np.float64(feat[g, R._F_R])
-                    cg = np.float64(feat[g, R._F_G])
-                    cbl = np.float64(feat[g, R._F_BL])
-                    z = np.float64(feat[g, R._F_Z]) + slope[g, 0] * dx + slope[g, 1] * dy  # at this pixel
+                    ca = np.float64(feat[g, raster.FEAT_CONIC_A])
+                    cb = np.float64(feat[g, raster.FEAT_CONIC_B])
+                    cc = np.float64(feat[g, raster.FEAT_CONIC_C])
+                    raw = np.float64(feat[g, raster.FEAT_OPACITY]) * gauss
+                    cr = np.float64(feat[g, raster.FEAT_RED])
+                    cg = np.float64(feat[g, raster.FEAT_GREEN])
+                    cbl = np.float64(feat[g, raster.FEAT_BLUE])
+                    z = np.float64(feat[g, raster.FEAT_Z]) + slope[g, 0] * dx + slope[g, 1] * dy  # at this pixel
                     w = alpha * T
                     inv = 1.0 / (1.0 - alpha)
                     da0 = T * cr - (f0 - p0 - w * cr) * inv
@@ -287,11 +290,9 @@ def _backward_params(ids, pos, scl, quat, opa, Rcw, tcw, fx, fy, cx, cy, width, 
                      g_pos, g_log_scale, g_rot, g_logit, g_col):
     """For each Gaussian ``ids[k]`` with image-space gradient ``g2d[k]`` (u, v, conic a b c,
     opacity, r, g, b, z), the gradient w.r.t. its world position, log scales, local rotation vector,
-    opacity logit and colour (written into the ``g_*`` rows ``ids[k]``). Mirrors ``_preprocess``."""
-    lim_x_pos = (width - cx) / fx + R.FRUSTUM_MARGIN * 0.5 * width / fx
-    lim_x_neg = cx / fx + R.FRUSTUM_MARGIN * 0.5 * width / fx
-    lim_y_pos = (height - cy) / fy + R.FRUSTUM_MARGIN * 0.5 * height / fy
-    lim_y_neg = cy / fy + R.FRUSTUM_MARGIN * 0.5 * height / fy
+    opacity logit and colour (written into the ``g_*`` rows ``ids[k]``). The forward part is the
+    projection's (``raster.project_gaussians``), through the same device helpers."""
+    lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamp_limits(fx, fy, cx, cy, width, height)
     for kk in prange(ids.shape[0]):
         i = ids[kk]
         gu = g2d[kk, _G_U]
@@ -304,10 +305,10 @@ def _backward_params(ids, pos, scl, quat, opa, Rcw, tcw, fx, fy, cx, cy, width, 
         g_col[i, 0] = g2d[kk, _G_R]
         g_col[i, 1] = g2d[kk, _G_G]
         g_col[i, 2] = g2d[kk, _G_BL]
-        x, y, z = R._world_to_camera(pos, i, Rcw, tcw)
+        x, y, z = world_to_camera(pos, i, Rcw, tcw)
         Rg = np.empty((3, 3))
         (Rg[0, 0], Rg[0, 1], Rg[0, 2], Rg[1, 0], Rg[1, 1], Rg[1, 2],
-         Rg[2, 0], Rg[2, 1], Rg[2, 2]) = R._rotmat_from_quat(quat, i)
+         Rg[2, 0], Rg[2, 1], Rg[2, 2]) = rotmat_from_quat(quat, i)
         s = np.empty(3)
         for j in range(3):
             s[j] = scl[i, j]
@@ -317,25 +318,14 @@ def _backward_params(ids, pos, scl, quat, opa, Rcw, tcw, fx, fy, cx, cy, width, 
                 M[r, c] = Rg[r, c] * s[c]
         rx = x / z
         ry = y / z
-        txz = min(lim_x_pos, max(-lim_x_neg, rx))
-        tyz = min(lim_y_pos, max(-lim_y_neg, ry))
-        j00 = fx / z
-        j02 = -fx * txz / z
-        j11 = fy / z
-        j12 = -fy * tyz / z
-        P = np.empty((2, 3))
-        for c in range(3):
-            P[0, c] = j00 * Rcw[0, c] + j02 * Rcw[2, c]
-            P[1, c] = j11 * Rcw[1, c] + j12 * Rcw[2, c]
-        a = np.zeros(3)
-        b = np.zeros(3)
-        for c in range(3):
-            for r in range(3):
-                a[c] += P[0, r] * M[r, c]
-                b[c] += P[1, r] * M[r, c]
-        cxx = a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + R.LOW_PASS_PX2
-        cxy = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-        cyy = b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + R.LOW_PASS_PX2
+        P = np.empty((2, 3))  # J W
+        P[0, 0], P[0, 1], P[0, 2], P[1, 0], P[1, 1], P[1, 2], txz, tyz = projection_rows(
+            Rcw, fx, fy, x, y, z, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
+        a = np.empty(3)  # rows of P M
+        b = np.empty(3)
+        a[0], a[1], a[2], b[0], b[1], b[2], cxx, cxy, cyy = pixel_covariance(
+            P[0, 0], P[0, 1], P[0, 2], P[1, 0], P[1, 1], P[1, 2],
+            M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])
         det = cxx * cyy - cxy * cxy
         d2 = det * det
         # conic (A, B, C) = (cyy, -cxy, cxx) / det
@@ -422,33 +412,22 @@ def render_loss_and_gradients(positions: np.ndarray, scales: np.ndarray, quat_xy
     """
     n = positions.shape[0]
     height, width = image01.shape[:2]
-    Km = np.asarray(K, np.float64)
-    T = np.asarray(T_world_cam, np.float64)
-    Rcw = np.ascontiguousarray(T[:3, :3].T)
-    centre = np.ascontiguousarray(T[:3, 3])
-    fx, fy, cx, cy = float(Km[0, 0]), float(Km[1, 1]), float(Km[0, 2]), float(Km[1, 2])
+    view = raster.view_from_pose(T_world_cam, K, width, height)
     grads = {"position": np.zeros((n, 3)), "log_scale": np.zeros((n, 3)), "rotation": np.zeros((n, 3)),
              "logit": np.zeros(n), "color": np.zeros((n, 3))}
-    valid, depth, feat, box = R._preprocess(positions, scales, quat_xyzw, colors01, opacities, Rcw, centre,
-                                            fx, fy, cx, cy, width, height, near_m)
-    ids = np.flatnonzero(valid)
+    sp = raster.prepare_splats(positions, scales, quat_xyzw, colors01, opacities, view, near_m)
     npix = float(width * height)
-    if ids.size == 0:
+    if sp is None:
         bg = np.asarray(background01, np.float64)
         return w_rgb * np.abs(bg - image01).sum() / npix, grads  # nothing drawn: no depth to compare
-    order = ids[R._radix_argsort_positive(depth[ids])]
-    feat_s, box_s = R._gather_rows(order, feat, box)
-    tiles_x = (width + R.TILE_SIZE - 1) // R.TILE_SIZE
-    n_tiles = tiles_x * ((height + R.TILE_SIZE - 1) // R.TILE_SIZE)
-    tile_start, tile_ids = R._bin_tiles(box_s, tiles_x, n_tiles)
-    order = order.astype(np.int64)
-    slope = _depth_slopes(order, positions, scales, quat_xyzw, Rcw, centre, fx, fy)
-    g2d, loss = _backward(tile_start, tile_ids, feat_s, slope, box_s, width, height, tiles_x, n_tiles,
+    Rcw, centre = view.R_cam_world, view.centre_world
+    slope = _depth_slopes(sp.order, positions, scales, quat_xyzw, Rcw, centre, view.fx, view.fy)
+    g2d, loss = _backward(sp.tile_start, sp.tile_ids, sp.feat, slope, sp.box, width, height, sp.tiles_x, sp.n_tiles,
                           np.asarray(background01, np.float64), image01, depth_m, w_rgb / npix, w_depth / npix,
                           w_cover / npix, _N_WORKERS)
-    _backward_params(order, positions, scales, quat_xyzw, opacities, Rcw, centre, fx, fy, cx, cy,
-                     float(width), float(height), g2d, grads["position"], grads["log_scale"], grads["rotation"],
-                     grads["logit"], grads["color"])
+    _backward_params(sp.order, positions, scales, quat_xyzw, opacities, Rcw, centre, view.fx, view.fy, view.cx,
+                     view.cy, float(width), float(height), g2d, grads["position"], grads["log_scale"],
+                     grads["rotation"], grads["logit"], grads["color"])
     return float(loss), grads
 
 
@@ -499,15 +478,7 @@ def _rotvec_to_quat_xyzw(w: np.ndarray) -> np.ndarray:
     return np.concatenate([w * k[:, None], np.cos(half)[:, None]], axis=1)
 
 
-def scaled_intrinsics(K: np.ndarray, scale_x: float, scale_y: float) -> np.ndarray:
-    """``K`` of an image resampled by ``scale``, with pixel centres at integer coordinates:
-    ``u' = (u + 0.5) s - 0.5``."""
-    Ks = np.asarray(K, np.float64).copy()
-    Ks[0, 0] *= scale_x
-    Ks[1, 1] *= scale_y
-    Ks[0, 2] = (Ks[0, 2] + 0.5) * scale_x - 0.5
-    Ks[1, 2] = (Ks[1, 2] + 0.5) * scale_y - 0.5
-    return Ks
+scaled_intrinsics = raster.scale_intrinsics  # the one convention, kept under its former name here
 
 
 def _downsample(img: np.ndarray, f: int) -> np.ndarray:
@@ -557,7 +528,7 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             raise ValueError(f"optimize_gaussians: view {k}: pose must be a finite 4x4 matrix")
     imgs = [np.ascontiguousarray(_downsample(np.asarray(im, np.float64) / 255.0, f)) for im in images]
     deps = [np.ascontiguousarray(_downsample_depth(np.asarray(d, np.float64), f)) for d in depths_m]
-    Ks = scaled_intrinsics(K, 1.0 / f, 1.0 / f)
+    Ks = raster.scale_intrinsics(K, 1.0 / f)
 
     pos = field.positions.astype(np.float64)
     log_s = np.log(np.clip(field.scales.astype(np.float64), settings.min_scale_m, settings.max_scale_m))

@@ -6,8 +6,9 @@ of the residuals it contributes to (a Jacobi / Gauss-Newton step on
 ``sum_pixels |render - image|^2`` with colours as the only unknowns) makes the blend match the
 images. Only keyframes are used, so held-out frames still measure generalisation.
 
-The backward pass reuses the rasterizer's projection, sorting and tiling, and visits the same
-Gaussians front to back with the same alpha, so the weights are exactly those of the forward image.
+The backward pass runs on the forward render's own projection, sorting and tiling
+(:mod:`atlas_pipeline.gaussian_world.raster`), and visits the same Gaussians front to back with the
+same alpha, so the weights are exactly those of the forward image.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from typing import Callable, Sequence
 import numpy as np
 from numba import njit, prange
 
-from atlas_pipeline.gaussian_world import render as R
+from atlas_pipeline.gaussian_world import raster
 from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.gaussian_world.raster import T_MIN, pixel_alpha, tile_pixel_bounds
 
 logger = logging.getLogger(__name__)
 
@@ -33,19 +35,16 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, box, width, h
                     residual, gsum, wsum):
     """Tiles ``worker, worker + n_workers, ...``: ``gsum[k] += w_k(p) residual(p)``, ``wsum[k] += w_k(p)``
     over the pixels ``p`` of each Gaussian row ``k``, with ``w = alpha T`` as in the forward pass."""
-    t_min = R.T_MIN
+    t_min = T_MIN
     for t in range(worker, n_tiles, n_workers):
-        px0 = (t % tiles_x) * R.TILE_SIZE
-        py0 = (t // tiles_x) * R.TILE_SIZE
-        px1 = min(px0 + R.TILE_SIZE, width) - 1
-        py1 = min(py0 + R.TILE_SIZE, height) - 1
+        px0, py0, px1, py1 = tile_pixel_bounds(t, tiles_x, width, height)
         for py in range(py0, py1 + 1):
             for px in range(px0, px1 + 1):
                 T = 1.0
                 r0, r1, r2 = residual[py, px, 0], residual[py, px, 1], residual[py, px, 2]
                 for k in range(tile_start[t], tile_start[t + 1]):
                     g = tile_ids[k]
-                    alpha = R._pixel_alpha(feat, box, g, px, py)[0]
+                    alpha = pixel_alpha(feat, box, g, px, py)[0]
                     if alpha == 0.0:
                         continue
                     w = alpha * T
@@ -76,32 +75,25 @@ def _backward(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, 
 
 def _accumulate_view(field: GaussianField, colors: np.ndarray, image: np.ndarray, T_world_cam: np.ndarray,
                      K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Forward render with ``colors`` ``[N, 3]`` float, then the backward sums for one view."""
-    res = R.render_gaussians(field.positions, field.scales, field.rotations_xyzw, colors, field.opacities,
-                             T_world_cam, K, width, height)
-    pos, scl, quat, col, opa, T, Km, width, height, bg, near = R._validate(
-        field.positions, field.scales, field.rotations_xyzw, colors, field.opacities, T_world_cam, K, width, height,
-        (0, 0, 0), 0.05)
-    Rcw = np.ascontiguousarray(T[:3, :3].T)
-    centre = np.ascontiguousarray(T[:3, 3])
-    fx, fy, cx, cy = float(Km[0, 0]), float(Km[1, 1]), float(Km[0, 2]), float(Km[1, 2])
-    valid, depth, feat, box = R._preprocess(pos, scl, quat, col, opa, Rcw, centre, fx, fy, cx, cy, width, height, near)
-    ids = np.flatnonzero(valid)
+    """Forward render with ``colors`` ``[N, 3]`` float (black background), then the backward sums for
+    one view on the same projected, sorted and binned Gaussians."""
+    inp = raster.validate_inputs(field.positions, field.scales, field.rotations_xyzw, colors, field.opacities,
+                                 T_world_cam, K, width, height, (0, 0, 0), raster.NEAR_M)
+    view = raster.view_from_pose(inp.T_world_cam, inp.K, inp.width, inp.height)
+    sp = raster.prepare_splats(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities, view,
+                               inp.near_m)
     n = len(field)
-    if ids.size == 0:
+    if sp is None:
         return np.zeros((n, 3)), np.zeros(n), float("nan")
-    order = ids[R._radix_argsort_positive(depth[ids])]
-    feat_s, box_s = R._gather_rows(order, feat, box)
-    tiles_x = (width + R.TILE_SIZE - 1) // R.TILE_SIZE
-    n_tiles = tiles_x * ((height + R.TILE_SIZE - 1) // R.TILE_SIZE)
-    tile_start, tile_ids = R._bin_tiles(box_s, tiles_x, n_tiles)
+    rgb = raster.composite_tiles(sp, inp.background)[0]
     # Residual of the unrounded colour image would be slightly better; the uint8 one is within 0.5.
-    residual = res.rgb.astype(np.float32) - image.astype(np.float32)
-    g_s, w_s = _backward(tile_start, tile_ids, feat_s, box_s, width, height, tiles_x, n_tiles, residual, _N_WORKERS)
+    residual = rgb.astype(np.float32) - image.astype(np.float32)
+    g_s, w_s = _backward(sp.tile_start, sp.tile_ids, sp.feat, sp.box, sp.width, sp.height, sp.tiles_x, sp.n_tiles,
+                         residual, _N_WORKERS)
     g = np.zeros((n, 3))
     w = np.zeros(n)
-    g[order] = g_s
-    w[order] = w_s
+    g[sp.order] = g_s
+    w[sp.order] = w_s
     return g, w, float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
 
 
@@ -115,9 +107,7 @@ def refine_colours(field: GaussianField, images: Sequence[np.ndarray], poses: Se
     if not images or len(field) == 0 or iterations < 1:
         return field
     h0, w0 = images[0].shape[:2]
-    w, h = int(round(w0 * scale)), int(round(h0 * scale))
-    Ks = np.asarray(K, np.float64).copy()
-    Ks[:2] *= np.array([[w / w0], [h / h0]])
+    w, h, Ks = raster.scale_camera(K, w0, h0, scale)  # pixel centres kept (see raster.scale_intrinsics)
     small = [img if (w, h) == (w0, h0) else _resize(img, w, h) for img in images]
     colors = field.colors.astype(np.float64)
     for it in range(iterations):
@@ -138,11 +128,13 @@ def refine_colours(field: GaussianField, images: Sequence[np.ndarray], poses: Se
 
 
 def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Box-filter downsample by an integer factor (the common case), else nearest neighbour."""
+    """Box-filter downsample by an integer factor (the common case), else nearest neighbour: the
+    source pixel under each new pixel's centre (pixel centres at integer coordinates, as
+    ``raster.scale_intrinsics``)."""
     H, W = img.shape[:2]
     if W % w == 0 and H % h == 0:
         fx, fy = W // w, H // h
         return img.reshape(h, fy, w, fx, -1).mean(axis=(1, 3)).round().astype(np.uint8)
-    ys = (np.arange(h) * H / h).astype(int)
-    xs = (np.arange(w) * W / w).astype(int)
+    ys = ((np.arange(h) + 0.5) * H / h).astype(int)
+    xs = ((np.arange(w) + 0.5) * W / w).astype(int)
     return img[ys][:, xs]

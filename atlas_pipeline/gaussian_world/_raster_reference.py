@@ -1,0 +1,201 @@
+"""Plain-NumPy references of the raster core's stages (as gsplat keeps them in ``_torch_impl.py``).
+
+Each function is a direct, vectorised float64 transcription of one stage of
+:mod:`atlas_pipeline.gaussian_world.raster`, written for reading, not speed: the compiled stages are
+tested against these (``tests/test_raster.py``), and ``render.render_gaussians_reference`` chains
+them into a whole renderer. The one deliberate difference: ``ReferenceProjection.box_3sigma`` is the
+model's full ``SIGMA_EXTENT``-sigma footprint, which the reference renderer draws, so comparing it
+with the compiled renderer also checks the compiled box cut to the visible ellipse.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from atlas_pipeline.geometry import invert_se3, quat_xyzw_to_rotmat
+from atlas_pipeline.gaussian_world.raster import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    BOX_SLACK_PX,
+    COLOR_LEVELS,
+    DEPTH_MIN_ALPHA,
+    FEAT_BLUE,
+    FEAT_CONIC_A,
+    FEAT_CONIC_B,
+    FEAT_CONIC_C,
+    FEAT_GREEN,
+    FEAT_OPACITY,
+    FEAT_RED,
+    FEAT_U,
+    FEAT_V,
+    FEAT_Z,
+    FRUSTUM_MARGIN,
+    LOW_PASS_PX2,
+    MEDIAN_DEPTH_T,
+    N_FEAT,
+    NEAR_M,
+    SIGMA_EXTENT,
+    T_MIN,
+    TILE_SIZE,
+)
+
+__all__ = ["ReferenceProjection", "project_reference", "sort_reference", "bin_tiles_reference",
+           "composite_reference"]
+
+
+class ReferenceProjection(NamedTuple):
+    """Every Gaussian projected into one view (rows in input order), float64."""
+
+    valid: np.ndarray  # [N] bool, as raster.Projection.valid
+    depth: np.ndarray  # [N] float64 camera z
+    feat: np.ndarray  # [N, N_FEAT] float64 (u, v, conic a, b, c, opacity, r, g, b, z)
+    box: np.ndarray  # [N, 4] int64 (x0, x1, y0, y1), cut to the visible ellipse, as the compiled box
+    box_3sigma: np.ndarray  # [N, 4] int64, the uncut SIGMA_EXTENT-sigma square
+
+
+def project_reference(
+    positions: np.ndarray,  # [N, 3] world (metres)
+    scales: np.ndarray,  # [N, 3] standard deviations (metres)
+    rotations_xyzw: np.ndarray,  # [N, 4]
+    colors: np.ndarray,  # [N, 3]
+    opacities: np.ndarray,  # [N]
+    T_world_cam: np.ndarray,  # [4, 4] camera-to-world
+    K: np.ndarray,  # [3, 3]
+    width: int,
+    height: int,
+    near_m: float = NEAR_M,
+) -> ReferenceProjection:
+    """Reference of ``raster.project_gaussians``: matrix products ``cov2d = J W R S S^T R^T W^T J^T``
+    with the clamped Jacobian. Rows that are not valid hold unspecified values."""
+    n = positions.shape[0]
+    Km = np.asarray(K, np.float64)
+    fx, fy, cx, cy = Km[0, 0], Km[1, 1], Km[0, 2], Km[1, 2]
+    T_cw = invert_se3(T_world_cam)
+    W = T_cw[:3, :3]
+    p_cam = np.asarray(positions).astype(np.float64) @ W.T + T_cw[:3, 3]
+    x, y, z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    opa = np.asarray(opacities).astype(np.float64)
+    keep = z >= near_m
+    zs = np.where(keep, z, 1.0)  # placeholder depth for culled ones avoids division warnings
+
+    R = quat_xyzw_to_rotmat(rotations_xyzw)
+    M = R * np.asarray(scales).astype(np.float64)[:, None, :]  # R S
+    Sigma = M @ np.swapaxes(M, 1, 2)
+
+    # Jacobian clamp: x/z, y/z within the image plus FRUSTUM_MARGIN of the half field of view
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim_x = (cx / fx + FRUSTUM_MARGIN * tan_x, (width - cx) / fx + FRUSTUM_MARGIN * tan_x)
+    lim_y = (cy / fy + FRUSTUM_MARGIN * tan_y, (height - cy) / fy + FRUSTUM_MARGIN * tan_y)
+    txz = np.clip(x / zs, -lim_x[0], lim_x[1])
+    tyz = np.clip(y / zs, -lim_y[0], lim_y[1])
+    J = np.zeros((n, 2, 3))
+    J[:, 0, 0] = fx / zs
+    J[:, 0, 2] = -fx * txz / zs
+    J[:, 1, 1] = fy / zs
+    J[:, 1, 2] = -fy * tyz / zs
+    JW = J @ W
+    cov2d = JW @ Sigma @ np.swapaxes(JW, 1, 2)
+    cov2d[:, 0, 0] += LOW_PASS_PX2
+    cov2d[:, 1, 1] += LOW_PASS_PX2
+    det = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] ** 2
+    keep &= det > 0
+    dets = np.where(keep, det, 1.0)
+    mid = 0.5 * (cov2d[:, 0, 0] + cov2d[:, 1, 1])
+    lam_max = mid + np.sqrt(np.maximum(0.0, mid**2 - det))
+    radius = np.ceil(SIGMA_EXTENT * np.sqrt(np.maximum(lam_max, 0.0)))
+    u = fx * x / zs + cx
+    v = fy * y / zs + cy
+
+    def pixel_box(ex, ey):
+        return np.stack([np.maximum(0, np.ceil(u - ex)), np.minimum(width - 1, np.floor(u + ex)),
+                         np.maximum(0, np.ceil(v - ey)), np.minimum(height - 1, np.floor(v + ey))], axis=1)
+
+    box_3sigma = pixel_box(radius, radius)
+    # the ellipse d^T conic d <= 2 ln(opacity / ALPHA_MIN), outside of which alpha < ALPHA_MIN
+    visible = opa * COLOR_LEVELS >= 1.0
+    thr = 2.0 * np.log(COLOR_LEVELS * np.where(visible, opa, 1.0))
+    box = pixel_box(np.minimum(radius, np.sqrt(thr * cov2d[:, 0, 0]) + BOX_SLACK_PX),
+                    np.minimum(radius, np.sqrt(thr * cov2d[:, 1, 1]) + BOX_SLACK_PX))
+    valid = keep & visible & (box[:, 0] <= box[:, 1]) & (box[:, 2] <= box[:, 3])
+
+    feat = np.empty((n, N_FEAT))
+    feat[:, FEAT_U] = u
+    feat[:, FEAT_V] = v
+    feat[:, FEAT_CONIC_A] = cov2d[:, 1, 1] / dets
+    feat[:, FEAT_CONIC_B] = -cov2d[:, 0, 1] / dets
+    feat[:, FEAT_CONIC_C] = cov2d[:, 0, 0] / dets
+    feat[:, FEAT_OPACITY] = opa
+    feat[:, [FEAT_RED, FEAT_GREEN, FEAT_BLUE]] = np.asarray(colors).astype(np.float64)
+    feat[:, FEAT_Z] = z
+    return ReferenceProjection(valid, np.where(valid, z, 0.0), feat, box.astype(np.int64),
+                               box_3sigma.astype(np.int64))
+
+
+def sort_reference(
+    valid: np.ndarray,  # [N] bool
+    depth: np.ndarray,  # [N] camera z
+) -> np.ndarray:
+    """Reference of ``raster.sort_by_depth``: ``[M]`` valid rows front to back, ties in input order."""
+    ids = np.flatnonzero(valid)
+    return ids[np.argsort(depth[ids], kind="stable")]
+
+
+def bin_tiles_reference(
+    box: np.ndarray,  # [M, 4] (x0, x1, y0, y1) of the sorted Gaussians
+    width: int,
+    height: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of ``raster.bin_tiles``: ``(tile_start [n_tiles + 1], tile_ids [P])``, each tile (row
+    major) listing the rows whose box overlaps its pixels, in row order."""
+    tiles_x = -(-width // TILE_SIZE)
+    tiles_y = -(-height // TILE_SIZE)
+    lists = []
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            x0, y0 = tx * TILE_SIZE, ty * TILE_SIZE
+            hit = ((box[:, 0] < x0 + TILE_SIZE) & (box[:, 1] >= x0)
+                   & (box[:, 2] < y0 + TILE_SIZE) & (box[:, 3] >= y0))
+            lists.append(np.flatnonzero(hit))
+    tile_start = np.concatenate([[0], np.cumsum([len(ids) for ids in lists])]).astype(np.int64)
+    return tile_start, np.concatenate(lists).astype(np.int64)
+
+
+def composite_reference(
+    feat: np.ndarray,  # [M, N_FEAT] sorted front to back
+    box: np.ndarray,  # [M, 4] (x0, x1, y0, y1) pixels each Gaussian may touch
+    width: int,
+    height: int,
+    background: np.ndarray,  # [3] in [0, 255]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reference of ``raster.composite_tiles``: one step per Gaussian, front to back, over the pixels
+    of its box, in float64 with ``np.exp``. Returns ``(rgb [H, W, 3] uint8, depth_m, alpha,
+    depth_median_m [H, W] float32)``."""
+    bg = np.asarray(background, np.float64)
+    Tr = np.ones((height, width))
+    C = np.zeros((height, width, 3))
+    D = np.zeros((height, width))
+    Dm = np.zeros((height, width))
+    for g in range(feat.shape[0]):
+        u, v, ca, cb, cc, opa = feat[g, [FEAT_U, FEAT_V, FEAT_CONIC_A, FEAT_CONIC_B, FEAT_CONIC_C, FEAT_OPACITY]]
+        z = feat[g, FEAT_Z]
+        ys = slice(int(box[g, 2]), int(box[g, 3]) + 1)
+        xs = slice(int(box[g, 0]), int(box[g, 1]) + 1)
+        dx = np.arange(xs.start, xs.stop)[None, :] - u
+        dy = np.arange(ys.start, ys.stop)[:, None] - v
+        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+        alpha = np.minimum(ALPHA_MAX, opa * np.exp(power))
+        Tp = Tr[ys, xs]
+        # pixels already terminated and too-faint contributions are skipped
+        alpha = np.where((alpha >= ALPHA_MIN) & (Tp >= T_MIN), alpha, 0.0)
+        wgt = alpha * Tp
+        C[ys, xs] += wgt[..., None] * feat[g, [FEAT_RED, FEAT_GREEN, FEAT_BLUE]]
+        D[ys, xs] += wgt * z
+        Tn = Tp * (1.0 - alpha)
+        Dm[ys, xs] = np.where((Tp > MEDIAN_DEPTH_T) & (Tn <= MEDIAN_DEPTH_T), z, Dm[ys, xs])
+        Tr[ys, xs] = Tn
+    acc = 1.0 - Tr
+    rgb = np.clip(np.floor(C + Tr[..., None] * bg + 0.5), 0, 255).astype(np.uint8)
+    depth_m = np.where(acc >= DEPTH_MIN_ALPHA, D / np.maximum(acc, 1e-12), 0.0)
+    return rgb, depth_m.astype(np.float32), acc.astype(np.float32), Dm.astype(np.float32)
