@@ -654,6 +654,10 @@ def build_parser() -> argparse.ArgumentParser:
     ui.add_argument("--host", default="127.0.0.1")
     ui.add_argument("--port", type=int, default=3000)
     ui.set_defaults(func=cmd_ui)
+
+    from assets.cli_view import add_view_command
+
+    add_view_command(sub)
     return p
 
 

@@ -1,0 +1,630 @@
+"""Interactive browser viewer of a world bundle, built on viser (the viewer of nerfstudio and gsplat).
+
+What the scene shows:
+
+* the bundle's Gaussians as splats (viser's WebGL Gaussian-splat renderer, sorted in the browser);
+* the keyframes the world was mapped from as camera frusta, each with a thumbnail of its image when
+  the dataset's frames are on disk and unchanged (checked against the content hash the bundle
+  records), else as bare frusta;
+* the estimated trajectory of the bundle's localization report (or ``--report``) and the
+  ground-truth trajectory, in the world frame;
+* lost frames as red markers, relocalized frames as orange ones.
+
+Every input goes through the verified loaders: the bundle through
+:func:`~atlas_pipeline.scene_memory.bundle.load_world_bundle` (schema and checksums of every listed
+file), a report through :func:`load_report_checked`; nothing is unpickled.
+
+The server binds a loopback address only (``127.0.0.1`` by default): it has no authentication, and
+what it serves (the map of a recorded place and its camera images) is as private as the
+recording. Binding another address needs ``allow_remote=True`` from library code; the CLI offers
+no such switch. viser's "share URL" (a public tunnel through viser's own relay) is switched off for
+the same reason.
+
+Conventions: ``T_world_cam`` ``[4, 4]`` camera-to-world (OpenCV camera axes: x right, y down,
+z forward, as viser's frusta), metres; quaternions are ``quat_xyzw`` in our arrays and ``wxyz`` only
+where viser takes them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import ipaddress
+import logging
+import math
+import signal
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from atlas_pipeline.errors import AtlasError, BundleFormatError, ConfigError
+from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.geometry import quat_xyzw_to_rotmat, rotmat_to_quat_xyzw
+from atlas_pipeline.localization.sequence import (
+    STATUS_ANCHOR,
+    STATUS_LOST,
+    STATUS_NOT_ATTEMPTED,
+    STATUS_RELOCALIZED,
+    STATUS_TRACKED,
+)
+
+__all__ = [
+    "ViewerData", "ViewerHandle", "load_viewer_data", "load_report_checked", "build_scene", "serve",
+    "run_viewer", "splat_covariances", "is_loopback_host", "DEFAULT_HOST",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_HOST = "127.0.0.1"
+# Colours (RGB, 0-255) of the scene's layers; distinct from each other on viser's light background.
+ESTIMATED_RGB = (30, 100, 235)      # blue: the localization estimate
+GROUND_TRUTH_RGB = (20, 170, 60)    # green: ground truth
+KEYFRAME_RGB = (120, 60, 200)       # purple: keyframe frusta
+LOST_RGB = (230, 25, 25)            # red: lost frames
+RELOCALIZED_RGB = (255, 140, 0)     # orange: relocalized frames
+# Trajectory lines keep a fixed on-screen width whatever the zoom (world-unit lines vanish when
+# the room is seen whole and cover the view up close).
+TRAJECTORY_WIDTH_PX = 3.0
+# Frusta and markers are sized from the world's extent (a desk and a building differ 100-fold).
+FRUSTUM_SIZE_FRACTION = 0.03
+FRUSTUM_SIZE_RANGE_M = (0.03, 0.5)
+MARKER_SIZE_FRACTION = 0.012
+# Thumbnails: small enough that hundreds travel over the websocket in a second or two.
+THUMBNAIL_MAX_WIDTH_PX = 160
+THUMBNAIL_JPEG_QUALITY = 80
+MAX_KEYFRAME_IMAGES = 300  # more keyframes than this: images on an evenly spread subset
+# Variances below float16's smallest subnormal (viser ships covariances as float16) would become
+# 0 and make a degenerate splat; 0.5 mm is far below any Gaussian a 2 cm map holds.
+MIN_SPLAT_SIGMA_M = 5e-4
+MAX_SPLAT_SIGMA_M = 200.0  # float16's largest value is 65504 (m^2): no map Gaussian comes near
+# Robust extent: the 2nd..98th percentile box of the Gaussian centres (floaters far out would
+# otherwise set the frustum size and the starting view).
+EXTENT_PERCENTILES = (2.0, 98.0)
+# Starting view: behind and above the first keyframe, by these fractions of the world's size.
+START_BACKOFF_FRACTION = 0.15
+START_RAISE_FRACTION = 0.08
+MAX_REPORT_BYTES = 256 * 1024 * 1024  # a localization.json of a 100k-frame session is ~40 MB
+KNOWN_STATUSES = (STATUS_ANCHOR, STATUS_TRACKED, STATUS_RELOCALIZED, STATUS_LOST, STATUS_NOT_ATTEMPTED)
+
+
+# ---- what is shown -------------------------------------------------------------------------------
+
+
+@dataclass
+class ViewerData:
+    """Everything the scene shows, loaded and checked.
+
+    Attributes:
+        world_dir: the bundle folder.
+        field: the Gaussians.
+        metadata: the bundle's validated metadata.json.
+        keyframe_indices: ``[K]`` frame index of each keyframe in its dataset.
+        T_world_cam_keyframes: ``[K, 4, 4]`` keyframe poses.
+        keyframe_images: ``K`` thumbnails ``[h, w, 3]`` uint8, None where not available.
+        camera_fov_y_rad, camera_aspect: the dataset camera's vertical field of view and width /
+            height (frustum shape); a 4:3, 60-degree camera when the bundle names none.
+        status: ``N`` per-frame statuses of the report (empty without one).
+        T_world_cam_est: ``[N, 4, 4]`` estimated poses (NaN rows: never placed).
+        T_world_cam_gt: ``[N, 4, 4]`` ground truth in the world frame (NaN where unknown), or None.
+        ground_truth_note: how the ground truth got into the world frame (or why there is none).
+        report_source: the folder the localization report was read from ("" without one).
+        notes: what could not be shown and why (logged, and listed in the viewer's panel).
+    """
+
+    world_dir: Path
+    field: GaussianField
+    metadata: dict[str, Any]
+    keyframe_indices: np.ndarray
+    T_world_cam_keyframes: np.ndarray
+    keyframe_images: list[np.ndarray | None]
+    camera_fov_y_rad: float = math.radians(60.0)
+    camera_aspect: float = 4.0 / 3.0
+    status: list[str] = field(default_factory=list)
+    T_world_cam_est: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    T_world_cam_gt: np.ndarray | None = None
+    ground_truth_note: str = ""
+    report_source: str = ""
+    notes: list[str] = field(default_factory=list)
+
+
+def _note(data_notes: list[str], msg: str, *args: Any) -> None:
+    text = msg % args if args else msg
+    logger.info("%s", text)
+    data_notes.append(text)
+
+
+def load_report_checked(directory: str | Path):
+    """A :class:`~atlas_pipeline.localization.localizer.LocalizationReport` from ``directory``
+    (``localization.json``, and ``trajectory_groundtruth.tum`` when present), with every field
+    checked: a malformed file is a BundleFormatError naming it, never a KeyError or a crash later."""
+    from atlas_pipeline.localization.localizer import LocalizationReport
+
+    directory = Path(directory)
+    if directory.is_file() and directory.name == "localization.json":
+        directory = directory.parent
+    path = directory / "localization.json"
+    if not path.is_file():
+        raise ConfigError(f"{directory}: no localization.json there (write one with `atlas-gs localize`)")
+    size = path.stat().st_size
+    if size > MAX_REPORT_BYTES:
+        raise BundleFormatError(path, f"is {size} bytes, more than any localization report ({MAX_REPORT_BYTES})")
+    try:
+        report = LocalizationReport.load(directory)
+    except AtlasError:
+        raise
+    except RecursionError as exc:
+        raise BundleFormatError(path, "JSON nested too deeply") from exc
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        # json errors and UnicodeDecodeError are ValueErrors; a missing key or a list where a number
+        # belongs lands here too.
+        raise BundleFormatError(path, f"not a localization report atlas-gs can read ({type(exc).__name__}: "
+                                      f"{str(exc)[:200]})") from exc
+    n = report.n_frames
+    if not isinstance(report.dataset, str) or not isinstance(report.map_id, str):
+        raise BundleFormatError(path, "dataset and map_id must be strings")
+    if report.timestamps_s.shape != (n,) or not np.isfinite(report.timestamps_s).all():
+        raise BundleFormatError(path, "every frame needs a finite timestamp_s")
+    if len(report.status) != n or not all(isinstance(s, str) for s in report.status):
+        raise BundleFormatError(path, "frames must each have a status string")
+    unknown = sorted({s for s in report.status if s not in KNOWN_STATUSES})
+    if unknown:
+        raise BundleFormatError(path, f"unknown frame status {unknown[0][:40]!r} (known: {', '.join(KNOWN_STATUSES)})")
+    for name in ("T_world_cam", "T_world_cam_gt"):
+        T = getattr(report, name)
+        if T.shape != (n, 4, 4):
+            raise BundleFormatError(path, f"{name} has shape {T.shape}, expected ({n}, 4, 4)")
+        bad = ~np.isfinite(T).all(axis=(1, 2))
+        T[bad] = np.nan  # a pose with any non-finite entry is an unknown pose
+    return report
+
+
+def _dataset_manifest(name: str | None, root: str | None, camera: dict | None, content_hash: str | None,
+                      n_frames: int | None, notes: list[str]):
+    """The dataset's frame manifest when its files are on disk (registered name, or the bundle's
+    recorded root) and, where the bundle records one, its content hash matches; else None with a
+    note. Never downloads, generates or converts anything."""
+    from atlas_pipeline.sensors.camera import CameraIntrinsics
+    from atlas_pipeline.sensors.layouts import detect_kind
+    from atlas_pipeline.sensors.registry import DatasetEntry, load_registry, read_dataset_manifest
+
+    if not name:
+        _note(notes, "the bundle names no dataset: keyframe frusta without images")
+        return None
+    try:
+        entry = load_registry().get(name)
+    except AtlasError as exc:
+        logger.warning("dataset registry unreadable (%s); looking for '%s' at its recorded folder only", exc, name)
+        entry = None
+    where = Path(root) if root and Path(root).exists() else (entry.path if entry is not None else None)
+    if where is None or not Path(where).exists():
+        _note(notes, "frames of dataset '%s' are not on disk (%s): keyframe frusta without images",
+              name, where or "no folder recorded")
+        return None
+    try:
+        if entry is None:
+            kind = detect_kind(where)
+            if kind is None:
+                _note(notes, "%s is not a recording of a known layout: keyframe frusta without images", where)
+                return None
+            cam = CameraIntrinsics.from_dict(camera) if camera else None
+            entry = DatasetEntry(name=name, kind=kind, path=Path(where), camera=cam)  # type: ignore[arg-type]
+        if entry.kind == "bag":
+            # Reading a bag converts it first (minutes for a long one): not a viewer's job.
+            _note(notes, "dataset '%s' is a bag recording: keyframe frusta without images", name)
+            return None
+        manifest = read_dataset_manifest(entry, n_frames, Path(where))
+    except AtlasError as exc:
+        _note(notes, "frames of dataset '%s' could not be read (%s): keyframe frusta without images", name, exc)
+        return None
+    if content_hash and manifest.content_hash and manifest.content_hash != content_hash:
+        _note(notes, "frames of dataset '%s' at %s changed since the world was built (content hash differs): "
+                     "keyframe frusta without images", name, where)
+        return None
+    return manifest
+
+
+def _thumbnail(rgb: np.ndarray) -> np.ndarray:
+    """``[H, W, 3]`` uint8 to at most THUMBNAIL_MAX_WIDTH_PX wide, by block averaging (no aliasing
+    of fine texture as plain striding would give)."""
+    f = max(1, math.ceil(rgb.shape[1] / THUMBNAIL_MAX_WIDTH_PX))
+    h, w = rgb.shape[0] // f * f, rgb.shape[1] // f * f
+    blocks = rgb[:h, :w].reshape(h // f, f, w // f, f, 3).astype(np.float32)
+    return np.clip(blocks.mean(axis=(1, 3)) + 0.5, 0, 255).astype(np.uint8)
+
+
+def _keyframes(metadata: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """``(indices [K], T_world_cam [K, 4, 4])`` from metadata ``keyframes`` (checked)."""
+    from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses
+
+    poses = bundle_keyframe_poses(metadata)
+    raw = (metadata.get("keyframes") or {}).get("indices", [])
+    try:
+        idx = np.asarray(raw, np.int64).reshape(-1)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise BundleFormatError("metadata.json", "keyframes.indices must be a list of frame numbers") from exc
+    if len(idx) != len(poses):
+        # Poses are still worth drawing; the images need the index of each.
+        logger.warning("metadata keyframes: %d indices for %d poses; keyframe images are not shown",
+                       len(idx), len(poses))
+        idx = np.full(len(poses), -1, np.int64)
+    return idx, poses
+
+
+def _ground_truth_in_world(T_est: np.ndarray, T_gt: np.ndarray, status: list[str],
+                           same_frame: bool) -> tuple[np.ndarray | None, str]:
+    """Ground truth ``T_gt`` ``[N, 4, 4]`` moved into the world frame (None when it cannot be), and
+    how: as is when the world was mapped in its frame (``same_frame``), else by the rigid ATE
+    alignment onto the estimates ``T_est`` ``[N, 4, 4]`` (which localization put in the world frame)."""
+    from atlas_pipeline.localization.metrics import align_rigid
+
+    known_gt = np.isfinite(T_gt).all(axis=(1, 2))
+    if not known_gt.any():
+        return None, "no ground truth for these frames"
+    if same_frame:
+        return T_gt, "world frame (the world was mapped at this sequence's ground-truth poses)"
+    ok = known_gt & np.isfinite(T_est).all(axis=(1, 2)) & np.array([s != STATUS_ANCHOR for s in status], bool)
+    if ok.sum() < 3:
+        return None, "ground truth is in another frame and fewer than 3 placed frames tie it to the world"
+    return (align_rigid(T_gt[ok], T_est[ok]) @ T_gt,
+            "aligned onto the estimate (ATE alignment; the world was not mapped in its frame)")
+
+
+def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, read_dataset: bool = True) -> ViewerData:
+    """Load and check what the viewer shows: the bundle at ``world_dir`` (checksums verified), its
+    localization report (``report``: a folder with ``localization.json``; default the bundle's own),
+    and with ``read_dataset`` the keyframe thumbnails and the ground truth from the dataset's frames
+    when they are on disk and unchanged (bundles keep neither)."""
+    from atlas_pipeline.scene_memory.bundle import load_world_bundle
+    from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+    world_dir = Path(world_dir)
+    bundle = load_world_bundle(world_dir)  # schema + every listed file's size and sha256
+    meta = bundle.metadata
+    idx, T_kf = _keyframes(meta)
+    data = ViewerData(world_dir, bundle.field, meta, idx, T_kf, [None] * len(T_kf))
+    ds = meta.get("dataset") or {}
+    if not isinstance(ds, dict):
+        ds = {}
+    cam_dict = ds.get("camera") if isinstance(ds.get("camera"), dict) else None
+    if cam_dict:
+        try:
+            cam = CameraIntrinsics.from_dict(cam_dict)
+            data.camera_fov_y_rad = 2.0 * math.atan(cam.height / (2.0 * cam.fy))
+            data.camera_aspect = cam.width / cam.height
+        except ConfigError as exc:
+            _note(data.notes, "metadata dataset.camera unusable (%s): frusta drawn with a 60-degree 4:3 camera", exc)
+            cam_dict = None
+    n_frames = ds.get("n_frames") if isinstance(ds.get("n_frames"), int) and ds.get("n_frames") > 0 else None
+    name = ds.get("name") if isinstance(ds.get("name"), str) else None
+    root = ds.get("root") if isinstance(ds.get("root"), str) else None
+    content_hash = ds.get("content_hash") if isinstance(ds.get("content_hash"), str) else None
+
+    manifest = None
+    if read_dataset and len(T_kf):
+        manifest = _dataset_manifest(name, root, cam_dict, content_hash, n_frames, data.notes)
+    elif len(T_kf):
+        _note(data.notes, "dataset not read: keyframe frusta without images")
+    if manifest is not None:
+        shown = np.unique(np.linspace(0, len(T_kf) - 1, min(len(T_kf), MAX_KEYFRAME_IMAGES)).round().astype(int))
+        if len(shown) < len(T_kf):
+            _note(data.notes, "%d keyframes: images on %d of them", len(T_kf), len(shown))
+        for k in shown:
+            i = int(idx[k])
+            if not 0 <= i < manifest.n_frames:
+                continue
+            try:
+                data.keyframe_images[k] = _thumbnail(manifest.read_rgb(i))
+            except (AtlasError, OSError) as exc:
+                logger.warning("keyframe %d (frame %d): image not shown (%s)", k, i, exc)
+
+    # The localization report: --report, else the bundle's own (verified with the bundle).
+    rep_dir = Path(report) if report is not None else (world_dir if "localization.json" in meta["files"] else None)
+    if rep_dir is None:
+        _note(data.notes, "no localization report in the bundle: no trajectories "
+                          "(run `atlas-gs localize`, or give --report)")
+    else:
+        rep = load_report_checked(rep_dir)
+        data.report_source = str(rep_dir)
+        if rep.map_id and bundle.map_id and rep.map_id != bundle.map_id:
+            logger.warning("the report at %s was made in world %s, this bundle is world %s: its poses may be in "
+                           "another frame", rep_dir, rep.map_id, bundle.map_id)
+        data.status = list(rep.status)
+        data.T_world_cam_est = rep.T_world_cam
+        T_gt = rep.T_world_cam_gt
+        if not np.isfinite(T_gt).all(axis=(1, 2)).any():
+            # Bundles keep no ground truth: take it from the dataset when its frames are on disk.
+            gt_manifest = manifest if (manifest is not None and rep.dataset == name) else None
+            if gt_manifest is None and read_dataset:
+                gt_manifest = _dataset_manifest(rep.dataset, root if rep.dataset == name else None,
+                                                cam_dict if rep.dataset == name else None,
+                                                content_hash if rep.dataset == name else None, None, [])
+            if gt_manifest is not None and gt_manifest.n_frames >= rep.n_frames and np.allclose(
+                    gt_manifest.timestamps_s[:rep.n_frames], rep.timestamps_s, atol=1e-3):
+                T_gt = gt_manifest.T_world_cam_gt[:rep.n_frames]
+        gaussians_info = meta.get("gaussians") if isinstance(meta.get("gaussians"), dict) else {}
+        same_frame = gaussians_info.get("pose_source") == "ground_truth" and rep.dataset == name
+        data.T_world_cam_gt, data.ground_truth_note = _ground_truth_in_world(rep.T_world_cam, T_gt, rep.status,
+                                                                             same_frame)
+        if data.T_world_cam_gt is None:
+            _note(data.notes, "ground truth not shown: %s", data.ground_truth_note)
+    return data
+
+
+# ---- the viser scene ----------------------------------------------------------------------------
+
+
+def splat_covariances(scales_m: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """Covariances ``[N, 3, 3]`` (m^2) of Gaussians with standard deviations ``scales_m`` ``[N, 3]``
+    along their local axes and orientation ``quat_xyzw`` ``[N, 4]`` (local to world):
+    ``R diag(s^2) R^T``, which is what viser's ``add_gaussian_splats`` takes."""
+    R = quat_xyzw_to_rotmat(np.asarray(quat_xyzw, np.float64))  # [N, 3, 3]
+    s = np.clip(np.asarray(scales_m, np.float64), MIN_SPLAT_SIGMA_M, MAX_SPLAT_SIGMA_M)  # [N, 3]
+    return np.einsum("nij,nj,nkj->nik", R, s * s, R).astype(np.float32)
+
+
+def _wxyz(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``[3, 3]`` to viser's ``wxyz`` quaternion ``[4]``."""
+    q = rotmat_to_quat_xyzw(R)
+    return np.array([q[3], q[0], q[1], q[2]])
+
+
+def _extent(data: ViewerData) -> tuple[np.ndarray, float]:
+    """Centre ``[3]`` and diagonal (m) of the robust box around the Gaussians (keyframes as a
+    fallback), at least 1 m so an empty or tiny world still gets visible frusta."""
+    pts = data.field.positions.astype(np.float64)
+    if len(pts) == 0:
+        pts = data.T_world_cam_keyframes[:, :3, 3] if len(data.T_world_cam_keyframes) else np.zeros((1, 3))
+    lo, hi = np.percentile(pts, EXTENT_PERCENTILES, axis=0)
+    return np.median(pts, axis=0), float(max(np.linalg.norm(hi - lo), 1.0))
+
+
+def _segments(points: np.ndarray) -> np.ndarray:
+    """Line segments ``[M, 2, 3]`` joining consecutive finite points of ``points`` ``[N, 3]`` (a
+    NaN point breaks the line: frames never placed are not bridged)."""
+    ok = np.isfinite(points).all(axis=1)
+    both = ok[:-1] & ok[1:]
+    return np.stack([points[:-1][both], points[1:][both]], axis=1).astype(np.float32)
+
+
+def _up_direction(T_world_cam: np.ndarray) -> np.ndarray:
+    """World up ``[3]`` from keyframe poses: cameras are held upright, so their image "up" (-y)
+    averages to the world's up; +z when that average is too weak (no keyframes, a spinning camera)."""
+    if len(T_world_cam):
+        up = -T_world_cam[:, :3, 1].mean(axis=0)
+        if np.linalg.norm(up) > 0.3:
+            return up / np.linalg.norm(up)
+    return np.array([0.0, 0.0, 1.0])
+
+
+def _start_view(data: ViewerData, centre: np.ndarray, diag_m: float, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(position [3], look_at [3])`` of the first view: a step behind and above the first keyframe,
+    looking where it looked (the recording's own first view, framed a little wider); without
+    keyframes, from outside the world's box towards its centre."""
+    if len(data.T_world_cam_keyframes):
+        T0 = data.T_world_cam_keyframes[0]
+        p0, forward = T0[:3, 3], T0[:3, 2]
+        depth = max(float(np.dot(centre - p0, forward)), 0.5)  # how far ahead the world's middle is
+        position = p0 - forward * START_BACKOFF_FRACTION * diag_m + up * START_RAISE_FRACTION * diag_m
+        return position, p0 + forward * depth
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    return centre + (side + 0.6 * up) * diag_m, centre
+
+
+def build_scene(server: Any, data: ViewerData) -> dict[str, Any]:
+    """Fill ``server`` (a ``viser.ViserServer``) with the scene of ``data``; returns a summary (what
+    was drawn: counts per layer, the ground truth's frame, the notes)."""
+    scene = server.scene
+    centre, diag_m = _extent(data)
+    up = _up_direction(data.T_world_cam_keyframes)
+    scene.set_up_direction(tuple(float(v) for v in up))
+    f = data.field
+    handles: dict[str, list[Any]] = {"Gaussians": [], "Trajectories": [], "Keyframes": [], "Lost / relocalized": []}
+
+    if len(f):
+        handles["Gaussians"].append(scene.add_gaussian_splats(
+            "/world/gaussians",
+            centers=f.positions.astype(np.float32),  # [N, 3]
+            covariances=splat_covariances(f.scales, f.rotations_xyzw),  # [N, 3, 3]
+            rgbs=f.colors,  # [N, 3] uint8
+            opacities=f.opacities.reshape(-1, 1).astype(np.float32),  # [N, 1]
+        ))
+
+    frustum_m = float(np.clip(FRUSTUM_SIZE_FRACTION * diag_m, *FRUSTUM_SIZE_RANGE_M))
+    n_images = 0
+    for k, T in enumerate(data.T_world_cam_keyframes):
+        img = data.keyframe_images[k]
+        n_images += img is not None
+        handles["Keyframes"].append(scene.add_camera_frustum(
+            f"/keyframes/kf_{k:05d}", fov=data.camera_fov_y_rad, aspect=data.camera_aspect, scale=frustum_m,
+            color=KEYFRAME_RGB, image=img, format="jpeg", jpeg_quality=THUMBNAIL_JPEG_QUALITY,
+            wxyz=_wxyz(T[:3, :3]), position=T[:3, 3], thickness=1.5, thickness_units="screen",
+            cast_shadow=False, receive_shadow=False))
+
+    est_xyz = data.T_world_cam_est[:, :3, 3]  # [N, 3], NaN rows: never placed
+    gt_xyz = data.T_world_cam_gt[:, :3, 3] if data.T_world_cam_gt is not None else np.zeros((0, 3))
+    for name, xyz, rgb in (("estimated", est_xyz, ESTIMATED_RGB), ("ground_truth", gt_xyz, GROUND_TRUTH_RGB)):
+        seg = _segments(xyz) if len(xyz) > 1 else np.zeros((0, 2, 3), np.float32)
+        if len(seg):
+            handles["Trajectories"].append(scene.add_line_segments(
+                f"/trajectories/{name}", points=seg, colors=rgb, thickness=TRAJECTORY_WIDTH_PX,
+                thickness_units="screen"))
+
+    status = np.array(data.status, dtype=object)
+    marker_m = max(MARKER_SIZE_FRACTION * diag_m, 0.01)
+    shown: dict[str, int] = {}
+    for label, rgb in ((STATUS_LOST, LOST_RGB), (STATUS_RELOCALIZED, RELOCALIZED_RGB)):
+        sel = status == label if len(status) else np.zeros(0, bool)
+        # A lost frame's estimate may be unknown (NaN): mark it where ground truth puts it.
+        xyz = np.where(np.isfinite(est_xyz).all(axis=1, keepdims=True), est_xyz,
+                       gt_xyz if len(gt_xyz) == len(est_xyz) else np.nan)[sel]
+        xyz = xyz[np.isfinite(xyz).all(axis=1)]
+        shown[label] = int(len(xyz))
+        if int(sel.sum()) > len(xyz):
+            _note(data.notes, "%d %s frames have no known position and are not marked",
+                  int(sel.sum()) - len(xyz), label)
+        if len(xyz):
+            handles["Lost / relocalized"].append(scene.add_point_cloud(
+                f"/frames/{label}", points=xyz.astype(np.float32), colors=rgb, point_size=marker_m,
+                point_shape="circle", point_shading="flat"))
+
+    position, look_at = _start_view(data, centre, diag_m, up)
+    server.initial_camera.position = tuple(float(v) for v in position)
+    server.initial_camera.look_at = tuple(float(v) for v in look_at)
+    server.initial_camera.up = tuple(float(v) for v in up)
+
+    summary = {
+        "world": str(data.world_dir), "map_id": data.metadata.get("map_id"), "n_gaussians": len(f),
+        "n_keyframes": len(data.T_world_cam_keyframes), "n_keyframe_images": int(n_images),
+        "n_frames": len(data.status), "n_estimated_poses": int(np.isfinite(est_xyz).all(axis=1).sum()),
+        "n_ground_truth_poses": int(np.isfinite(gt_xyz).all(axis=1).sum()),
+        "ground_truth_frame": data.ground_truth_note or None, "report": data.report_source or None,
+        "n_lost_marked": shown[STATUS_LOST], "n_relocalized_marked": shown[STATUS_RELOCALIZED],
+        "notes": list(data.notes),
+    }
+    _add_panel(server, summary, handles)
+    return summary
+
+
+def _add_panel(server: Any, summary: dict[str, Any], handles: dict[str, list[Any]]) -> None:
+    """The side panel: a legend with the counts, and a switch per layer."""
+    gui = server.gui
+
+    def swatch(rgb: tuple[int, int, int]) -> str:
+        return f"<span style='color:rgb{rgb}'>&#9632;</span>"
+
+    lines = [
+        f"**{summary['n_gaussians']:,} Gaussians**, map `{summary['map_id']}`",
+        f"{swatch(KEYFRAME_RGB)} {summary['n_keyframes']} keyframes ({summary['n_keyframe_images']} with images)",
+        f"{swatch(ESTIMATED_RGB)} estimated trajectory: {summary['n_estimated_poses']} of {summary['n_frames']} frames",
+        f"{swatch(GROUND_TRUTH_RGB)} ground truth: {summary['n_ground_truth_poses']} frames",
+        f"{swatch(LOST_RGB)} lost: {summary['n_lost_marked']}  {swatch(RELOCALIZED_RGB)} relocalized: "
+        f"{summary['n_relocalized_marked']}",
+    ]
+    gui.add_markdown("  \n".join(lines))
+    for layer, hs in handles.items():
+        if not hs:
+            continue
+        box = gui.add_checkbox(layer, initial_value=True)
+
+        def toggle(_event: Any, hs: list[Any] = hs, box: Any = box) -> None:
+            for h in hs:
+                h.visible = box.value
+
+        box.on_update(toggle)
+    if summary["notes"]:
+        gui.add_markdown("  \n".join(f"- {n}" for n in summary["notes"]))
+
+
+# ---- the server ---------------------------------------------------------------------------------
+
+
+def is_loopback_host(host: str) -> bool:
+    """Whether ``host`` names this machine only (127.0.0.0/8, ::1, ``localhost``)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass
+class ViewerHandle:
+    """A running viewer: ``url``, the ``viser.ViserServer`` and the scene summary; ``stop()`` (or
+    leaving a ``with`` block) shuts the server down."""
+
+    server: Any
+    url: str
+    summary: dict[str, Any]
+
+    def stop(self) -> None:
+        with _quiet_stdout():
+            self.server.stop()
+
+    def __enter__(self) -> "ViewerHandle":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """viser prints a banner of its URLs and a "server stopped" line on stdout with rich; we log
+    and print our own line instead (one format, and the URL we print is the one that works)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        yield
+
+
+def _refuse_share_url(*_args: Any, **_kwargs: Any) -> None:
+    logger.warning("share URL refused: it would publish this viewer through viser's public relay")
+    return None
+
+
+def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report: str | Path | None = None,
+          read_dataset: bool = True, allow_remote: bool = False, data: ViewerData | None = None) -> ViewerHandle:
+    """Start a viewer of the bundle at ``world_dir`` on ``host:port`` (``port`` 0: a free one) and
+    return its handle; the server runs in background threads until ``handle.stop()``.
+
+    ``host`` must be a loopback address unless ``allow_remote``: the viewer has no authentication
+    and serves the map and camera images of a recorded place to whoever connects. ``data`` (from
+    :func:`load_viewer_data`) skips loading.
+    """
+    import viser
+
+    if not is_loopback_host(host) and not allow_remote:
+        raise ConfigError(f"--host {host}: the viewer binds loopback addresses only (127.0.0.1, ::1, localhost); "
+                          "it has no authentication, and serves the map and camera images of a recorded place. "
+                          "To look from another machine, forward the port (ssh -L PORT:127.0.0.1:PORT host)")
+    if not 0 <= int(port) <= 65535:
+        raise ConfigError(f"--port {port}: must be 0 (any free port) to 65535")
+    if data is None:
+        data = load_viewer_data(world_dir, report, read_dataset)
+    with _quiet_stdout():
+        server = viser.ViserServer(host=host, port=int(port), label="atlas-gs", verbose=False)
+    try:
+        server.request_share_url = _refuse_share_url  # a browser's share button calls this
+        server.gui.configure_theme(show_share_button=False, control_width="medium")
+        summary = build_scene(server, data)
+    except BaseException:
+        with _quiet_stdout():
+            server.stop()
+        raise
+    bound = server.get_port()
+    if port and bound != int(port):
+        logger.warning("port %d is taken: the viewer listens on %d instead", port, bound)
+    url_host = f"[{host.strip('[]')}]" if ":" in host else host
+    url = f"http://{url_host}:{bound}/"
+    summary["url"] = url
+    logger.info("viewer of %s at %s (%d Gaussians, %d keyframes)", world_dir, url, summary["n_gaussians"],
+                summary["n_keyframes"])
+    return ViewerHandle(server, url, summary)
+
+
+def run_viewer(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report: str | Path | None = None,
+               read_dataset: bool = True, allow_remote: bool = False,
+               announce: Callable[[str], None] = print, stop_event: threading.Event | None = None) -> int:
+    """Serve the viewer and block until Ctrl-C, SIGTERM (``docker stop``, ``kill``) or ``stop_event``;
+    the server is always stopped before returning 0. ``announce`` receives the line naming the URL
+    (the CLI prints it on stdout)."""
+    handle = serve(world_dir, host, port, report, read_dataset, allow_remote)
+    stop_event = stop_event or threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():  # signal handlers live in the main thread
+        previous = signal.signal(signal.SIGTERM, lambda *_: stop_event.set())
+    try:
+        announce(f"atlas-gs viewer of {Path(world_dir).resolve()}: open {handle.url}  (Ctrl-C to stop)")
+        while not stop_event.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        handle.stop()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    logger.info("viewer stopped")
+    return 0
