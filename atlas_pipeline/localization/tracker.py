@@ -16,6 +16,12 @@ when that aligns worse); the solve runs over an image pyramid (coarse levels fir
 association distances). A frame whose alignment is poor (too few model correspondences, or a large
 residual) is *lost*: its pose is a prediction and it is never merged into the map.
 
+Each Gauss-Newton iteration is kiss-icp's ``Registration.cpp`` loop in named steps: ``associate``
+and ``build_linear_system`` (Numba kernels, run together by
+:func:`~atlas_pipeline.localization._kernels.normal_equations`), then :func:`solve_update` (damped,
+trust-region-limited step), :func:`apply_update` and :func:`converged`. Fixed tuning values are in
+:mod:`atlas_pipeline.localization.constants`; per-run settings in ``LocalizationConfig``.
+
 Shapes: ``T_*`` ``[4, 4]`` camera-to-world; ``depth_m`` ``[H, W]`` float32 metres (0 = none);
 ``rgb`` ``[H, W, 3]`` uint8.
 """
@@ -32,33 +38,14 @@ import numpy as np
 from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp
 from atlas_pipeline.localization import _kernels as kn
+from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
 from atlas_pipeline.perception.rgbd import _undistort_normalized
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FramePyramid", "SurfelModel", "TrackResult", "RGBDTracker", "surfels_from_voxels"]
-
-# Intensity residuals are scaled to depth residuals by these nominal noise levels, so
-# ``photometric_weight`` = 1 means "one sigma of intensity counts like one sigma of depth".
-_SIGMA_DEPTH_M = 0.01
-# The model view is rendered one pyramid level coarser than the finest tracking level: 2 cm
-# surfels are still resolved (a 160x120 view at 1 m has ~7 mm pixels), the splat costs a quarter,
-# and the point-to-plane residual uses the exact surfel plane whatever the pixel size (measured on
-# TUM teddy: ATE 5.2 vs 5.0 mm, tracking ~20 % faster). Small images keep the finest level.
-_MODEL_LEVEL_OFFSET = 1
-_MODEL_MIN_WIDTH = 160
-_SIGMA_INTENSITY = 0.05
-# Axial depth noise of a structured-light RGB-D camera (Kinect v1 class: TUM, 7-Scenes, ScanNet):
-# sigma(z) = A + B (z - Z0)^2 (Nguyen, Izadi and Lovell 2012). The geometric residual of each point
-# is weighted by (sigma(reference) / sigma(z))^2, so far, noisy depth counts as the sensor says
-# instead of pulling the pose with the weight of near, precise depth.
-DEPTH_NOISE_A_M = 0.0012
-DEPTH_NOISE_B_PER_M = 0.0019
-DEPTH_NOISE_Z0_M = 0.4
-DEPTH_NOISE_REFERENCE_M = 1.0  # points nearer than this keep (about) full weight
-_DEPTH_NOISE_ARGS = (DEPTH_NOISE_A_M, DEPTH_NOISE_B_PER_M, DEPTH_NOISE_Z0_M,
-                     DEPTH_NOISE_A_M + DEPTH_NOISE_B_PER_M * (DEPTH_NOISE_REFERENCE_M - DEPTH_NOISE_Z0_M) ** 2)
+__all__ = ["FramePyramid", "SurfelModel", "TrackResult", "RGBDTracker", "surfels_from_voxels",
+           "solve_update", "apply_update", "converged"]
 
 
 @functools.lru_cache(maxsize=32)
@@ -79,12 +66,23 @@ def _level_rays(camera: CameraIntrinsics, level: int) -> np.ndarray:
 
 
 def _level_K(camera: CameraIntrinsics, level: int) -> tuple[float, float, float, float]:
-    """Pinhole intrinsics of pyramid level ``level`` (block-centred pixel grid)."""
+    """Pinhole intrinsics ``(fx, fy, cx, cy)`` px of pyramid level ``level`` (block-centred pixel grid)."""
     s = 2 ** level
     return camera.fx / s, camera.fy / s, (camera.cx - (s - 1) / 2.0) / s, (camera.cy - (s - 1) / 2.0) / s
 
 
+def _level_view(T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> kn.PinholeView:
+    """The pinhole of pyramid level ``level`` posed at ``T_world_cam`` ``[4, 4]``."""
+    s = 2 ** level
+    return kn.PinholeView(np.ascontiguousarray(T_world_cam, np.float64), *_level_K(camera, level),
+                          camera.width // s, camera.height // s)
+
+
+_SPLAT_PARAMS = kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos)
+
+
 def _dist5(camera: CameraIntrinsics) -> np.ndarray:
+    """Distortion ``(k1, k2, p1, p2, k3)`` ``[5]``, zero-padded (zeros: none)."""
     d = np.zeros(5)
     d[: len(camera.distortion)] = camera.distortion
     return d
@@ -114,20 +112,22 @@ class FramePyramid:
         if rgb is None:
             g = np.zeros(d.shape, np.float32)
         else:
-            g = (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)) / 255.0
+            g = (rgb.astype(np.float32) @ np.array(C.luma_weights_rgb, np.float32)) / C.max_colour_value
         depths, intens, grads = [d], [g], [kn.image_gradients(g)]
         for _ in range(1, n_levels):
-            depths.append(kn.downsample_depth(depths[-1], 0.03))
+            depths.append(kn.downsample_depth(depths[-1], C.pyramid_max_depth_jump_m, C.pyramid_depth_jump_fraction))
             intens.append(kn.downsample_mean(intens[-1]))
             grads.append(kn.image_gradients(intens[-1]))
         return cls(camera, depths, intens, grads, rgb)
 
-    def points(self, level: int) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points ``[M, 3]`` float64 and their intensities ``[M]`` at ``level``."""
+    def points(self, level: int) -> kn.FramePoints:
+        """Camera-frame points ``[M, 3]`` float64 and their intensities ``[M]`` at ``level``
+        (a named tuple: unpacks as ``points, intensity``)."""
         z = self.depth[level]
         valid = z > 0
         rays = _level_rays(self.camera, level)
-        return rays[valid] * z[valid][:, None].astype(np.float64), self.intensity[level][valid].astype(np.float64)
+        return kn.FramePoints(rays[valid] * z[valid][:, None].astype(np.float64),
+                              self.intensity[level][valid].astype(np.float64))
 
     @property
     def n_valid(self) -> int:
@@ -135,7 +135,8 @@ class FramePyramid:
 
 
 def surfels_from_voxels(ids: np.ndarray, count: np.ndarray, sum_xyz: np.ndarray, sum_sq: np.ndarray,
-                        min_points: int = 1, min_support: int = 3) -> tuple[np.ndarray, np.ndarray]:
+                        min_points: int = C.surfel_min_points,
+                        min_support: int = C.surfel_min_support) -> tuple[np.ndarray, np.ndarray]:
     """Surfel centres and normals from voxel statistics.
 
     Args:
@@ -181,14 +182,13 @@ class SurfelModel:
         self.radius_m = float(self.radius_m)
 
     @classmethod
-    def from_builder(cls, builder, min_points: int = 1) -> "SurfelModel":
+    def from_builder(cls, builder, min_points: int = C.surfel_min_points) -> "SurfelModel":
         c, n = surfels_from_voxels(builder.ids, builder.count, builder.sum_xyz, builder.sum_sq, min_points)
-        # A disk of 0.8 voxel covers the voxel's face (half-diagonal 0.71) so neighbours overlap.
-        return cls(c, n, 0.8 * builder.voxel_size_m)
+        return cls(c, n, C.surfel_radius_voxels * builder.voxel_size_m)
 
     @classmethod
     def from_field(cls, positions: np.ndarray, voxel_size_m: float, opacities: np.ndarray | None = None,
-                   min_opacity: float = 0.5) -> "SurfelModel":
+                   min_opacity: float = C.field_min_opacity) -> "SurfelModel":
         """Surfels from Gaussian centres ``[N, 3]`` alone (a bundle without ``surfels.npz``, e.g. an
         imported PLY): each centre is binned into its voxel, and normals come from the centres of
         the 3x3x3 voxel neighbourhood. With ``opacities [N]``, only Gaussians at least
@@ -198,13 +198,13 @@ class SurfelModel:
         pts = np.asarray(positions, np.float64)
         if opacities is not None:
             solid = np.asarray(opacities) >= min_opacity
-            if solid.sum() >= 0.25 * len(pts):  # not a field of faint Gaussians only
+            if solid.sum() >= C.field_min_solid_fraction * len(pts):  # not a field of faint Gaussians only
                 pts = pts[solid]
         b = VoxelGaussianBuilder(voxel_size_m)
         if len(pts):
             b.integrate(pts, np.zeros((len(pts), 3)))
-        c, n = surfels_from_voxels(b.ids, b.count, b.sum_xyz, b.sum_sq, 1, min_support=4)
-        return cls(c, n, 0.8 * voxel_size_m)
+        c, n = surfels_from_voxels(b.ids, b.count, b.sum_xyz, b.sum_sq, C.surfel_min_points, C.field_min_support)
+        return cls(c, n, C.surfel_radius_voxels * voxel_size_m)
 
     def __len__(self) -> int:
         return len(self.centres)
@@ -239,10 +239,14 @@ class SurfelModel:
 
     def render(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Model view ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` at pyramid ``level`` (NaN = empty)."""
-        s = 2 ** level
-        fx, fy, cx, cy = _level_K(camera, level)
-        return kn.splat_surfels(self.centres, self.normals, self.radius_m, np.ascontiguousarray(T_world_cam, np.float64),
-                                fx, fy, cx, cy, camera.width // s, camera.height // s, 8)
+        return kn.splat_surfels(self.centres, self.normals, self.radius_m, _level_view(T_world_cam, camera, level),
+                                _SPLAT_PARAMS)
+
+    def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> kn.ModelView:
+        """:meth:`render` as the tracker's geometric reference (the view and its pinhole)."""
+        T = np.ascontiguousarray(T_world_cam, np.float64)
+        pts, nrm = self.render(T, camera, level)
+        return kn.ModelView(pts, nrm, T, *_level_K(camera, level))
 
 
 @dataclass
@@ -277,11 +281,35 @@ class RGBDTracker:
         self.depth_range_m = depth_range_m
         self.n_levels = len(cfg.iterations) + cfg.finest_level
         self.dist = _dist5(camera)
-        coarser = cfg.finest_level + _MODEL_LEVEL_OFFSET
-        self.model_level = coarser if camera.width // 2 ** coarser >= _MODEL_MIN_WIDTH else cfg.finest_level
+        coarser = cfg.finest_level + C.model_level_offset
+        self.model_level = coarser if camera.width // 2 ** coarser >= C.model_min_width_px else cfg.finest_level
+        # Gates and weights of the kernel; the association gate and photometric weight vary per call.
+        self._params = kn.Params(
+            max_distance_m=cfg.min_correspondence_m, huber_depth_m=cfg.huber_depth_m, photometric_weight=0.0,
+            huber_intensity=C.huber_intensity, occlusion_gate_m=C.occlusion_gate_m,
+            min_view_depth_m=C.min_view_depth_m, noise_a_m=C.depth_noise_a_m, noise_b_per_m=C.depth_noise_b_per_m,
+            noise_z0_m=C.depth_noise_z0_m, noise_reference_sigma_m=C.depth_noise_reference_sigma_m)
+        # Stand-in for "no photometric reference" (the kernel skips it: photometric weight 0).
+        empty = np.zeros((1, 1), np.float32)
+        self._no_reference = kn.ReferenceImage(empty, empty, empty, empty, np.eye(4), 1.0, 1.0, 0.0, 0.0, self.dist)
 
     def prepare(self, rgb: np.ndarray | None, depth_m: np.ndarray) -> FramePyramid:
         return FramePyramid.build(rgb, depth_m, self.camera, self.n_levels, self.depth_range_m)
+
+    def _reference_image(self, frame: FramePyramid, T_world_cam: np.ndarray, level: int) -> kn.ReferenceImage:
+        """``frame`` at ``level``, posed at ``T_world_cam``, as the kernel's photometric reference."""
+        gx, gy = frame.grad[level]
+        T = np.ascontiguousarray(T_world_cam, np.float64)
+        return kn.ReferenceImage(frame.intensity[level], gx, gy, frame.depth[level], T, *_level_K(self.camera, level),
+                                 self.dist)
+
+    def _gate_m(self, li: int) -> float:
+        """Association gate of the ``li``-th level run (coarsest first): it shrinks towards the
+        finest level, a wide basin first and precision last, down to ``min_correspondence_m``."""
+        cfg = self.cfg
+        n_levels = len(cfg.iterations)
+        max_dist = cfg.max_correspondence_m * (2.0 ** (n_levels - 1 - li)) / 2.0 ** (n_levels - 1)
+        return max(max_dist, cfg.min_correspondence_m)
 
     def align(self, frame: FramePyramid, model: SurfelModel, T_init: np.ndarray,
               reference: tuple[FramePyramid, np.ndarray] | None = None) -> TrackResult:
@@ -290,86 +318,89 @@ class RGBDTracker:
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
-        # One model view per frame, at the finest level and the initial pose; coarse levels project into it too.
-        T_model = T.copy()
-        mlev = self.model_level
-        m_pts, m_nrm = model.render(T_model, self.camera, mlev)
-        mfx, mfy, mcx, mcy = _level_K(self.camera, mlev)
-        w_photo = cfg.photometric_weight * (_SIGMA_DEPTH_M / _SIGMA_INTENSITY) ** 2 if reference is not None else 0.0
+        # One model view per frame, at the initial pose; every level projects into it.
+        view = model.model_view(T, self.camera, self.model_level)
+        w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
         n_levels = len(cfg.iterations)
         total_it = 0
-        stats = np.zeros(6)
         for li, iters in enumerate(cfg.iterations):
             level = fin + (n_levels - 1 - li)  # coarse first
-            pts, inten = frame.points(level)
-            if len(pts) < 6:
+            points = frame.points(level)
+            if len(points.points_cam) < C.min_points_per_level:
                 continue
-            # Association gate shrinks towards the finest level: wide basin first, precision last.
-            max_dist = cfg.max_correspondence_m * (2.0 ** (n_levels - 1 - li)) / 2.0 ** (n_levels - 1)
-            max_dist = max(max_dist, cfg.min_correspondence_m)
-            if reference is not None:
-                rf, T_ref = reference
-                ref_I, (ref_gx, ref_gy), ref_D = rf.intensity[level], rf.grad[level], rf.depth[level]
-                pK = _level_K(self.camera, level)
-                T_ref = np.ascontiguousarray(T_ref, np.float64)
-            else:
-                ref_I = ref_gx = ref_gy = ref_D = np.zeros((1, 1), np.float32)
-                pK = (1.0, 1.0, 0.0, 0.0)
-                T_ref = np.eye(4)
+            params = self._params._replace(max_distance_m=self._gate_m(li), photometric_weight=w_photo)
+            ref = self._no_reference if reference is None else self._reference_image(reference[0], reference[1], level)
+            # Trust region, per level: coarse levels may step further (their basin is wider).
+            max_step_m = C.max_step_m * 2 ** (level - fin)
             for _ in range(iters):
-                H, g, stats = kn.accumulate_normal_equations(
-                    pts, inten, T, m_pts, m_nrm, T_model, mfx, mfy, mcx, mcy,
-                    max_dist, cfg.huber_depth_m,
-                    ref_I, ref_gx, ref_gy, ref_D, T_ref, *pK, self.dist, w_photo, _SIGMA_INTENSITY * 2.0, 0.05,
-                    *_DEPTH_NOISE_ARGS,
-                )
+                H, g, stats = kn.normal_equations(points, T, view, ref, params)
                 total_it += 1
-                if stats[1] < 12:
+                if stats.n_geometric < C.min_geometric_inliers:
                     break
-                # Levenberg damping keeps weakly constrained directions from jumping.
-                H[np.diag_indices(6)] *= 1.0 + 1e-4
-                H[np.diag_indices(6)] += 1e-9
-                try:
-                    xi = -np.linalg.solve(H, g)
-                except np.linalg.LinAlgError:
+                xi = solve_update(H, g, max_step_m, C.max_step_rad)
+                if xi is None:
                     break
-                if not np.all(np.isfinite(xi)):
-                    break
-                # Trust region: one step moves at most ~2 cm / ~1.1 deg per level above the
-                # finest, so an ill-conditioned early iterate cannot throw the pose out of the basin.
-                scale = max(np.linalg.norm(xi[:3]) / (0.02 * 2 ** (level - fin)), np.linalg.norm(xi[3:]) / 0.02, 1.0)
-                xi = xi / scale
-                dT = np.eye(4)
-                dT[:3, :3] = so3_exp(xi[3:])
-                dT[:3, 3] = xi[:3]
-                T = dT @ T
-                if np.linalg.norm(xi[:3]) < 1e-5 and np.linalg.norm(xi[3:]) < 1e-5:
+                T = apply_update(xi, T)
+                if converged(xi):
                     break
         # Quality at the final pose, finest level, geometry only; a view re-rendered there when
         # the pose travelled far from the one the model view was made at (relocalization).
-        moved_m, turned_deg = pose_change(T_model, T)
-        if moved_m > 0.05 or turned_deg > 5.0:
-            T_model = T.copy()
-            m_pts, m_nrm = model.render(T_model, self.camera, mlev)
-        pts, inten = frame.points(fin)
-        _, _, stats = kn.accumulate_normal_equations(
-            pts, inten, T, m_pts, m_nrm, T_model, mfx, mfy, mcx, mcy,
-            cfg.min_correspondence_m, cfg.huber_depth_m,
-            np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32),
-            np.zeros((1, 1), np.float32), np.eye(4), 1.0, 1.0, 0.0, 0.0, self.dist, 0.0, 1.0, 0.05,
-        )
-        n = int(stats[5])
-        frac = float(stats[1] / n) if n else 0.0
-        agree = float(stats[1] / stats[6]) if stats[6] else 0.0
-        res = float(np.sqrt(stats[4] / stats[1])) if stats[1] else float("nan")
+        moved_m, turned_deg = pose_change(view.T_world_cam, T)
+        if moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg:
+            view = model.model_view(T, self.camera, self.model_level)
+        stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
-        return TrackResult(T, frac, res, n, self.judge(frac, res, agree), total_it, agree)
+        return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points,
+                           self.judge(stats.inlier_fraction, stats.rmse_m, stats.agreement), total_it, stats.agreement)
+
+    def quality_stats(self, frame: FramePyramid, view: kn.ModelView, T_world_cam: np.ndarray) -> kn.Stats:
+        """Geometric correspondences of ``frame``'s finest-level points at ``T_world_cam`` with the
+        model ``view``, at the tightest gate (``min_correspondence_m``), no photometric term: what
+        :meth:`judge` grades."""
+        points = frame.points(self.cfg.finest_level)
+        T = np.ascontiguousarray(T_world_cam, np.float64)
+        return kn.normal_equations(points, T, view, self._no_reference, self._params)[2]
 
     def judge(self, inlier_fraction: float, residual_m: float, agreement: float = 1.0) -> bool:
         """Good alignment: enough of the frame explained by the map, the part of it that overlaps
         the map mostly agreeing with it, and a small residual."""
         return (inlier_fraction >= self.cfg.min_fitness and agreement >= self.cfg.min_agreement
                 and np.isfinite(residual_m) and residual_m <= self.cfg.max_residual_m)
+
+
+def solve_update(H: np.ndarray, g: np.ndarray, max_step_m: float, max_step_rad: float) -> np.ndarray | None:
+    """The Gauss-Newton step ``xi = (v [3] m, omega [3] rad)`` of the normal equations
+    ``H xi = -g`` (``H`` ``[6, 6]``, modified in place), or None when it cannot be solved.
+
+    Levenberg damping keeps weakly constrained directions from jumping; the trust region scales the
+    step down so it moves at most ``max_step_m`` and turns at most ``max_step_rad``, so an
+    ill-conditioned early iterate cannot throw the pose out of the basin.
+    """
+    diag = np.diag_indices(6)
+    H[diag] *= 1.0 + C.levenberg_damping
+    H[diag] += C.diagonal_floor
+    try:
+        xi = -np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(xi)):
+        return None
+    scale = max(np.linalg.norm(xi[:3]) / max_step_m, np.linalg.norm(xi[3:]) / max_step_rad, 1.0)
+    return xi / scale
+
+
+def apply_update(xi: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """``exp(xi) T_world_cam``: the left (world-frame) update the normal equations are built for,
+    with the rotation ``so3_exp(omega)`` and the translation ``v`` taken as is."""
+    dT = np.eye(4)
+    dT[:3, :3] = so3_exp(xi[3:])
+    dT[:3, 3] = xi[:3]
+    return dT @ T_world_cam
+
+
+def converged(xi: np.ndarray) -> bool:
+    """The step ``xi`` ``[6]`` moved and turned less than ``converged_step`` (m, rad)."""
+    return bool(np.linalg.norm(xi[:3]) < C.converged_step and np.linalg.norm(xi[3:]) < C.converged_step)
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:

@@ -92,8 +92,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     pose corrected (:func:`atlas_pipeline.mapping.loop_closure.close_loops`).
 
     Args:
-        frames: optional ``[(rgb, depth_m)]`` already in memory (benchmarks: decoding not timed);
-            by default frames are read one at a time.
+        frames: optional ``[(rgb, depth_m)]`` already in memory (benchmarks: decoding not timed),
+            the first frames of the sequence; by default frames are read one at a time.
         budget_s: stop tracking after this many seconds (benchmarks); ``n_attempted`` says where.
     """
     import time
@@ -114,6 +114,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     started = False
     for i in range(n):
         if frames is not None:
+            if i >= len(frames):  # fewer frames given (a warm-up): the rest are not attempted
+                break
             rgb, depth = frames[i]
         else:
             rgb, depth = manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)

@@ -1,0 +1,129 @@
+"""Fixed tuning constants of the RGB-D tracker (:mod:`atlas_pipeline.localization.tracker` and its
+Numba kernels, :mod:`atlas_pipeline.localization._kernels`).
+
+What a user tunes per dataset lives in :class:`atlas_pipeline.config.LocalizationConfig`
+(iterations, association gates, Huber threshold of depth, photometric weight, quality limits).
+What is here is fixed by the sensor, the numerics or a measurement, and is the same for every run.
+The kernels never read this module: every value reaches them as an argument (a Numba kernel cached
+on disk would otherwise keep a stale copy of a changed constant).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["TrackerConstants", "TRACKER_CONSTANTS"]
+
+
+@dataclass(frozen=True)
+class TrackerConstants:
+    """Tracker constants; one instance, :data:`TRACKER_CONSTANTS`. Units are in the names."""
+
+    # --- image pyramid ------------------------------------------------------------------------
+    # Grey = ITU-R BT.601 luma of sRGB: the usual weights of RGB-D odometry (Open3D, DVO).
+    luma_weights_rgb: tuple[float, float, float] = (0.299, 0.587, 0.114)
+    # uint8 colour -> grey in [0, 1].
+    max_colour_value: float = 255.0
+    # A 2x2 depth block whose readings spread more than this (+ ``pyramid_depth_jump_fraction`` of
+    # its depth) straddles an occluding edge; it is left invalid instead of averaging foreground and
+    # background into a flying point. 3 cm: above the noise of a Kinect at 2 m, below a real step.
+    pyramid_max_depth_jump_m: float = 0.03
+    # The edge test's depth-proportional part (dimensionless): noise grows with depth.
+    pyramid_depth_jump_fraction: float = 0.02
+
+    # --- surfel model -------------------------------------------------------------------------
+    # Disk radius in voxels: 0.8 covers the voxel's face (half-diagonal 0.71) so neighbours overlap.
+    surfel_radius_voxels: float = 0.8
+    # Voxels need this many points of their own (surfels_from_voxels' default) ...
+    surfel_min_points: int = 1
+    # ... and this many in their 3x3x3 neighbourhood for a plane fit (3 points span a plane).
+    surfel_min_support: int = 3
+    # Surfels from Gaussian centres alone (no voxel statistics): one centre per voxel, so demand
+    # one more neighbour than the minimum for a less noisy normal.
+    field_min_support: int = 4
+    # Only Gaussians at least this opaque count as surface (fitted fields park faint ones off it) ...
+    field_min_opacity: float = 0.5
+    # ... unless fewer than this share of them are that opaque (a field of faint Gaussians only).
+    field_min_solid_fraction: float = 0.25
+    # Largest disk footprint splatted, pixels: bounds the cost of a surfel right in front of the camera.
+    splat_max_radius_px: int = 8
+    # A ray meeting a disk at cos(incidence) below this (> ~81 deg off its normal) or from behind
+    # is not splatted: grazing hits put the intersection far along the ray, off the true surface.
+    splat_min_incidence_cos: float = 0.15
+
+    # --- projections ----------------------------------------------------------------------------
+    # Near clip of every projection (model view, reference image, splatting), m: below any RGB-D
+    # sensor's minimum range, and keeps 1 / z finite.
+    min_view_depth_m: float = 0.05
+
+    # --- model view -----------------------------------------------------------------------------
+    # The model view is rendered this many pyramid levels coarser than the finest tracking level:
+    # 2 cm surfels are still resolved (a 160x120 view at 1 m has ~7 mm pixels), the splat costs a
+    # quarter, and the point-to-plane residual uses the exact surfel plane whatever the pixel size
+    # (measured on TUM teddy: ATE 5.2 vs 5.0 mm, tracking ~20 % faster) ...
+    model_level_offset: int = 1
+    # ... unless that view would be narrower than this (pixels): small images keep the finest level.
+    model_min_width_px: int = 160
+    # After the solve, the quality is graded against a view re-rendered at the final pose when the
+    # pose moved this far from where the view was made (relocalization): the view's edges and
+    # occlusions no longer match the frame beyond that.
+    rerender_translation_m: float = 0.05
+    rerender_rotation_deg: float = 5.0
+
+    # --- residuals and weights -------------------------------------------------------------------
+    # Nominal noise levels that scale intensity residuals to depth residuals, so
+    # ``photometric_weight`` = 1 means "one sigma of intensity counts like one sigma of depth".
+    sigma_depth_m: float = 0.01
+    sigma_intensity: float = 0.05  # grey levels in [0, 1]
+    # Huber threshold of the intensity residual, in ``sigma_intensity``s.
+    huber_intensity_sigmas: float = 2.0
+    # A reference pixel's depth must be within this of the point's depth in the reference camera,
+    # m, or the reference sees another (occluding) surface there and the intensity is not compared.
+    occlusion_gate_m: float = 0.05
+    # Axial depth noise of a structured-light RGB-D camera (Kinect v1 class: TUM, 7-Scenes,
+    # ScanNet): sigma(z) = A + B (z - Z0)^2 for z > Z0 (Nguyen, Izadi and Lovell 2012). The
+    # geometric residual of each point is weighted by (sigma(reference) / sigma(z))^2, so far,
+    # noisy depth counts as the sensor says instead of pulling the pose with the weight of near,
+    # precise depth.
+    depth_noise_a_m: float = 0.0012
+    depth_noise_b_per_m: float = 0.0019  # m per m^2 of (z - Z0)^2
+    depth_noise_z0_m: float = 0.4
+    # Points nearer than this keep (about) full weight: sigma(reference) = sigma(this depth).
+    depth_noise_reference_m: float = 1.0
+
+    # --- Gauss-Newton -----------------------------------------------------------------------------
+    # Fewer frame points than this at a level: the level is skipped (6 unknowns).
+    min_points_per_level: int = 6
+    # Fewer geometric correspondences than this: stop iterating (twice the 6 unknowns, so the
+    # system is over-determined even with a few outliers).
+    min_geometric_inliers: int = 12
+    # Levenberg damping: the diagonal is scaled by (1 + this) and raised by ``diagonal_floor``, so
+    # weakly constrained directions do not jump and a singular system still solves.
+    levenberg_damping: float = 1e-4
+    diagonal_floor: float = 1e-9
+    # Trust region: one step moves at most this far at the finest level (doubling per level above
+    # it) and turns at most ``max_step_rad`` (~1.1 deg), so an ill-conditioned early iterate cannot
+    # throw the pose out of the basin.
+    max_step_m: float = 0.02
+    max_step_rad: float = 0.02
+    # Converged when a step moves less than this (m) and turns less than this (rad): 10 um / 2 mdeg.
+    converged_step: float = 1e-5
+
+    @property
+    def photometric_scale(self) -> float:
+        """Intensity residual -> depth residual weight ``(sigma_depth / sigma_intensity)^2``."""
+        return (self.sigma_depth_m / self.sigma_intensity) ** 2
+
+    @property
+    def huber_intensity(self) -> float:
+        """Huber threshold of the intensity residual (grey levels)."""
+        return self.sigma_intensity * self.huber_intensity_sigmas
+
+    @property
+    def depth_noise_reference_sigma_m(self) -> float:
+        """sigma(z) at ``depth_noise_reference_m``: the depth noise that keeps full weight."""
+        dz = self.depth_noise_reference_m - self.depth_noise_z0_m
+        return self.depth_noise_a_m + self.depth_noise_b_per_m * dz ** 2
+
+
+TRACKER_CONSTANTS = TrackerConstants()

@@ -1,0 +1,307 @@
+"""The tracker's named Gauss-Newton steps (kiss-icp's Registration.cpp split) against plain NumPy:
+association (projective, gated; photometric with occlusion gate and bilinear samples), the linear
+system (point-to-plane + intensity, Huber and depth-noise weights), and the update."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from atlas_pipeline.geometry import so3_exp
+from atlas_pipeline.localization import _kernels as kn
+from atlas_pipeline.localization.constants import TRACKER_CONSTANTS, TrackerConstants
+from atlas_pipeline.localization.tracker import apply_update, converged, solve_update
+
+# Tiny pinhole views (~2.5 cm pixels at 1 m): a 40 x 30 model view and a 48 x 36 reference image.
+MODEL_W, MODEL_H, MODEL_F = 40, 30, 40.0
+REF_W, REF_H, REF_F = 48, 36, 48.0
+PLANE_SLOPE = 0.1  # the scene: the plane z = 1 + 0.1 x in the model camera frame
+
+
+def _pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.asarray(rotvec, float))
+    T[:3, 3] = t
+    return T
+
+
+def _plane_model_view(T_world_model: np.ndarray) -> kn.ModelView:
+    """The plane rendered into the model view: exact points and camera-facing normals; two holes."""
+    cx, cy = (MODEL_W - 1) / 2.0, (MODEL_H - 1) / 2.0
+    v, u = np.mgrid[0:MODEL_H, 0:MODEL_W].astype(float)
+    xn, yn = (u - cx) / MODEL_F, (v - cy) / MODEL_F
+    z = 1.0 / (1.0 - PLANE_SLOPE * xn)  # ray (xn, yn, 1) z on z = 1 + slope x
+    pts = np.stack([xn * z, yn * z, z], axis=-1)
+    n = np.array([PLANE_SLOPE, 0.0, -1.0]) / np.hypot(PLANE_SLOPE, 1.0)  # facing the camera
+    nrm = np.broadcast_to(n, pts.shape).copy()
+    pts[12, 13] = nrm[12, 13] = np.nan
+    pts[20, 27] = nrm[20, 27] = np.nan
+    return kn.ModelView(pts, nrm, np.ascontiguousarray(T_world_model), MODEL_F, MODEL_F, cx, cy)
+
+
+def _reference(T_world_ref: np.ndarray, distortion) -> kn.ReferenceImage:
+    """A smooth intensity image with its gradients, and the plane's depth (one pixel without)."""
+    v, u = np.mgrid[0:REF_H, 0:REF_W].astype(float)
+    inten = (0.5 + 0.3 * np.sin(0.2 * u) * np.cos(0.15 * v)).astype(np.float32)
+    gx, gy = kn.image_gradients(inten)
+    cx, cy = (REF_W - 1) / 2.0, (REF_H - 1) / 2.0
+    depth = (1.0 / (1.0 - PLANE_SLOPE * (u - cx) / REF_F)).astype(np.float32)
+    depth[16, 20] = 0.0
+    return kn.ReferenceImage(inten, gx, gy, depth, np.ascontiguousarray(T_world_ref), REF_F, REF_F, cx, cy,
+                             np.asarray(distortion, float))
+
+
+def _params(**kw) -> kn.Params:
+    C = TRACKER_CONSTANTS
+    base = dict(max_distance_m=0.03, huber_depth_m=0.005, photometric_weight=0.04, huber_intensity=C.huber_intensity,
+                occlusion_gate_m=C.occlusion_gate_m, min_view_depth_m=C.min_view_depth_m, noise_a_m=C.depth_noise_a_m,
+                noise_b_per_m=C.depth_noise_b_per_m, noise_z0_m=C.depth_noise_z0_m,
+                noise_reference_sigma_m=C.depth_noise_reference_sigma_m)
+    base.update(kw)
+    return kn.Params(**base)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Frame points near the plane (noisy, a few far off it, one behind the camera), seen from a
+    camera a little off the model view; the reference is a third camera with lens distortion."""
+    rng = np.random.default_rng(3)
+    T_world_model = _pose([0.05, -0.1, 0.02], [0.2, -0.1, 0.3])
+    T_world_cam = T_world_model @ _pose([0.01, 0.02, -0.01], [0.01, -0.02, 0.005])
+    T_world_ref = T_world_model @ _pose([-0.02, 0.01, 0.0], [-0.03, 0.01, 0.02])
+    # points on the plane (model camera frame), some beyond the view's edge, then noise / outliers
+    x = rng.uniform(-0.7, 0.7, 60)
+    y = rng.uniform(-0.5, 0.5, 60)
+    p_model = np.stack([x, y, 1.0 + PLANE_SLOPE * x], axis=1)
+    p_model[:, 2] += rng.normal(scale=0.004, size=60)
+    p_model[::7, 2] += 0.1  # off the surface: gated out
+    p_model[5] = (0.0, 0.0, -1.0)  # behind both cameras
+    T_cam_model = np.linalg.inv(T_world_cam) @ T_world_model
+    p_cam = p_model @ T_cam_model[:3, :3].T + T_cam_model[:3, 3]
+    frame = kn.FramePoints(np.ascontiguousarray(p_cam), rng.uniform(0.2, 0.8, 60))
+    return (frame, np.ascontiguousarray(T_world_cam), _plane_model_view(T_world_model),
+            _reference(T_world_ref, [0.05, -0.01, 0.001, -0.002, 0.0]))
+
+
+# ---- NumPy references ---------------------------------------------------------------------------
+
+
+def _np_to_camera(T, p):
+    """R^T (p - t), element by element in the kernel's order (so the rounding is the same)."""
+    R, t = T[:3, :3], T[:3, 3]
+    d = p - t
+    return np.stack([R[0, 0] * d[:, 0] + R[1, 0] * d[:, 1] + R[2, 0] * d[:, 2],
+                     R[0, 1] * d[:, 0] + R[1, 1] * d[:, 1] + R[2, 1] * d[:, 2],
+                     R[0, 2] * d[:, 0] + R[1, 2] * d[:, 1] + R[2, 2] * d[:, 2]], axis=1)
+
+
+def _np_to_world(T, p):
+    R, t = T[:3, :3], T[:3, 3]
+    return np.stack([R[i, 0] * p[:, 0] + R[i, 1] * p[:, 1] + R[i, 2] * p[:, 2] + t[i] for i in range(3)], axis=1)
+
+
+def _np_bilinear(img, x, y):
+    h, w = img.shape
+    if not (0.0 <= x < w - 1 and 0.0 <= y < h - 1):
+        return np.nan
+    i, j = int(y), int(x)
+    a, b = x - j, y - i
+    return ((1 - a) * (1 - b) * img[i, j] + a * (1 - b) * img[i, j + 1]
+            + (1 - a) * b * img[i + 1, j] + a * b * img[i + 1, j + 1])
+
+
+def _np_associate(frame, T, model, ref, params):
+    """Reference association: ``(p_world, outcome, (u, v), x_model, photometric, x_ref, samples)``."""
+    pw = _np_to_world(T, frame.points_cam)
+    xm = _np_to_camera(model.T_world_cam, pw)
+    n = len(pw)
+    outcome = np.full(n, kn.MATCH_NONE)
+    uv = np.zeros((n, 2), int)
+    mh, mw = model.points_cam.shape[:2]
+    for i in range(n):
+        if xm[i, 2] <= params.min_view_depth_m:
+            continue
+        u = int(model.fx * xm[i, 0] / xm[i, 2] + model.cx + 0.5)  # int(): truncation, as the kernel
+        v = int(model.fy * xm[i, 1] / xm[i, 2] + model.cy + 0.5)
+        if not (0 <= u < mw and 0 <= v < mh) or np.isnan(model.points_cam[v, u, 2]):
+            continue
+        uv[i] = u, v
+        dist2 = np.sum((xm[i] - model.points_cam[v, u]) ** 2)
+        outcome[i] = kn.MATCH_OK if dist2 < params.max_distance_m ** 2 else kn.MATCH_GATED
+    xr = _np_to_camera(ref.T_world_cam, pw)
+    found = np.zeros(n, bool)
+    samples = np.zeros((n, 3))
+    k1, k2, p1, p2, k3 = ref.distortion
+    for i in range(n):
+        xk, yk, zk = xr[i]
+        if zk <= params.min_view_depth_m:
+            continue
+        xn, yn = xk / zk, yk / zk
+        r2 = xn * xn + yn * yn
+        rad = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+        xd = xn * rad + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+        yd = yn * rad + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+        uf, vf = ref.fx * xd + ref.cx, ref.fy * yd + ref.cy
+        ui, vi = int(uf + 0.5), int(vf + 0.5)
+        h, w = ref.depth_m.shape
+        dref = float(ref.depth_m[vi, ui]) if 0 <= ui < w and 0 <= vi < h else 0.0
+        if not (dref > 0.0 and abs(dref - zk) < params.occlusion_gate_m):
+            continue
+        s = [_np_bilinear(img, uf, vf) for img in (ref.intensity, ref.grad_x, ref.grad_y)]
+        if np.all(np.isfinite(s)):
+            found[i] = True
+            samples[i] = s
+    return pw, outcome, uv, xm, found, xr, samples
+
+
+def _np_linear_system(frame, model, ref, params, assoc):
+    """Reference normal equations: stacked Jacobian rows ``[dr/dv, p x dr/dv]``, weights, residuals."""
+    pw, outcome, uv, xm, found, xr, samples = assoc
+    rows, weights, residuals = [], [], []
+    sq = 0.0
+    for i in np.flatnonzero(outcome == kn.MATCH_OK):
+        u, v = uv[i]
+        n_cam = model.normals_cam[v, u]
+        r = float(n_cam @ (xm[i] - model.points_cam[v, u]))
+        a = model.T_world_cam[:3, :3] @ n_cam
+        z = frame.points_cam[i, 2]
+        sigma = params.noise_a_m + params.noise_b_per_m * max(z - params.noise_z0_m, 0.0) ** 2
+        ratio = params.noise_reference_sigma_m / sigma
+        delta = params.huber_depth_m / ratio
+        huber = 1.0 if abs(r) <= delta else delta / abs(r)
+        rows.append(np.concatenate([a, np.cross(pw[i], a)]))
+        weights.append(huber * ratio ** 2)
+        residuals.append(r)
+        sq += r * r
+    n_geometric = len(rows)
+    for i in np.flatnonzero(found):
+        xk, yk, zk = xr[i]
+        i_ref, gx, gy = samples[i]
+        r = i_ref - frame.intensity[i]
+        d = np.array([gx * ref.fx / zk, gy * ref.fy / zk, -(gx * ref.fx * xk + gy * ref.fy * yk) / zk ** 2])
+        a = ref.T_world_cam[:3, :3] @ d
+        huber = 1.0 if abs(r) <= params.huber_intensity else params.huber_intensity / abs(r)
+        rows.append(np.concatenate([a, np.cross(pw[i], a)]))
+        weights.append(params.photometric_weight * huber)
+        residuals.append(r)
+    J, w, r = np.array(rows), np.array(weights), np.array(residuals)
+    H = J.T @ (w[:, None] * J)
+    g = J.T @ (w * r)
+    return H, g, n_geometric, sq
+
+
+# ---- tests ----------------------------------------------------------------------------------------
+
+
+def test_associate_matches_numpy(scene):
+    frame, T, model, ref = scene
+    params = _params()
+    corr = kn.associate(0, len(frame.points_cam), frame, T, model, ref, params)
+    pw, outcome, uv, xm, found, xr, samples = _np_associate(frame, T, model, ref, params)
+    # the scene exercises every branch: correspondences, gated, off the view / behind, photometric both ways
+    assert {kn.MATCH_NONE, kn.MATCH_GATED, kn.MATCH_OK} <= set(outcome.tolist())
+    assert 0 < found.sum() < len(found)
+    np.testing.assert_array_equal(corr.geometric, outcome)
+    on = outcome != kn.MATCH_NONE
+    np.testing.assert_array_equal(corr.model_pixel[on], uv[on])
+    np.testing.assert_allclose(corr.points_world, pw, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(corr.points_model, xm, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(corr.photometric, found)
+    np.testing.assert_allclose(corr.points_ref[found], xr[found], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(corr.ref_samples[found], samples[found], rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(corr.depth_cam_m, frame.points_cam[:, 2])
+    np.testing.assert_array_equal(corr.intensity, frame.intensity)
+
+
+def test_associate_without_photometric_term_finds_no_photometric_correspondence(scene):
+    frame, T, model, ref = scene
+    corr = kn.associate(0, len(frame.points_cam), frame, T, model, ref, _params(photometric_weight=0.0))
+    assert not corr.photometric.any()
+    assert (corr.geometric == kn.MATCH_OK).any()
+
+
+@pytest.mark.parametrize("photometric_weight", [0.0, 0.04])
+def test_build_linear_system_matches_numpy(scene, photometric_weight):
+    frame, T, model, ref = scene
+    params = _params(photometric_weight=photometric_weight)
+    corr = kn.associate(0, len(frame.points_cam), frame, T, model, ref, params)
+    H, g, stats = kn.build_linear_system(corr, model, ref, params)
+    assoc = _np_associate(frame, T, model, ref, params)
+    H_ref, g_ref, n_geometric, sq = _np_linear_system(frame, model, ref, params, assoc)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-12)
+    assert np.array_equal(H, H.T)
+    assert stats.n_points == len(frame.points_cam)
+    assert stats.n_geometric == n_geometric
+    assert stats.n_on_model == int(np.count_nonzero(assoc[1] != kn.MATCH_NONE))
+    assert stats.n_photometric == (int(assoc[4].sum()) if photometric_weight else 0)
+    assert stats.geometric_sq_m2 == pytest.approx(sq, rel=1e-12)
+    assert stats.rmse_m == pytest.approx(np.sqrt(sq / n_geometric), rel=1e-12)
+    assert stats.inlier_fraction == n_geometric / len(frame.points_cam)
+    assert stats.agreement == n_geometric / stats.n_on_model
+
+
+def test_normal_equations_sums_the_steps_over_chunks(scene):
+    """The parallel driver = associate + build_linear_system over all points (chunk sums differ
+    only in rounding), and its result does not depend on the thread count (fixed chunk order)."""
+    frame, T, model, ref = scene
+    params = _params()
+    H, g, stats = kn.normal_equations(frame, T, model, ref, params)
+    corr = kn.associate(0, len(frame.points_cam), frame, T, model, ref, params)
+    H1, g1, stats1 = kn.build_linear_system(corr, model, ref, params)
+    np.testing.assert_allclose(H, H1, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(g, g1, rtol=1e-12, atol=1e-15)
+    assert stats[:4] == stats1[:4]
+    np.testing.assert_allclose(stats[4:], stats1[4:], rtol=1e-12)
+    H2, g2, stats2 = kn.normal_equations(frame, T, model, ref, params)
+    assert np.array_equal(H, H2) and np.array_equal(g, g2) and stats == stats2
+
+
+def test_stats_of_no_correspondence():
+    s = kn.Stats(0, 0, 0, 0, 0.0, 0.0, 0.0)
+    assert s.inlier_fraction == 0.0 and s.agreement == 0.0 and np.isnan(s.rmse_m)
+
+
+def test_solve_update_damps_and_limits_the_step():
+    H = np.eye(6)
+    g = -np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.001])
+    xi = solve_update(H.copy(), g, max_step_m=0.02, max_step_rad=0.02)
+    assert np.linalg.norm(xi[:3]) == pytest.approx(0.02)  # trust region: scaled down to the step limit
+    assert xi[5] / xi[0] == pytest.approx(0.001)  # direction kept
+    small = solve_update(H.copy(), -np.full(6, 1e-3), max_step_m=0.02, max_step_rad=0.02)
+    C = TRACKER_CONSTANTS
+    np.testing.assert_allclose(small, 1e-3 / (1.0 + C.levenberg_damping + C.diagonal_floor), rtol=1e-12)
+    assert solve_update(np.zeros((6, 6)), np.full(6, np.nan), 0.02, 0.02) is None
+
+
+def test_apply_update_is_a_left_world_frame_increment():
+    T = _pose([0.1, 0.2, -0.3], [1.0, 2.0, 3.0])
+    xi = np.array([0.01, -0.02, 0.03, 0.002, -0.001, 0.003])
+    dT = _pose(xi[3:], xi[:3])
+    np.testing.assert_allclose(apply_update(xi, T), dT @ T, rtol=0, atol=1e-15)
+    assert converged(np.full(6, 1e-7)) and not converged(xi)
+
+
+def test_gauss_newton_steps_recover_a_small_offset(scene):
+    """associate + build_linear_system + solve + apply from a perturbed pose: geometry-only on a
+    plane pins three of six degrees of freedom, so the check is the point-to-plane residual."""
+    frame, T_true, model, ref = scene
+    params = _params(photometric_weight=0.0, noise_a_m=0.0)
+    T = _pose([0.0, 0.01, 0.0], [0.0, 0.0, 0.015]) @ T_true
+    rmse0 = kn.normal_equations(frame, T, model, ref, params)[2].rmse_m
+    for _ in range(5):
+        H, g, stats = kn.normal_equations(frame, T, model, ref, params)
+        T = apply_update(solve_update(H, g, 0.02, 0.02), T)
+    rmse = kn.normal_equations(frame, T, model, ref, params)[2].rmse_m
+    assert rmse < 0.5 * rmse0
+    assert rmse < 0.006  # the points' own noise is 4 mm
+
+
+def test_tracker_constants_are_frozen_and_derived_values_follow():
+    C = TrackerConstants()
+    with pytest.raises(AttributeError):
+        C.max_step_m = 1.0  # type: ignore[misc]
+    assert C.huber_intensity == C.sigma_intensity * C.huber_intensity_sigmas
+    assert C.photometric_scale == (C.sigma_depth_m / C.sigma_intensity) ** 2
+    assert C.depth_noise_reference_sigma_m == pytest.approx(
+        C.depth_noise_a_m + C.depth_noise_b_per_m * (C.depth_noise_reference_m - C.depth_noise_z0_m) ** 2)
