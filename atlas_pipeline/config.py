@@ -40,6 +40,7 @@ __all__ = [
     "PipelineConfig",
     "Range",
     "project_root",
+    "source_root",
     "configs_dir",
     "load_profile",
     "load_yaml_file",
@@ -407,16 +408,74 @@ _SECTION_CHECKS: dict[type, tuple[Callable[[Any, str], str | None], ...]] = {
 }
 
 
+# ---- where things live -------------------------------------------------------------------------
+# From a source checkout (this package beside pyproject.toml and configs/, as with ``pip install -e .``)
+# everything stays in the checkout, as always. From an installed wheel the built-in profiles and
+# dataset registry are read from the package (``atlas_pipeline/configs``, mapped from the top-level
+# ``configs/`` at build time), and user state (``artifacts/``, ``data/``, ``.dagster_home/``,
+# ``configs/datasets.local.yaml``) lives in ``$ATLAS_GS_HOME``, default the current working
+# directory: never in site-packages.
+
+STATE_HOME_ENV = "ATLAS_GS_HOME"  # user state, in a checkout or an install
+PROJECT_ROOT_ENV = "ATLAS_PROJECT_ROOT"  # a whole project folder: its configs/ and its user state
+
+
+def source_root() -> Path | None:
+    """The source checkout this package is running from, or None when it is installed."""
+    root = Path(__file__).resolve().parents[1]
+    if (root / "pyproject.toml").is_file() and (root / "configs" / "datasets.yaml").is_file():
+        return root
+    return None
+
+
 def project_root() -> Path:
-    """Root of the project (holds ``configs/``); ``ATLAS_PROJECT_ROOT`` overrides it."""
-    env = os.environ.get("ATLAS_PROJECT_ROOT")
-    if env:
-        return Path(env).resolve()
-    return Path(__file__).resolve().parents[1]
+    """The folder of the user state: ``artifacts/``, ``data/``, ``.dagster_home/`` and the local
+    dataset registry ``configs/datasets.local.yaml`` (each has its own variable too).
+
+    ``$ATLAS_PROJECT_ROOT``, else ``$ATLAS_GS_HOME``, else the source checkout, else (an installed
+    package) the current working directory.
+    """
+    for var in (PROJECT_ROOT_ENV, STATE_HOME_ENV):
+        env = os.environ.get(var)
+        if env:
+            return Path(env).expanduser().resolve()
+    return source_root() or Path.cwd()
 
 
 def configs_dir() -> Path:
-    return project_root() / "configs"
+    """The built-in profiles and dataset registry: ``$ATLAS_PROJECT_ROOT/configs``, else the
+    checkout's ``configs/``, else the installed package's copy (read through importlib.resources)."""
+    env = os.environ.get(PROJECT_ROOT_ENV)
+    if env:
+        return Path(env).expanduser().resolve() / "configs"
+    src = source_root()
+    return src / "configs" if src is not None else _packaged_configs()
+
+
+_EXTRACTED_CONFIGS: Path | None = None
+
+
+def _packaged_configs() -> Path:
+    """The ``configs`` folder shipped in the package, as a real folder (extracted once per process
+    when the package is imported from a zip)."""
+    global _EXTRACTED_CONFIGS
+    from importlib import resources
+
+    res = resources.files("atlas_pipeline") / "configs"
+    if isinstance(res, Path):
+        return res
+    if _EXTRACTED_CONFIGS is None:
+        import atexit
+        import shutil
+        import tempfile
+
+        tmp = Path(tempfile.mkdtemp(prefix="atlas-gs-configs-"))
+        atexit.register(shutil.rmtree, tmp, True)
+        for item in res.iterdir():
+            if item.is_file() and item.name.endswith((".yaml", ".yml")):
+                (tmp / item.name).write_bytes(item.read_bytes())
+        _EXTRACTED_CONFIGS = tmp
+    return _EXTRACTED_CONFIGS
 
 
 def load_yaml_file(path: Path) -> Any:

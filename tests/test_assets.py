@@ -52,6 +52,7 @@ def test_partitions_come_from_the_registry(isolated):
     assert keys[0] == "synthetic" and "synth-small" in keys and "tum-fr3-teddy" in keys
 
 
+@pytest.mark.slow
 def test_full_graph_materializes_on_synthetic(isolated):
     result = _materialize(isolated, "synth-small")
     assert result.success

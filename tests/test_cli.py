@@ -11,6 +11,7 @@ def _json_out(capsys):
     return json.loads(capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_paper_commands_build_localize_log_video(isolated, capsys):
     world = isolated / "world"
     assert main(["build", "--input", "synth-small", "--output", str(world)]) == 0
@@ -25,6 +26,7 @@ def test_paper_commands_build_localize_log_video(isolated, capsys):
     assert out.stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_run_materializes_through_dagster(isolated, capsys):
     assert main(["run", "synth-small"]) == 0
     out = _json_out(capsys)
@@ -53,6 +55,7 @@ def test_bad_config_override_is_a_clear_error(isolated, capsys):
                  "--set", "mapping.voxel=0.1"]) == 2
 
 
+@pytest.mark.slow
 def test_relocalize_and_evaluate_trajectory(isolated, small_synthetic, capsys):
     world = isolated / "world"
     assert main(["build", "--input", "synth-small", "--output", str(world)]) == 0
@@ -77,6 +80,7 @@ def test_relocalize_and_evaluate_trajectory(isolated, small_synthetic, capsys):
     assert main(["evaluate-trajectory", str(bad), str(small_synthetic / "groundtruth.txt")]) == 2
 
 
+@pytest.mark.slow
 def test_import_ply_makes_a_world_to_relocalize_in(isolated, capsys):
     world = isolated / "world"
     assert main(["build", "--input", "synth-small", "--output", str(world)]) == 0

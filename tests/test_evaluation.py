@@ -53,6 +53,7 @@ def test_preview_and_report_roundtrip(tmp_path):
     assert np.isnan(back.depth_l1_m[1]) and back.preview_png == b"\x89PNG"
 
 
+@pytest.mark.slow
 def test_colour_refinement_recovers_colours_from_views(small_manifest):
     """Gaussians of the small synthetic world with wrong colours: fitting them to keyframe-like views
     rendered with the right colours brings a held-out view back."""

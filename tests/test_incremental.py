@@ -54,6 +54,7 @@ def persistent(isolated):
         yield isolated, instance
 
 
+@pytest.mark.slow
 def test_second_run_reuses_everything_and_touches_nothing(persistent):
     root, instance = persistent
     first = _run(root, instance)
@@ -129,6 +130,7 @@ def test_cli_stale_only_runs_nothing_when_current_then_only_the_changed(isolated
     assert out["reused"] == []
 
 
+@pytest.mark.slow
 def test_bundle_lineage_and_lineage_command(persistent, capsys):
     root, instance = persistent
     result = _run(root, instance)
@@ -149,6 +151,7 @@ def test_bundle_lineage_and_lineage_command(persistent, capsys):
     assert main(["lineage", "no-such-bundle"]) == 2
 
 
+@pytest.mark.slow
 def test_extended_world_names_its_parent(isolated, capsys):
     from atlas_pipeline.scene_memory.bundle import read_lineage
 
@@ -165,6 +168,7 @@ def test_extended_world_names_its_parent(isolated, capsys):
     assert f"parent      {parent.resolve()} (map_id {pmeta['map_id']})" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_failing_blocking_check_stops_downstream(persistent):
     root, instance = persistent
     result = _run(root, instance, {"localization.max_ate_m": 1e-9}, raise_on_error=False)

@@ -107,6 +107,7 @@ def test_other_scene_without_start_pose_stops_after_the_window(world, other_scen
     _assert_round_trip(rep, tmp_path)
 
 
+@pytest.mark.slow
 def test_other_scene_with_a_wrong_start_pose_stops_after_the_window(world, other_scene, tmp_path):
     """The start pose is a real viewpoint of the world (its first keyframe), but the frames are of
     another scene: the anchor is not evidence that the world fits."""
@@ -117,6 +118,7 @@ def test_other_scene_with_a_wrong_start_pose_stops_after_the_window(world, other
     _assert_round_trip(rep, tmp_path)
 
 
+@pytest.mark.slow
 def test_matching_world_is_unaffected(small_manifest, world):
     cfg, w = world
     rep = lib.localize(small_manifest, w, cfg)

@@ -110,6 +110,7 @@ def loop_sequence(tmp_path_factory):
     return load_tum_sequence(root, spec.camera(), "synth-loop")
 
 
+@pytest.mark.slow
 def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_sequence):
     """Tracking drift injected into the true poses (a small yaw and forward error per frame, as a
     frame-to-model tracker accumulates), then loop closure on the rendered noisy frames: the loop
@@ -151,6 +152,7 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     assert len(builder) > 0
 
 
+@pytest.mark.slow
 def test_thumbnails_recognise_a_place_not_a_different_view(loop_sequence):
     """Place recognition: a frame correlates with itself shifted by a few pixels far above the
     threshold, and with the view half a turn away far below it."""
@@ -169,6 +171,7 @@ def test_thumbnails_recognise_a_place_not_a_different_view(loop_sequence):
     assert keyframe_thumbnail(None, d0) @ keyframe_thumbnail(None, np.roll(d0, 3, axis=1)) > 0.9
 
 
+@pytest.mark.slow
 def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
     """With a search radius too small for the drift (no pose candidate), the loop back to the
     start is still found, by place recognition, and the trajectory closes."""

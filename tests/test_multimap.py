@@ -106,6 +106,7 @@ def _errors_cm(manifest, poses, frames):
     return [100 * np.linalg.norm((invert_se3(T0) @ manifest.T_world_cam_gt[i])[:3, 3] - poses[i][:3, 3]) for i in frames]
 
 
+@pytest.mark.slow
 def test_lost_frames_start_a_new_map_that_merges_back(small_manifest, monkeypatch):
     m = small_manifest
     cfg, mapping = _cfg(new_map_after=2)

@@ -12,6 +12,7 @@ from atlas_pipeline.scene_memory.bundle import read_metadata
 SETTINGS = ["--set", "mapping.pose_source=estimated", "--set", "mapping.optimization_epochs=0"]
 
 
+@pytest.mark.slow
 def test_cli_and_dagster_give_the_same_poses(isolated, capsys):
     world = isolated / "world"
     assert main(["build", "--input", "synth-small", "--output", str(world), *SETTINGS]) == 0

@@ -144,6 +144,7 @@ def _perturbed(f: GaussianField, seed: int) -> GaussianField:
                          np.clip(f.opacities * 0.5, 0.05, 1.0), f.ids)
 
 
+@pytest.mark.slow
 def test_optimisation_recovers_a_perturbed_world(small_manifest, small_world):
     """Views rendered from the true field are the targets; a field with wrong colours, scales,
     opacities and jittered means, fitted to a few of them, renders a held-out view much closer."""
@@ -198,6 +199,7 @@ def test_profile_refuses_an_unusable_optimisation_scale():
         load_profile("default").with_overrides({"mapping.optimization_scale": 0.3})
 
 
+@pytest.mark.slow
 def test_pipeline_fits_the_world_to_its_keyframes_and_records_it(small_manifest, tmp_path):
     from atlas_pipeline import pipeline as lib
     from atlas_pipeline.config import load_profile

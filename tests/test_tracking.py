@@ -119,6 +119,7 @@ def test_read_tum_trajectory_names_file_and_line(tmp_path):
 # ---- tracking -----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_slam_on_synthetic_without_ground_truth(small_manifest):
     cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated"})
     fused = lib.fuse(small_manifest, cfg)
@@ -183,6 +184,7 @@ def test_time_gap_switches_the_motion_model_off(small_manifest, small_world):
     assert np.allclose(st._predict(2, 1.0), last)  # a 1 s gap: the last pose
 
 
+@pytest.mark.slow
 def test_relocalization_of_unseen_frames_in_a_half_sequence_world(medium_manifest):
     """The issue's protocol at small scale: world from the first half, second-half frames placed
     with no initial pose."""
@@ -206,6 +208,7 @@ def test_relocalization_of_unseen_frames_in_a_half_sequence_world(medium_manifes
     assert np.mean(good) >= 0.8, good
 
 
+@pytest.mark.slow
 def test_second_session_relocalizes_then_maps_into_the_saved_world(medium_manifest):
     from atlas_pipeline.mapping.mapper import extend_world_by_tracking
     from atlas_pipeline.sensors.tum import load_tum_sequence
@@ -226,6 +229,7 @@ def test_second_session_relocalizes_then_maps_into_the_saved_world(medium_manife
     assert a["rmse_m"] < 0.02
 
 
+@pytest.mark.slow
 def test_localize_sequence_without_start_pose_relocalizes_its_first_frame(small_manifest, small_world):
     cfg, world = small_world
     rep = localize_sequence(small_manifest, SurfelModel.from_builder(world.builder), cfg.localization, None,

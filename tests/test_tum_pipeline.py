@@ -10,7 +10,7 @@ from assets.definitions import build_definitions, sync_dataset_partitions
 from atlas_pipeline.sensors.registry import load_registry, register_local_dataset
 from tests.conftest import tum_folder
 
-pytestmark = pytest.mark.tum
+pytestmark = [pytest.mark.tum, pytest.mark.slow]  # the whole graph on real frames
 
 
 @pytest.mark.parametrize("folder,name,camera,max_rmse_m", [

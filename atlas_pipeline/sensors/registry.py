@@ -1,7 +1,9 @@
 """Dataset registry: named datasets (one Dagster partition each) and where their frames come from.
 
-Two YAML files are merged: ``configs/datasets.yaml`` (tracked presets) and a local file for the
-user's own folders (``configs/datasets.local.yaml``, git-ignored, or ``$ATLAS_LOCAL_REGISTRY``).
+Two YAML files are merged: ``configs/datasets.yaml`` (tracked presets; an installed package reads its
+own copy) and a local file for the user's own folders (``configs/datasets.local.yaml`` of the checkout,
+git-ignored, or of ``$ATLAS_GS_HOME`` / the working directory when installed; ``$ATLAS_LOCAL_REGISTRY``
+overrides it).
 """
 
 from __future__ import annotations
@@ -106,12 +108,16 @@ class DatasetEntry:
 
 
 def local_registry_path() -> Path:
+    """The user's registry file: ``$ATLAS_LOCAL_REGISTRY``, else ``configs/datasets.local.yaml`` of
+    the user-state folder (:func:`~atlas_pipeline.config.project_root`: the checkout, or
+    ``$ATLAS_GS_HOME`` / the working directory for an installed package; never the package)."""
     env = os.environ.get("ATLAS_LOCAL_REGISTRY")
-    return Path(env) if env else configs_dir() / "datasets.local.yaml"
+    return Path(env) if env else project_root() / "configs" / "datasets.local.yaml"
 
 
 def registry_files() -> list[Path]:
-    """The registry files in merge order (later entries override earlier ones)."""
+    """The registry files in merge order (later entries override earlier ones): the built-in
+    ``datasets.yaml`` (the checkout's ``configs/`` or the installed package's copy), then the local file."""
     files = [configs_dir() / "datasets.yaml"]
     local = local_registry_path()
     if local.is_file():
