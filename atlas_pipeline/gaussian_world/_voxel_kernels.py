@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["neighbourhood_surfels"]
+__all__ = ["neighbourhood_surfels", "neighbourhood_surfels_subset"]
 
 
 @njit(cache=True)
@@ -56,7 +56,6 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return 0.0, 0.0, 1.0
 
 
-@njit(cache=True, parallel=True)
 def neighbourhood_surfels(ids, ijk, count, sum_xyz, sum_sq, offset, bits):
     """Per voxel: the mean of its points and the least-variance axis of the points of the voxel and
     its 26 neighbours, with the neighbourhood's point count.
@@ -67,17 +66,34 @@ def neighbourhood_surfels(ids, ijk, count, sum_xyz, sum_sq, offset, bits):
     Returns:
         ``(centres [N, 3], normals [N, 3], support [N])``.
     """
+    return neighbourhood_surfels_subset(ids, ijk, count, sum_xyz, sum_sq, offset, bits,
+                                        np.arange(len(ids), dtype=np.int64))
+
+
+@njit(cache=True, parallel=True)
+def neighbourhood_surfels_subset(ids, ijk, count, sum_xyz, sum_sq, offset, bits, subset):
+    """:func:`neighbourhood_surfels` for the voxels ``subset [S]`` (int64 positions in ``ids``)
+    only: ``(centres [S, 3], normals [S, 3], support [S])``. Each voxel's result depends on its
+    neighbourhood alone, so a map that grew recomputes only the voxels near what was added."""
     n = ids.shape[0]
-    centres = np.empty((n, 3))
-    normals = np.empty((n, 3))
-    support = np.zeros(n, np.int64)
+    ns = subset.shape[0]
+    centres = np.empty((ns, 3))
+    normals = np.empty((ns, 3))
+    support = np.zeros(ns, np.int64)
     lim = (1 << (bits - 1))
-    for k in prange(n):
+    for s_i in prange(ns):
+        k = subset[s_i]
         s_n = 0.0
         s0 = 0.0
         s1 = 0.0
         s2 = 0.0
-        q = np.zeros(6)
+        # scalars, not a small array: an allocation per voxel dominated this loop
+        q0 = 0.0
+        q1 = 0.0
+        q2 = 0.0
+        q3 = 0.0
+        q4 = 0.0
+        q5 = 0.0
         for di in range(-1, 2):
             for dj in range(-1, 2):
                 for dk in range(-1, 2):
@@ -94,17 +110,21 @@ def neighbourhood_surfels(ids, ijk, count, sum_xyz, sum_sq, offset, bits):
                         s0 += sum_xyz[j, 0]
                         s1 += sum_xyz[j, 1]
                         s2 += sum_xyz[j, 2]
-                        for t in range(6):
-                            q[t] += sum_sq[j, t]
+                        q0 += sum_sq[j, 0]
+                        q1 += sum_sq[j, 1]
+                        q2 += sum_sq[j, 2]
+                        q3 += sum_sq[j, 3]
+                        q4 += sum_sq[j, 4]
+                        q5 += sum_sq[j, 5]
         cnt = count[k]
-        centres[k, 0] = sum_xyz[k, 0] / cnt
-        centres[k, 1] = sum_xyz[k, 1] / cnt
-        centres[k, 2] = sum_xyz[k, 2] / cnt
-        support[k] = int(s_n)
+        centres[s_i, 0] = sum_xyz[k, 0] / cnt
+        centres[s_i, 1] = sum_xyz[k, 1] / cnt
+        centres[s_i, 2] = sum_xyz[k, 2] / cnt
+        support[s_i] = int(s_n)
         m0, m1, m2 = s0 / s_n, s1 / s_n, s2 / s_n
-        nx, ny, nz = _smallest_eigenvector(q[0] / s_n - m0 * m0, q[1] / s_n - m0 * m1, q[2] / s_n - m0 * m2,
-                                           q[3] / s_n - m1 * m1, q[4] / s_n - m1 * m2, q[5] / s_n - m2 * m2)
-        normals[k, 0] = nx
-        normals[k, 1] = ny
-        normals[k, 2] = nz
+        nx, ny, nz = _smallest_eigenvector(q0 / s_n - m0 * m0, q1 / s_n - m0 * m1, q2 / s_n - m0 * m2,
+                                           q3 / s_n - m1 * m1, q4 / s_n - m1 * m2, q5 / s_n - m2 * m2)
+        normals[s_i, 0] = nx
+        normals[s_i, 1] = ny
+        normals[s_i, 2] = nz
     return centres, normals, support

@@ -81,6 +81,10 @@ class VoxelGaussianBuilder:
     sum_rgb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     sum_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     n_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    # Bookkeeping for incremental consumers (the tracker's surfel map), not state: bumped by every
+    # merge of statistics, with the sorted ids that merge touched.
+    version: int = field(default=0, compare=False, repr=False)
+    last_touched_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64), compare=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -156,6 +160,8 @@ class VoxelGaussianBuilder:
         self.sum_sq = merged(self.sum_sq, ssq)
         self.n_keyframes = merged(self.n_keyframes, nkf)
         self.ids = all_ids
+        self.version += 1
+        self.last_touched_ids = uk
         return n_new
 
     def to_field(self, min_points: int = 1) -> GaussianField:

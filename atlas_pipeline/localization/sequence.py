@@ -46,6 +46,7 @@ from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.localization.relocalize import Relocalizer
 from atlas_pipeline.localization.tracker import (
     RGBDTracker,
+    SurfelCache,
     SurfelModel,
     TrackResult,
     pose_change,
@@ -147,7 +148,9 @@ class SequenceTracker:
         self.builder = builder
         self.kf_t, self.kf_r = keyframe_translation_m, keyframe_rotation_deg
         self.fusion_stride = fusion_stride
-        self.model = model if model is not None else SurfelModel.from_builder(builder)
+        # Mapping: the surfel map follows the builder incrementally (cost per keyframe, not per map).
+        self._surfels = None if builder is None else SurfelCache(builder)
+        self.model = model if model is not None else self._surfels.model()
         self.priors = [] if prior_poses is None else [np.asarray(T, np.float64) for T in prior_poses]
         self.keyframe_indices: list[int] = []
         self.keyframe_poses: list[np.ndarray] = []
@@ -263,7 +266,8 @@ class SequenceTracker:
         self.maps.append(MapInfo(self.map_id, index))
         logger.info("frame %d: lost for %d frames, starting map %d", index, self._lost_run, self.map_id)
         self.builder = VoxelGaussianBuilder(self.builder.voxel_size_m)
-        self.model = SurfelModel.from_builder(self.builder)
+        self._surfels = SurfelCache(self.builder)
+        self.model = self._surfels.model()
         self.keyframe_indices, self.keyframe_poses = [], []
         self._relocalizer = None
         self._kf_in_map = 0
@@ -302,7 +306,8 @@ class SequenceTracker:
         pairs = sorted(zip(old["kf_idx"] + self.keyframe_indices,
                            old["kf_T"] + [T_old_cur @ T for T in self.keyframe_poses]), key=lambda p: p[0])
         self.builder = old["builder"]
-        self.model = SurfelModel.from_builder(self.builder)
+        self._surfels = SurfelCache(self.builder)
+        self.model = self._surfels.model()
         self.keyframe_indices = [int(i) for i, _ in pairs]
         self.keyframe_poses = [T for _, T in pairs]
         self._relocalizer = None
@@ -412,7 +417,7 @@ class SequenceTracker:
             cols = np.full((len(pts), 3), 128, np.uint8)
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         self.builder.integrate(pw, cols)
-        self.model = SurfelModel.from_builder(self.builder)
+        self.model = self._surfels.model()
         self._relocalizer = None  # its map features are stale now
         self.keyframe_indices.append(int(index))
         self.keyframe_poses.append(T.copy())

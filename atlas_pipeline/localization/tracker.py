@@ -161,6 +161,69 @@ def surfels_from_voxels(ids: np.ndarray, count: np.ndarray, sum_xyz: np.ndarray,
     return np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep])
 
 
+class SurfelCache:
+    """The surfel map of a growing :class:`VoxelGaussianBuilder`, kept current incrementally.
+
+    After each merge of statistics only the voxels it touched and their 26 neighbours are
+    recomputed (a voxel's surfel depends on its neighbourhood alone), so a keyframe costs what it
+    adds, not the size of the map; the result is bit-identical to :meth:`SurfelModel.from_builder`.
+    A builder changed by more than one merge since the last call is recomputed whole.
+    """
+
+    def __init__(self, builder, min_points: int = C.surfel_min_points, min_support: int = C.surfel_min_support):
+        self.builder = builder
+        self.min_points, self.min_support = min_points, min_support
+        self._version: int | None = None
+        self._ids = self._centres = self._normals = self._support = None
+        self._model: SurfelModel | None = None
+
+    def model(self) -> "SurfelModel":
+        from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels_subset
+        from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, pack_voxel_ids, unpack_voxel_ids
+
+        b = self.builder
+        if self._model is not None and self._version == b.version:
+            return self._model
+        ids = np.ascontiguousarray(b.ids, np.uint64)
+        n = len(ids)
+        if n == 0:
+            centres, normals, support = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+        else:
+            stats = (ids, unpack_voxel_ids(ids), np.ascontiguousarray(b.count, np.float64),
+                     np.ascontiguousarray(b.sum_xyz, np.float64), np.ascontiguousarray(b.sum_sq, np.float64),
+                     _OFFSET, _BITS)
+            if self._ids is not None and self._version is not None and b.version == self._version + 1:
+                # Voxels near the last merge: the touched ones and their neighbours.
+                ijk = unpack_voxel_ids(b.last_touched_ids)
+                nb = (ijk[:, None, :] + _NEIGHBOUR_OFFSETS[None]).reshape(-1, 3)
+                nb = np.unique(pack_voxel_ids(np.clip(nb, -_OFFSET, _OFFSET - 1)))
+                pos_nb = np.minimum(np.searchsorted(ids, nb), n - 1)
+                affected = np.zeros(n, bool)
+                affected[pos_nb[ids[pos_nb] == nb]] = True
+                old = np.minimum(np.searchsorted(self._ids, ids), max(len(self._ids) - 1, 0))
+                had = (self._ids[old] == ids) if len(self._ids) else np.zeros(n, bool)
+                redo = affected | ~had
+                centres, normals = np.empty((n, 3)), np.empty((n, 3))
+                support = np.empty(n, np.int64)
+                keep_old = ~redo
+                centres[keep_old], normals[keep_old] = self._centres[old[keep_old]], self._normals[old[keep_old]]
+                support[keep_old] = self._support[old[keep_old]]
+                sub = np.flatnonzero(redo).astype(np.int64)
+                centres[sub], normals[sub], support[sub] = neighbourhood_surfels_subset(*stats, sub)
+            else:
+                centres, normals, support = neighbourhood_surfels_subset(*stats, np.arange(n, dtype=np.int64))
+        self._ids, self._centres, self._normals, self._support = ids, centres, normals, support
+        self._version = b.version
+        keep = (np.asarray(b.count) >= self.min_points) & (support >= self.min_support)
+        self._model = SurfelModel(np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep]),
+                                  C.surfel_radius_voxels * b.voxel_size_m)
+        return self._model
+
+
+# The 27 voxel offsets of a 3x3x3 neighbourhood.
+_NEIGHBOUR_OFFSETS = np.stack(np.meshgrid(*(np.arange(-1, 2),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
 # surfels.npz members: (dtype kinds, ndim) -- centres [M, 3], normals [M, 3], radius_m scalar.
 _SURFEL_MEMBERS = {"centres": ("f", 2), "normals": ("f", 2), "radius_m": ("f", 0)}
 
