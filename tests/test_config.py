@@ -64,7 +64,7 @@ def test_defaults_pass_their_own_rules():
 
 
 def test_every_field_is_covered_and_every_number_declares_its_range():
-    assert len(FLOAT_FIELDS) == 23 and "mapping.voxel_size_m" in FLOAT_FIELDS
+    assert len(FLOAT_FIELDS) >= 23 and "mapping.voxel_size_m" in FLOAT_FIELDS  # found by reflection, not listed
     for name, tp, f in LEAVES:
         numeric = tp in (int, float) or get_origin(tp) is tuple or int in get_args(tp)
         if numeric:  # declared beside the field, even where it is None (any finite value)
