@@ -83,3 +83,21 @@ def test_incremental_surfel_map_equals_the_full_recompute():
     b.integrate(pts + 0.5, np.full((len(pts), 3), 100))
     b.integrate(pts - 0.5, np.full((len(pts), 3), 100))
     np.testing.assert_array_equal(cache.model().centres, SurfelModel.from_builder(b).centres)
+
+
+def test_relocalization_tries_a_bounded_number_of_viewpoints():
+    """A map of 300 keyframes: relocalization screens at most MAX_PRIOR_VIEWPOINTS of them, the
+    nearest to the caller's guess first and the rest spread over the map."""
+    from atlas_pipeline.localization.relocalize import MAX_PRIOR_VIEWPOINTS, select_priors
+
+    priors = np.repeat(np.eye(4)[None], 300, axis=0)
+    priors[:, 0, 3] = np.linspace(0.0, 30.0, 300)  # a 30 m corridor
+    guess = np.eye(4)
+    guess[0, 3] = 12.0
+    sel = select_priors(priors, [guess])
+    assert len(sel) == MAX_PRIOR_VIEWPOINTS
+    x = np.sort(sel[:, 0, 3])
+    assert np.sum(np.abs(x - 12.0) < 1.0) >= MAX_PRIOR_VIEWPOINTS // 2 - 1  # the guess's neighbourhood
+    assert x.min() < 1.0 and x.max() > 29.0  # and the ends of the map
+    assert len(select_priors(priors[:10], [guess])) == 10  # small maps: every keyframe
+    np.testing.assert_array_equal(select_priors(priors, [guess]), sel)  # deterministic

@@ -26,7 +26,7 @@ from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, Surfe
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RelocalizationResult", "Relocalizer"]
+__all__ = ["RelocalizationResult", "Relocalizer", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
 
 
 @dataclass
@@ -55,6 +55,34 @@ def score(r: TrackResult) -> float:
     """Higher is better: share of points explained, discounted by their residual."""
     res = r.residual_m if np.isfinite(r.residual_m) else 1.0
     return r.inlier_fraction * float(np.exp(-res / 0.01))
+
+
+# Bounded cost: every viewpoint prior costs seven coarse alignments (itself and six swung views), so
+# a map of hundreds of keyframes would make one relocalization take tens of seconds. At most this
+# many priors are tried: half nearest the caller's own guesses, the rest spread over the map.
+MAX_PRIOR_VIEWPOINTS = 32
+
+
+def select_priors(priors: np.ndarray, near: list[np.ndarray], k: int = MAX_PRIOR_VIEWPOINTS) -> np.ndarray:
+    """At most ``k`` of ``priors [P, 4, 4]``: the ``k // 2`` whose camera centres are nearest any
+    pose in ``near`` (none when it is empty), then farthest-point sampling of the centres (the
+    first prior when nothing is chosen yet) for coverage. Deterministic; all when ``P <= k``."""
+    P = len(priors)
+    if P <= k:
+        return priors
+    c = priors[:, :3, 3]
+    chosen: list[int] = []
+    if near:
+        d = np.min(np.stack([np.linalg.norm(c - np.asarray(T)[:3, 3], axis=1) for T in near]), axis=0)
+        chosen = [int(i) for i in np.argsort(d, kind="stable")[: k // 2]]
+    if not chosen:
+        chosen = [0]
+    dist = np.min(np.stack([np.linalg.norm(c - c[i], axis=1) for i in chosen]), axis=0)
+    while len(chosen) < k:
+        i = int(np.argmax(dist))
+        chosen.append(i)
+        dist = np.minimum(dist, np.linalg.norm(c - c[i], axis=1))
+    return priors[sorted(chosen)]
 
 
 def orbit_samples(T_world_cam: np.ndarray, frame: FramePyramid,
@@ -161,7 +189,7 @@ class Relocalizer:
     def relocalize(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
         """Pose of ``frame`` in the map, with no initial guess needed."""
         hyps: list[tuple[str, np.ndarray]] = [("previous", np.asarray(T, np.float64)) for T in (extra_priors or [])]
-        hyps += [("keyframe", T) for T in self.priors]
+        hyps += [("keyframe", T) for T in select_priors(self.priors, [T for _, T in hyps])]
         if self.use_global:
             try:
                 hyps += [("global", T) for T in self._global_hypotheses(frame)]
