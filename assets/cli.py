@@ -286,7 +286,11 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
         if len(poses) == 0:
             raise ConfigError(f"{args.world}/localization.json: no frame was placed in this world; nothing to render")
     else:
-        poses = lib.orbit_trajectory(bundle.field, cfg)
+        from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses
+
+        # framed from where the recording camera stood (the bundle's keyframes)
+        poses = lib.orbit_trajectory(bundle.field, cfg, bundle_keyframe_poses(bundle.metadata), camera_K=cam.K,
+                                     image_size=(cam.width, cam.height))
     lib.render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, out, args.mode)
     print(json.dumps({"video": str(out.resolve()), "mode": args.mode}, indent=2))
     return 0

@@ -235,16 +235,26 @@ def _render_size(width: int, height: int, K: np.ndarray, scale: float) -> tuple[
     return scale_camera(K, width, height, scale, multiple=2)
 
 
-def orbit_trajectory(field: GaussianField, cfg: PipelineConfig) -> np.ndarray:
-    """``[n, 4, 4]`` camera poses circling the world's centre (360 degrees)."""
-    from atlas_pipeline.viz.video import orbit_poses
+def orbit_trajectory(field: GaussianField, cfg: PipelineConfig, T_world_cam_keyframes: np.ndarray | None = None,
+                     *, camera_K: np.ndarray | None = None, image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """``[n, 4, 4]`` ``T_world_cam`` poses of the orbit video (``video.orbit_frames`` of them).
+
+    Given the poses the world was recorded from (``[K, 4, 4]``: the keyframes, or the estimated
+    trajectory; non-finite poses are skipped), the camera circles what they looked at, at their
+    distance and height, over the directions the map supports (a full orbit or a back-and-forth
+    arc), never inside or behind geometry; else it flies through them (see
+    :func:`atlas_pipeline.viz.camera_paths.plan_camera_path`). Without them: a circle around the
+    world's centre, each pose pulled in until it is in free space. ``camera_K`` / ``image_size``
+    (the video's camera) set the field of view the checks use.
+    """
+    from atlas_pipeline.viz.camera_paths import plan_camera_path
 
     vc = cfg.video
-    # Robust centre and extent: percentiles ignore a few stray far points.
-    p5, p95 = np.percentile(field.positions, [5, 95], axis=0)
-    center = 0.5 * (p5 + p95)
-    radius = vc.orbit_radius_scale * max(float(np.linalg.norm((p95 - p5)[:2])) / 2.0, 0.5)
-    return orbit_poses(center, radius, vc.orbit_height_m, vc.orbit_frames)
+    path = plan_camera_path(field, T_world_cam_keyframes, vc.orbit_frames, cfg.mapping.voxel_size_m, K=camera_K,
+                            image_size=image_size, fallback_height_m=vc.orbit_height_m,
+                            fallback_radius_scale=vc.orbit_radius_scale)
+    logger.info("orbit video path: %s", path.summary())
+    return path.T_world_cam
 
 
 def render_video(field: GaussianField, poses_se3: np.ndarray, camera_K: np.ndarray, width: int, height: int,
@@ -299,11 +309,13 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
 def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_K: np.ndarray,
                        width: int, height: int, cfg: PipelineConfig, out_dir: Path, name: str,
                        log: LogFn | None = None, manifest: FrameManifest | None = None) -> DemoVideos:
-    """Orbit (360 degrees around the world centroid), trajectory (replay of the estimated poses)
-    and, given the sequence's ``manifest``, real | render side by side along the trajectory."""
+    """Orbit (around what the recorded camera looked at, framed from where it stood: see
+    :func:`orbit_trajectory`), trajectory (replay of the estimated poses) and, given the sequence's
+    ``manifest``, real | render side by side along the trajectory."""
     orbit_path = out_dir / f"{name}_orbit.mp4"
     traj_path = out_dir / f"{name}_trajectory.mp4"
-    n_orbit, size = render_video(field, orbit_trajectory(field, cfg), camera_K, width, height, cfg, orbit_path, "orbit", log)
+    orbit = orbit_trajectory(field, cfg, trajectory_se3, camera_K=camera_K, image_size=(width, height))
+    n_orbit, size = render_video(field, orbit, camera_K, width, height, cfg, orbit_path, "orbit", log)
     n_traj, _ = render_video(field, trajectory_se3, camera_K, width, height, cfg, traj_path, "trajectory", log)
     sbs_path = None
     if manifest is not None:
