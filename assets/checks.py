@@ -1,10 +1,9 @@
 """Asset checks that gate bad results before they reach the bundle.
 
-Checks run inside the asset that produces the value (``check_specs``), because Dagster's separate
-``@asset_check`` functions cannot load one partition of a partitioned asset. Every check here is
-blocking: when it fails, Dagster does not run the assets downstream of the checked one. Each check
-is an :class:`assets.versioning.AtlasCheck`, evaluated on the computed artifact; when an artifact is
-reused its recorded result is reported again.
+Each is a check spec of the asset it checks, evaluated by that asset on its artifact in every run:
+on the value it computed, or on the artifact reloaded when it was reused (a real evaluation against
+the run's threshold, never a replay). Every check is blocking: when it fails, Dagster does not run
+the assets downstream of the checked one.
 """
 
 import tempfile
@@ -14,7 +13,6 @@ import numpy as np
 import pyarrow as pa
 from dagster import AssetCheckResult, AssetCheckSeverity, AssetCheckSpec, MetadataValue
 
-from assets.versioning import AtlasCheck
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.scene_memory.binary import read_gaussian_binary, write_gaussian_binary
 from atlas_pipeline.scene_memory.ply import read_gaussian_ply, write_gaussian_ply
@@ -91,12 +89,5 @@ def check_transitions_schema(table: pa.Table) -> AssetCheckResult:
                                       "problems": MetadataValue.json(problems)})
 
 
-# The checks as the asset wrapper evaluates them: (artifact, resolved config) -> result.
-GAUSSIANS_CHECK = AtlasCheck(GAUSSIANS_VALID, lambda world, cfg: check_gaussians(world.field))
-BUNDLE_CHECK = AtlasCheck(BUNDLE_ROUNDTRIP, lambda bundle, cfg: check_bundle_roundtrip(bundle.field))
-ATE_CHECK = AtlasCheck(ATE_BOUND, lambda report, cfg: check_ate(report.summary, cfg.localization.max_ate_m))
-TRANSITIONS_CHECK = AtlasCheck(TRANSITIONS_SCHEMA_OK, lambda table, cfg: check_transitions_schema(table))
-
 __all__ = ["GAUSSIANS_VALID", "BUNDLE_ROUNDTRIP", "ATE_BOUND", "TRANSITIONS_SCHEMA_OK", "check_gaussians",
-           "check_bundle_roundtrip", "check_ate", "check_transitions_schema", "GAUSSIANS_CHECK", "BUNDLE_CHECK",
-           "ATE_CHECK", "TRANSITIONS_CHECK"]
+           "check_bundle_roundtrip", "check_ate", "check_transitions_schema"]

@@ -47,7 +47,9 @@ ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "lo
 
 
 def _config(args: argparse.Namespace) -> PipelineConfig:
-    cfg = load_profile(args.profile)
+    from assets.resources import resolve_profile
+
+    cfg = load_profile(resolve_profile(args.profile))  # --profile, else $ATLAS_PROFILE, else default
     overrides = _overrides(args)
     return cfg.with_overrides(overrides, "--set") if overrides else cfg
 
@@ -324,71 +326,68 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _dagster_setup(args: argparse.Namespace):
-    """DAGSTER_HOME, the definitions for the run's profile and overrides, the instance, the
-    partitions to run (registered datasets, added to the instance as dynamic partitions)."""
+    """DAGSTER_HOME, the definitions for the run's profile (``--profile``, else ``$ATLAS_PROFILE``,
+    else ``default``), the validated ``--set`` overrides, the instance, the partitions to run
+    (registered datasets, added to the instance as dynamic partitions)."""
     _default_dagster_home()
-    if getattr(args, "profile", None):
-        os.environ["ATLAS_PROFILE"] = args.profile
     from dagster import DagsterInstance
 
     from assets.definitions import build_definitions, sync_dataset_partitions
+    from assets.resources import atlas_config
     from assets.runs import reap_dead_runs
 
     overrides = _overrides(args)
-    profile = getattr(args, "profile", None) or "default"
-    load_profile(profile).with_overrides(overrides, "--set")  # bad keys fail here, naming the key
+    atlas = atlas_config(args.profile, overrides)  # the whole config validated: bad keys fail here, naming the key
     registry = load_registry()
     partitions = list(registry) if getattr(args, "all", False) else [validate_dataset_name(args.dataset)]
     for p in partitions:
         if p not in registry:
             raise ConfigError(f"dataset '{p}' is not registered; known: {', '.join(registry)}")
-    defs = build_definitions(profile=profile, overrides=overrides)
+    defs = build_definitions(profile=args.profile)
     instance = DagsterInstance.get()
     reap_dead_runs(instance)  # runs left STARTED by a killed process are marked failed
     sync_dataset_partitions(instance, partitions)
-    return defs, instance, partitions
+    return defs, instance, partitions, atlas, overrides
+
+
+def run_request(profile: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
+    """Run config and tags of a run with ``--set`` ``overrides``: the overrides as the ``atlas``
+    resource's config (the other fields keep the profile's values) and as tags ``atlas/set/KEY``."""
+    config: dict[str, Any] = {}
+    for dotted, value in overrides.items():
+        section, key = dotted.split(".", 1)
+        config.setdefault(section, {})[key] = list(value) if isinstance(value, tuple) else value
+    tags = {"atlas/profile": profile, **{f"atlas/set/{k}": json.dumps(v) for k, v in overrides.items()}}
+    return ({"resources": {"atlas": {"config": config}}} if config else {}), tags
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Materialize the assets of one or more partitions through Dagster (all, or only stale ones)."""
     from assets.definitions import artifacts_root
-    from assets.staleness import stale_assets
+    from assets.staleness import stale_assets, stale_selection
 
-    defs, instance, partitions = _dagster_setup(args)
+    defs, instance, partitions, atlas, overrides = _dagster_setup(args)
     job = defs.resolve_job_def("atlas_gs_all")
+    run_config, tags = run_request(atlas.profile, overrides)
     failed = 0
     for p in partitions:
         root = artifacts_root()
         selection = None
         if args.stale_only:
-            stale = stale_assets(defs, instance, p, defs.resources["artifact_io"], defs.resources["atlas"])
+            stale = stale_assets(defs, instance, p, atlas)
             for a, reasons in stale.items():
                 logger.info("%s [%s] stale: %s", a, p, "; ".join(reasons))
             if not stale:
                 print(json.dumps({"partition": p, "stale": [], "ran": False,
                                   "world_bundle": str(root / "world_bundle" / p)}, indent=2))
                 continue
-            from dagster import AssetKey
-
-            selection = [AssetKey(a) for a in stale]
+            selection = stale_selection(stale)
         try:
             result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False,
-                                            asset_selection=selection)
+                                            asset_selection=selection, run_config=run_config, tags=tags)
         finally:
             defs.resources["artifact_io"].unlock_partition(p)
-        reused = sorted({ev.asset_key.path[-1] for ev in result.all_events
-                         if ev.event_type_value == "ASSET_MATERIALIZATION"
-                         and ev.event_specific_data.materialization.metadata.get("reused") is not None
-                         and ev.event_specific_data.materialization.metadata["reused"].value})
-        materialized = sorted({ev.asset_key.path[-1] for ev in result.all_events
-                               if ev.event_type_value == "ASSET_MATERIALIZATION"})
-        summary = {
-            "partition": p,
-            "success": result.success,
-            "run_id": result.run_id,
-            "recomputed": [a for a in materialized if a not in reused],
-            "reused": reused,
-        }
+        summary = {"partition": p, "success": result.success, "run_id": result.run_id, **ran(result)}
         # Only paths that exist (a failed run must not point at output it did not write).
         bundle_dir = root / "world_bundle" / p
         if (bundle_dir / "metadata.json").is_file():
@@ -397,7 +396,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             summary["transitions"] = str(bundle_dir / "transitions.parquet")
         summary["videos"] = [str(x) for x in sorted((root / "demo_videos" / p).glob("*.mp4"))]
         if args.stale_only:
-            summary["stale"] = sorted(a.path[-1] for a in selection)
+            summary["stale"] = sorted(stale)
         loc_path = root / "localization_report" / p / "localization.json"
         if result.success and loc_path.is_file():
             loc = json.loads(loc_path.read_text())["summary"]
@@ -418,14 +417,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def ran(result) -> dict[str, list[str]]:
+    """``recomputed`` and ``reused`` pipeline assets of a run (settings/* and observations left out)."""
+    out: dict[str, list[str]] = {"recomputed": [], "reused": []}
+    for ev in result.all_events:
+        if ev.event_type_value == "ASSET_MATERIALIZATION" and len(ev.asset_key.path) == 1:
+            md = ev.event_specific_data.materialization.metadata
+            out["reused" if md.get("reused") is not None and md["reused"].value else "recomputed"].append(
+                ev.asset_key.path[-1])
+    return {k: sorted(v) for k, v in out.items()}
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     """Print which assets of the partition(s) are stale or missing, and why; runs nothing."""
     from assets.staleness import stale_assets
 
-    defs, instance, partitions = _dagster_setup(args)
-    out = {p: stale_assets(defs, instance, p, defs.resources["artifact_io"], defs.resources["atlas"])
-           for p in partitions}
-    print(json.dumps(out, indent=2))
+    defs, instance, partitions, atlas, _ = _dagster_setup(args)
+    print(json.dumps({p: stale_assets(defs, instance, p, atlas) for p in partitions}, indent=2))
     return 0
 
 
@@ -519,6 +527,16 @@ def cmd_dataset(args: argparse.Namespace) -> int:
         print(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path()),
                           "partition_added": entry.name, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
         return 0
+    if args.dataset_cmd == "sync":
+        _default_dagster_home()
+        from dagster import DagsterInstance
+
+        from assets.definitions import sync_dataset_partitions
+
+        with DagsterInstance.get() as instance:
+            added = sync_dataset_partitions(instance, args.names or None)
+        print(json.dumps({"partitions_added": added, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
+        return 0
     if args.dataset_cmd == "show":
         reg = load_registry()
         if args.name not in reg:
@@ -542,7 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     def common(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--profile", default="default", help="config profile name (configs/NAME.yaml) or YAML path")
+        sp.add_argument("--profile", default=None,
+                        help="config profile name (configs/NAME.yaml) or YAML path (default: $ATLAS_PROFILE, else default)")
         sp.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="override one config value, e.g. --set localization.photometric_weight=0.5")
         sp.add_argument("--camera", default=None, help="camera preset for a folder --input (freiburg1/2/3, default)")
@@ -607,7 +626,8 @@ def build_parser() -> argparse.ArgumentParser:
     def dagster_args(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("dataset", nargs="?", default="synthetic", help="partition (registered dataset), default synthetic")
         sp.add_argument("--all", action="store_true", help="every registered dataset")
-        sp.add_argument("--profile", default=None, help="config profile for the run (default: default)")
+        sp.add_argument("--profile", default=None,
+                        help="config profile for the run (default: $ATLAS_PROFILE, else default)")
         sp.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="override one config value, e.g. --set localization.photometric_weight=0.5")
 
@@ -630,6 +650,9 @@ def build_parser() -> argparse.ArgumentParser:
     ds = sub.add_parser("dataset", help="list, show or register datasets (partitions)")
     dsub = ds.add_subparsers(dest="dataset_cmd", required=True)
     dsub.add_parser("list", help="registered datasets")
+    sy = dsub.add_parser("sync", help="add every registered dataset (or NAMES) as a partition of $DAGSTER_HOME's "
+                                      "instance (before `dagster asset materialize` in a fresh home)")
+    sy.add_argument("names", nargs="*")
     sh = dsub.add_parser("show", help="one dataset's registry entry")
     sh.add_argument("name")
     add = dsub.add_parser("add", help="register a recording (TUM, 7-Scenes, Replica, ScanNet folder or a "

@@ -7,20 +7,20 @@ partitions in step with the registry (``configs/datasets.yaml`` + the local regi
 * ``atlas-gs dataset add`` / ``atlas-gs run`` add them directly;
 * the ``dataset_registry_sensor`` (running by default under ``dagster dev``) adds every registered
   dataset that is not a partition yet, so an entry written by hand or by the CLI shows in the UI;
-* the ``register_dataset`` job lets the UI's launchpad register a TUM-layout folder.
+* the ``register_dataset`` job lets the UI's launchpad register a TUM-layout folder;
+* ``atlas-gs dataset sync`` adds them to a fresh ``$DAGSTER_HOME`` before ``dagster asset materialize``.
 
-Loading this module also adds the registered datasets to the instance of ``$DAGSTER_HOME`` (when it
-is set), so ``dagster asset materialize --partition synthetic -m assets.definitions`` works in a
-fresh home.
+Loading this module reads the profile and the registry and writes nothing. The profile is
+``$ATLAS_PROFILE`` (default ``default``) unless :func:`build_definitions` names one.
 """
 
 
 import logging
-import os
 from pathlib import Path
 from typing import Any, Optional
 
 from dagster import (
+    AssetObservation,
     AssetSelection,
     Config,
     DagsterInstance,
@@ -41,9 +41,10 @@ from dagster import (
 from pydantic import Field as PField
 
 from assets.io_managers import ArtifactIOManager, artifacts_root
-from assets.pipeline_assets import build_pipeline_assets
-from assets.resources import AtlasConfig
+from assets.pipeline_assets import build_pipeline_assets, dataset_version
+from assets.resources import atlas_config, dataset_entry
 from assets.runs import reap_dead_runs
+from assets.versioning import DATA_VERSION_TAG, DATASET_FILES, data_version, record
 from atlas_pipeline.sensors.registry import (
     camera_from_intrinsics,
     load_registry,
@@ -78,9 +79,24 @@ def sync_dataset_partitions(instance: DagsterInstance, names: list[str] | None =
     return new
 
 
+def changed_datasets(instance: DagsterInstance, names: list[str]) -> list[AssetObservation]:
+    """Observations of ``dataset_files`` for every dataset on disk whose data version differs from
+    its last observation (what makes ``raw_dataset`` show stale in the UI after frames are edited)."""
+    out = []
+    for n in names:
+        try:
+            version = dataset_version(n) if dataset_entry(n).path.exists() else None
+        except Exception:  # an entry that cannot be read is reported when it is materialized
+            continue
+        if version is not None and version != data_version(record(instance, DATASET_FILES, n)):
+            out.append(AssetObservation(asset_key=DATASET_FILES, partition=n, tags={DATA_VERSION_TAG: version}))
+    return out
+
+
 @sensor(minimum_interval_seconds=30, default_status=DefaultSensorStatus.RUNNING,
         description="Adds a dynamic partition for every dataset in the registry (configs/datasets.yaml and "
-                    "the local registry) that is not one yet.")
+                    "the local registry) that is not one yet, and observes dataset_files of every dataset whose "
+                    "files changed.")
 def dataset_registry_sensor(context: SensorEvaluationContext):
     reap_dead_runs(context.instance)  # runs whose process died are marked failed (assets.runs)
     try:
@@ -89,9 +105,11 @@ def dataset_registry_sensor(context: SensorEvaluationContext):
         return SkipReason(f"dataset registry unreadable: {exc}")
     have = set(context.instance.get_dynamic_partitions(DATASETS.name))
     new = [n for n in names if n not in have]
-    if not new:
-        return SkipReason(f"all {len(names)} registered datasets are partitions")
-    return SensorResult(dynamic_partitions_requests=[DATASETS.build_add_request(new)])
+    observed = changed_datasets(context.instance, [n for n in names if n in have])
+    if not new and not observed:
+        return SkipReason(f"all {len(names)} registered datasets are partitions, none changed on disk")
+    return SensorResult(dynamic_partitions_requests=[DATASETS.build_add_request(new)] if new else [],
+                        asset_events=observed)
 
 
 class RegisterDatasetConfig(Config):
@@ -123,19 +141,21 @@ def register_dataset():
     register_dataset_op()
 
 
-def build_definitions(artifacts_dir: str | Path | None = None, profile: str = "default",
+def build_definitions(artifacts_dir: str | Path | None = None, profile: str | None = None,
                       partition_names: list[str] | None = None,
                       overrides: dict[str, Any] | None = None) -> Definitions:
+    """The definitions for one profile: ``profile`` if given, else ``$ATLAS_PROFILE``, else ``default``;
+    ``overrides`` (dotted keys) change the run defaults the launchpad shows. Writes nothing."""
     root = str(artifacts_dir if artifacts_dir is not None else artifacts_root())
-    atlas = AtlasConfig(profile=os.environ.get("ATLAS_PROFILE", profile), overrides=dict(overrides or {}))
-    pipeline_assets = build_pipeline_assets(dataset_partitions(partition_names), atlas.load())
     everything = define_asset_job(
-        "atlas_gs_all", selection=AssetSelection.all(),
-        description="Materialize every Atlas-GS asset of one dataset partition (current artifacts are reused).",
+        "atlas_gs_all", selection=AssetSelection.all(include_sources=True),
+        description="Observe the dataset's files, then materialize every Atlas-GS asset of one dataset partition "
+                    "and run its checks (assets whose inputs, settings and code are unchanged are reused).",
         executor_def=in_process_executor,
     )
+    atlas = atlas_config(profile, overrides)
     return Definitions(
-        assets=pipeline_assets,
+        assets=build_pipeline_assets(dataset_partitions(partition_names), atlas.load()),
         jobs=[everything, register_dataset],
         sensors=[dataset_registry_sensor],
         # One process per run: the partition lock (ArtifactIOManager.lock_partition) is held by the
@@ -148,16 +168,4 @@ def build_definitions(artifacts_dir: str | Path | None = None, profile: str = "d
     )
 
 
-def _sync_on_load() -> None:
-    """Best effort: make the registered datasets partitions of ``$DAGSTER_HOME``'s instance."""
-    if not os.environ.get("DAGSTER_HOME") or os.environ.get("ATLAS_SYNC_PARTITIONS", "1") == "0":
-        return
-    try:
-        with DagsterInstance.get() as instance:
-            sync_dataset_partitions(instance)
-    except Exception as exc:  # never stop the code location from loading
-        logger.warning("could not add the registered datasets as partitions: %s", exc)
-
-
 defs = build_definitions()
-_sync_on_load()

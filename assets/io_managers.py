@@ -6,9 +6,10 @@ An artifact type is a library class with ``save(directory) -> list[Path]`` and a
 failed or interrupted run leaves the previous artifact whole. It also records ``_artifact.json``
 (type, files, sha256 of each, one content hash over all of them) beside the files.
 
-Versioned assets (:mod:`assets.versioning`) hand it a :class:`StagedArtifact` (already written to
-the temporary folder, so its content hash and data version were known when the output was
-yielded; only the swap is left) or a :class:`CachedArtifact` (current on disk: nothing is written).
+Assets hand it a :class:`StagedArtifact` (written to the temporary folder by :meth:`ArtifactIOManager.stage`,
+so its content hash, the data version, was known when the output was yielded; only the swap is
+left) or :class:`Reused` (current on disk: nothing is written). Inputs are loaded by
+:meth:`ArtifactIOManager.load_input` as the typed artifacts.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.pipeline import DemoVideos, WorldBundleArtifact
 from atlas_pipeline.sensors.registry import validate_dataset_name
 from atlas_pipeline.sensors.tum import FrameManifest
-from atlas_pipeline.versioning import data_version
+from atlas_pipeline.versioning import files_intact
 
 
 class ParquetTable:
@@ -128,39 +129,26 @@ def _load_typed(directory: Path, record: dict[str, Any]) -> Any:
 @dataclass
 class StagedArtifact:
     """An artifact written into a temporary folder beside its target, with its record (content
-    hash, data version) already known; the IO manager swaps it into place."""
+    hash) already known; the IO manager swaps it into place."""
 
     staging: Path
     target: Path
     record: dict[str, Any]
-
-
-@dataclass
-class CachedArtifact:
-    """The artifact already on disk is current: the IO manager leaves its files untouched."""
-
-    directory: Path
-    record: dict[str, Any]
-
-
-@dataclass
-class LazyArtifact:
-    """An upstream artifact not loaded yet: its record (data version) is at hand, ``get()`` loads it.
-
-    Assets wrapped by :func:`assets.versioning.atlas_asset` read their upstream artifacts as these,
-    decide from the records whether their own artifact is current, and load the inputs only when
-    they recompute.
-    """
-
-    directory: Path
-    record: dict[str, Any]
+    value: Any = None  # the artifact object itself (for checks evaluated on it)
 
     @property
     def data_version(self) -> str:
-        return str(self.record.get("data_version") or self.record.get("content_hash", ""))
+        """The artifact's data version: its content hash (24 hex), from the bytes written only."""
+        return self.record["content_hash"][:24]
 
-    def get(self) -> Any:
-        return _load_typed(self.directory, self.record)
+
+@dataclass
+class Reused:
+    """The output of an asset whose artifact on disk is current (:func:`assets.versioning.reuse`):
+    the IO manager leaves its files untouched."""
+
+    asset: str
+    partition: str
 
 
 def _file_records(files: list[Path]) -> dict[str, dict[str, Any]]:
@@ -188,35 +176,28 @@ class ArtifactIOManager(ConfigurableIOManager):
         partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
         return artifact_dir(self.root, asset, partition)
 
-    # -- used by assets.versioning ------------------------------------------------------------
-
     def directory(self, asset: str, partition: str) -> Path:
         return artifact_dir(self.root, asset, partition)
 
-    def lazy(self, asset: str, partition: str, needed_by: str) -> LazyArtifact:
-        """The upstream artifact ``asset`` of ``partition`` as a LazyArtifact (record read, data not)."""
+    def intact(self, asset: str, partition: str) -> bool:
+        """Whether the artifact's files are all there with the bytes its record lists."""
         directory = self.directory(asset, partition)
         recover_dir(directory)
         try:
-            return LazyArtifact(directory, read_artifact_record(directory))
-        except ArtifactError as exc:
-            raise ArtifactError(f"{needed_by} [{partition}] needs {asset}: {exc}") from exc
-
-    def record(self, asset: str, partition: str) -> dict[str, Any] | None:
-        """The artifact record of ``asset``/``partition``, None when there is none (or unreadable)."""
-        try:
-            recover_dir(self.directory(asset, partition))
-            return read_artifact_record(self.directory(asset, partition))
+            return files_intact(directory, read_artifact_record(directory).get("files", {}))
         except ArtifactError:
-            return None
+            return False
 
-    def stage(self, asset: str, partition: str, obj: Any, record_extra: dict[str, Any] | None = None,
-              config_hash: str | None = None, run_id: str | None = None) -> StagedArtifact:
-        """Write ``obj`` into a fresh temporary folder beside its target and describe it.
+    def load_artifact(self, asset: str, partition: str) -> Any:
+        """The typed artifact of ``asset``/``partition`` (what ``load_input`` gives an asset)."""
+        directory = self.directory(asset, partition)
+        recover_dir(directory)
+        return _load_typed(directory, read_artifact_record(directory))
 
-        The record holds the sha256 (and size, mtime) of every file, their content hash and, with
-        ``config_hash``, the data version. Nothing at the target changes until :meth:`commit`.
-        """
+    def stage(self, asset: str, partition: str, obj: Any, run_id: str | None = None) -> StagedArtifact:
+        """Write ``obj`` into a fresh temporary folder beside its target and describe it: the sha256
+        (and size, mtime) of every file and their content hash. Nothing at the target changes until
+        :meth:`commit`."""
         type_name = type(obj).__name__
         handler = ARTIFACT_TYPES.get(type_name)
         if handler is None:
@@ -233,9 +214,7 @@ class ArtifactIOManager(ConfigurableIOManager):
                 "partition": partition,
                 "run_id": run_id,
                 "content_hash": content_hash,
-                **({"data_version": data_version(content_hash, config_hash)} if config_hash is not None else {}),
                 "files": record_files,
-                **(record_extra or {}),
             }
             write_json_atomic(tmp / "_artifact.json", record)
         except OSError as exc:
@@ -245,7 +224,7 @@ class ArtifactIOManager(ConfigurableIOManager):
         except BaseException:
             discard_dir(tmp)
             raise
-        return StagedArtifact(tmp, target, record)
+        return StagedArtifact(tmp, target, record, obj)
 
     def staging_folder(self, asset: str, partition: str) -> Path:
         """An empty scratch folder beside the artifact's target (same file system, so its files
@@ -278,20 +257,26 @@ class ArtifactIOManager(ConfigurableIOManager):
     def unlock_partition(self, partition: str) -> None:
         ProcessLock(Path(self.root) / LOCKS_DIR / f"{validate_dataset_name(partition)}.lock").release()
 
-    @staticmethod
-    def commit(staged: StagedArtifact) -> Path:
-        """Swap a staged folder into place (crash-consistent: see :func:`atlas_pipeline.io_utils.commit_dir`)."""
+    def commit(self, staged: StagedArtifact) -> Path:
+        """Swap a staged folder into place (crash-consistent: see :func:`atlas_pipeline.io_utils.commit_dir`).
+        A recompute that wrote the same bytes as the artifact in place leaves that one untouched
+        (same files, same modification times)."""
         check_output_dir(staged.target, ARTIFACT_KIND, what="artifact folder")
+        try:
+            same = read_artifact_record(staged.target).get("content_hash") == staged.record["content_hash"]
+        except ArtifactError:
+            same = False
+        if same and self.intact(staged.record["asset"], staged.record["partition"]):
+            discard_dir(staged.staging)
+            return staged.target
         return commit_dir(staged.staging, staged.target, ARTIFACT_KIND)
 
     # -- Dagster IO manager protocol ------------------------------------------------------------
 
     def handle_output(self, context: OutputContext, obj: Any) -> None:
         target = self._dir(context)
-        if isinstance(obj, CachedArtifact):
-            # Reused: the files on disk are current; do not touch them.
-            context.add_output_metadata({"path": MetadataValue.path(str(obj.directory)),
-                                         "content_hash": obj.record["content_hash"][:16]})
+        if isinstance(obj, Reused):  # current on disk: nothing to write
+            context.add_output_metadata({"path": MetadataValue.path(str(target))})
             return
         if not isinstance(obj, StagedArtifact):
             partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
@@ -303,6 +288,5 @@ class ArtifactIOManager(ConfigurableIOManager):
                                      "content_hash": obj.record["content_hash"][:16]})
 
     def load_input(self, context: InputContext) -> Any:
-        directory = self._dir(context)
-        recover_dir(directory)
-        return _load_typed(directory, read_artifact_record(directory))
+        partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
+        return self.load_artifact(context.asset_key.path[-1], partition)

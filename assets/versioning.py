@@ -1,353 +1,194 @@
-"""Versioned, self-skipping assets: :func:`atlas_asset` wraps an asset body with the versioning rules
-of :mod:`atlas_pipeline.versioning`.
+"""Versioning on Dagster's terms: the config fields each asset reads, reuse of current artifacts, lineage.
 
-What the wrapper does for every asset, so asset bodies stay plain "inputs in, artifact out":
-
-* Declares ``code_version`` to Dagster with the hash of the config sections that shape the asset
-  folded in (``"1+cfg.3fa2c1d0"``): after a config change, reloading the definitions makes Dagster
-  mark exactly the shaped assets (and everything downstream) stale.
-* Declares the body's inputs (parameters named after upstream assets) as Dagster ``deps`` and
-  reads them itself, lazily (:class:`assets.io_managers.LazyArtifact`: the upstream record, not the
-  arrays): Dagster then neither loads nor logs them, which keeps a reusing step to a few events.
-  It computes the input fingerprint (code version, config section hashes, upstream data
-  versions, partition, raw-data signature) and, when the artifact on disk was made from the same
-  fingerprint and its files are intact, *reuses* it: no input is loaded, no file is written, the run
-  log says ``reused cached <asset>``, and the materialization carries the recorded data version,
-  metadata and check results.
-* Otherwise loads the inputs, runs the body, evaluates the asset's checks, writes the artifact into
-  a staging folder (content hash known before Dagster sees the output) and returns it with
-  ``data_version = hash(content hash, config hash)``; the IO manager swaps it into place.
+Whether an artifact is current is decided from what Dagster records with every materialization:
+the asset's code version and the data versions of its inputs. Besides its upstream assets, each
+pipeline asset reads ``settings/<asset>`` (exactly the config fields it uses, :func:`stage_settings`;
+data version: their hash) and ``raw_dataset`` reads ``dataset_files`` (the dataset folder, an
+observable source asset; data version: its registry entry and file signature). Data versions come
+from content only (the hash of the files written; timings are metadata), so an identical recompute
+leaves everything downstream current. :func:`changes` applies Dagster's staleness rule (the one its
+UI shows) to the partition's latest materialization: :func:`reuse` before computing, and
+``atlas-gs status`` (:mod:`assets.staleness`) for a config not run yet.
 """
 
 from __future__ import annotations
 
-import contextvars
+import dataclasses
 import datetime as _dt
-import inspect
+import hashlib
+import json
 import time
-import typing
-import warnings
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
-from dagster import (
-    AssetCheckResult,
-    BetaWarning,
-    AssetCheckSeverity,
-    AssetCheckSpec,
-    AssetExecutionContext,
-    AssetKey,
-    ConfigurableResource,
-    DataVersion,
-    Output,
-    asset,
-    deserialize_value,
-    serialize_value,
-)
+from dagster import (AssetExecutionContext, AssetKey, AssetRecordsFilter, DagsterInstance, DataProvenance, DataVersion,
+                     EventLogRecord, Failure, MaterializeResult, MetadataValue, Output)
 
-from assets.io_managers import ArtifactIOManager, CachedArtifact, LazyArtifact
-from assets.resources import AtlasConfig
+from assets.io_managers import Reused
 from assets.runs import tag_run_process
-from atlas_pipeline.config import PipelineConfig
-from atlas_pipeline.versioning import (
-    combined_config_hash,
-    config_section_hashes,
-    maps_with_tracking,
-    files_intact,
-    input_fingerprint,
-    stage_sections,
-)
+from atlas_pipeline.config import MappingConfig, PipelineConfig
+from atlas_pipeline.mapping.keyframes import uses_ground_truth
+from atlas_pipeline.sensors.tum import FrameManifest
 
-__all__ = ["AtlasCheck", "atlas_asset", "dagster_code_version", "current_asset_info", "upstream_lineage",
-           "expected_fingerprint", "CODE_VERSION_KEY"]
-
-IO_KEY = "artifact_io"
-
-
-def _output(value: Any, dv: str, metadata: dict[str, Any]) -> Output:
-    """``Output`` with the asset's own data version (the parameter Dagster still marks beta)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", BetaWarning)
-        return Output(value, data_version=DataVersion(dv), metadata=metadata)
-# Asset definition metadata: the stage's own code version (Dagster's code_version adds the config hash).
-CODE_VERSION_KEY = "atlas/code_version"
-SECTIONS_KEY = "atlas/config_sections"
-
-Identity = Callable[[str, AtlasConfig], Mapping[str, Any]]
-# Per stage: extra fingerprint content (the raw dataset's files); filled by atlas_asset(identity=...).
-_IDENTITIES: dict[str, Identity] = {}
+DATA_VERSION_TAG = "dagster/data_version"  # where Dagster keeps an event's data version (a test pins it)
+DATASET_FILES = AssetKey("dataset_files")
+STAGES = ("raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report", "transitions",
+          "demo_videos", "render_evaluation", "world_bundle")  # in dependency order
+# The fit's settings (gaussian_world reads them, keyframes does not): every mapping field named so.
+_FIT_PREFIXES = ("optimization_", "colour_refinement_")
+_FIT = {f.name for f in dataclasses.fields(MappingConfig) if f.name.startswith(_FIT_PREFIXES)}
+_DEPTH = {"min_depth_m", "max_depth_m"}
+_STARTED: dict[tuple[str, AssetKey], float] = {}  # (run, asset) -> when reuse() decided to compute
 
 
-def expected_fingerprint(stage: str, code_version: str, partition: str, atlas: AtlasConfig,
-                         upstream_data_versions: Mapping[str, str], cfg: PipelineConfig | None = None) -> str:
-    """The fingerprint ``stage`` would be computed from now (the wrapper and ``--stale-only`` both use it)."""
-    cfg = cfg if cfg is not None else atlas.load()
-    identity = _IDENTITIES.get(stage)
-    extra = dict(identity(partition, atlas)) if identity else {}
-    return input_fingerprint(stage, code_version, partition, stage_config_hashes(cfg, stage, partition, atlas),
-                             upstream_data_versions, extra)
+def stage_settings(cfg: PipelineConfig, stage: str, manifest: FrameManifest | None = None) -> dict[str, Any]:
+    """``{dotted field: value}`` of exactly the settings ``stage`` reads. ``keyframes`` reads the
+    tracker's only when it tracks: :func:`~atlas_pipeline.mapping.keyframes.uses_ground_truth` of the
+    dataset's ``manifest``, the stage's own rule (tracking assumed without one)."""
+    d = json.loads(json.dumps(cfg.to_dict()))  # JSON values (tuples are lists), as stored
+
+    def f(section: str, only: set[str] | None = None, without: frozenset | set = frozenset()) -> dict[str, Any]:
+        return {f"{section}.{k}": v for k, v in d[section].items() if (only is None or k in only) and k not in without}
+
+    if stage == "keyframes" and manifest is not None and uses_ground_truth(manifest, cfg.mapping):
+        return f("mapping", {"pose_source", "keyframe_translation_m", "keyframe_rotation_deg"})
+    return {"raw_dataset": lambda: f("dataset"), "fused_frames": lambda: f("fusion"),
+            "keyframes": lambda: {**f("mapping", without=_FIT), **f("localization", without={"max_ate_m"})},
+            "gaussian_world": lambda: {**f("mapping", _FIT | {"voxel_size_m"}), **f("fusion", _DEPTH)},
+            "localization_report": lambda: {**f("localization", without={"max_ate_m"}), **f("fusion", _DEPTH)},
+            "transitions": lambda: f("transitions"),
+            # the orbit is planned on the map's voxel grid (viz/camera_paths.py)
+            "demo_videos": lambda: {**f("video"), **f("mapping", {"voxel_size_m"})},
+            "render_evaluation": lambda: {**f("evaluation"), **f("fusion", _DEPTH)},
+            "world_bundle": lambda: {k: v for s in d if isinstance(d[s], dict) for k, v in f(s).items()},  # all: metadata.json
+            }[stage]()
 
 
-def _dataset_has_ground_truth(partition: str, atlas: AtlasConfig) -> bool | None:
-    """Cheap answer (no frames read): synthetic data has ground truth; a TUM folder has it when
-    ``groundtruth.txt`` is there. None when unknown (not registered, not downloaded yet)."""
-    try:
-        entry = atlas.dataset(partition)
-    except Exception:  # an unregistered partition fails later, with its own clear error
+def settings_version(values: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(values, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
+
+
+def settings_key(stage: str) -> AssetKey:
+    return AssetKey(["settings", stage])
+
+
+def settings_result(key: AssetKey, values: dict[str, Any]) -> MaterializeResult:
+    """A ``settings/<stage>`` materialization: the values as metadata, their hash as data version."""
+    return MaterializeResult(asset_key=key, data_version=DataVersion(settings_version(values)),
+                             metadata={"settings": MetadataValue.json(values)})
+
+
+def record(instance: DagsterInstance, key: AssetKey, partition: str, before: int | None = None,
+           after: int | None = None) -> EventLogRecord | None:
+    """Latest materialization (observation, for ``dataset_files``) of ``key``/``partition``,
+    optionally among event ids ``< before`` / ``> after``."""
+    fetch = instance.fetch_observations if key == DATASET_FILES else instance.fetch_materializations
+    recs = fetch(AssetRecordsFilter(asset_key=key, asset_partitions=[partition], before_storage_id=before,
+                                    after_storage_id=after), limit=1).records
+    return recs[0] if recs else None
+
+
+def data_version(rec: EventLogRecord | None) -> str | None:
+    return rec.asset_event.tags.get(DATA_VERSION_TAG) if rec is not None else None
+
+
+def changes(instance: DagsterInstance, key: AssetKey, partition: str, code_version: str | None, deps,
+            settings: dict[str, Any] | None = None, dataset: str | None = None, stale=()) -> list[str]:
+    """Why the latest materialization of ``key``/``partition`` is not current (empty: it is).
+
+    Dagster's rule: never materialized, another code version, or an input (``deps``) whose partition
+    has a newer event with another data version than the one consumed (Dagster records the newest
+    event id of each input at that time). ``settings``: compare the ``settings/<asset>`` consumed
+    with these values instead; ``dataset``: the ``dataset_version`` metadata with this; ``stale``:
+    inputs that will be recomputed."""
+    last = record(instance, key, partition)
+    prov = DataProvenance.from_tags(last.asset_materialization.tags) if last is not None else None
+    if prov is None:
+        return ["never materialized"]
+    out = [] if prov.code_version == code_version else [f"code version {prov.code_version} -> {code_version}"]
+    for dep in sorted(deps):
+        cursor = prov.input_storage_ids.get(dep)
+        used = record(instance, dep, partition, before=cursor + 1) if cursor is not None else None
+        if dep.path[-1] in stale and len(dep.path) == 1:
+            out.append(f"{dep.path[-1]} will be recomputed (may change)")
+        elif dep == settings_key(key.path[-1]) and settings is not None:
+            if settings_version(settings) != data_version(used):
+                old = used.asset_materialization.metadata["settings"].value if used is not None else {}
+                out.append("settings changed: " + ", ".join(f"{k} {old.get(k)!r} -> {settings.get(k)!r}" for k in
+                                                            sorted(set(old) | set(settings)) if old.get(k) != settings.get(k)))
+        elif dep == DATASET_FILES and dataset is not None:
+            if getattr(last.asset_materialization.metadata.get("dataset_version"), "value", None) != dataset:
+                out.append("dataset files changed")
+        elif dep not in prov.input_data_versions:
+            out.append(f"new input {dep.to_user_string()}")
+        elif (newer := record(instance, dep, partition, after=cursor)) is not None and data_version(newer) != data_version(used):
+            out.append(f"{dep.to_user_string()} has a new data version")
+    return out
+
+
+def reuse(context: AssetExecutionContext, cfg: PipelineConfig, manifest: FrameManifest | None = None,
+          dataset: str | None = None) -> Output | None:
+    """Call first in an asset: takes the partition's lock, checks that ``settings/<asset>`` holds the
+    run's settings, and returns an ``Output`` repeating the latest materialization when
+    :func:`changes` finds nothing and the files are intact; None: compute (target checked writable)."""
+    store, key, p, inst = context.resources.artifact_io, context.asset_key, context.partition_key, context.instance
+    name, run_id = key.path[-1], context.run.run_id
+    store.lock_partition(p, run_id)  # one run per partition at a time
+    tag_run_process(inst, run_id)  # so a killed run can be marked failed (assets.runs)
+    settings = stage_settings(cfg, name, manifest)
+    if (have := data_version(record(inst, settings_key(name), p))) != settings_version(settings):
+        raise Failure(f"settings/{name} [{p}] (version {have}) does not hold this run's settings "
+                      f"({settings_version(settings)}): materialize it in the same run, as the atlas_gs_all job does")
+    code = context.assets_def.get_asset_spec(key).code_version
+    why = changes(inst, key, p, code, context.assets_def.asset_deps[key], settings, dataset) or (
+        [] if store.intact(name, p) else ["artifact files changed or missing"])
+    if why:
+        context.log.info(f"computing {name} [{p}]: {'; '.join(why)}")
+        store.prepare(name, p)  # a read-only, full or foreign target fails now, not after the work
+        _STARTED[(run_id, key)] = time.perf_counter()
         return None
-    if entry.kind == "synthetic":
-        return True
-    return (Path(entry.path) / "groundtruth.txt").is_file() if Path(entry.path).is_dir() else None
+    last = record(inst, key, p)
+    context.log.info(f"reused cached {name} [{p}]: code version {code}, settings and every input's data version "
+                     f"unchanged since run {last.run_id}; data version {data_version(last)}, no recomputation")
+    return Output(Reused(name, p), data_version=DataVersion(data_version(last)),
+                  metadata={**last.asset_materialization.metadata, "reused": True, "reused_from_run": last.run_id})
 
 
-def stage_config_hashes(cfg: PipelineConfig, stage: str, partition: str | None, atlas: AtlasConfig | None) -> dict[str, str]:
-    """Config section hashes of ``stage`` for one partition (keyframes follow the tracker's
-    settings only when that partition is mapped from tracked poses)."""
-    tracking = False
-    if stage == "keyframes":
-        gt = _dataset_has_ground_truth(partition, atlas) if (partition is not None and atlas is not None) else True
-        tracking = maps_with_tracking(cfg, gt)
-    return config_section_hashes(cfg, stage, tracking)
+def versioned(context: AssetExecutionContext, value: Any, metadata: dict[str, Any]) -> Output:
+    """The computed artifact, staged by the IO manager so that its content hash (the data version) is
+    known; the IO manager moves it into place."""
+    name, p, run_id = context.asset_key.path[-1], context.partition_key, context.run.run_id
+    t0 = _STARTED.pop((run_id, context.asset_key), time.perf_counter())
+    md = {**metadata, "reused": False, "compute_s": round(time.perf_counter() - t0, 3)}
+    staged = context.resources.artifact_io.stage(name, p, value, run_id=run_id)
+    return Output(staged, data_version=DataVersion(staged.data_version), metadata=md)
 
 
-@dataclass(frozen=True)
-class AtlasCheck:
-    """An asset check evaluated on the artifact the asset computed: ``evaluate(value, cfg)``."""
-
-    spec: AssetCheckSpec
-    evaluate: Callable[[Any, PipelineConfig], AssetCheckResult]
-
-
-@dataclass(frozen=True)
-class AssetRunInfo:
-    """What the wrapper knows about the asset it is running (for lineage)."""
-
-    asset: str
-    code_version: str
-    fingerprint: str
-    config_sections: dict[str, str]
-    inputs: dict[str, str]
+def artifact(context: AssetExecutionContext, out: Output) -> Any:
+    """The artifact behind an asset's ``out``: the value computed, or the reused one reloaded."""
+    if isinstance(out.value, Reused):
+        return context.resources.artifact_io.load_artifact(out.value.asset, out.value.partition)
+    return out.value.value
 
 
-_CURRENT: contextvars.ContextVar[AssetRunInfo | None] = contextvars.ContextVar("atlas_asset", default=None)
-
-
-def current_asset_info() -> AssetRunInfo | None:
-    """The versioning info of the asset body now running (None outside :func:`atlas_asset`)."""
-    return _CURRENT.get()
-
-
-def dagster_code_version(code_version: str, stage: str, cfg: PipelineConfig | None) -> str:
-    """Code version as Dagster sees it: the stage's code version plus the hash of its config sections."""
-    if cfg is None:
-        return code_version
-    # Partition-independent (the UI's code version): keyframes count the tracker's settings only
-    # when the profile always maps from tracked poses.
-    return f"{code_version}+cfg.{combined_config_hash(stage_config_hashes(cfg, stage, None, None))[:8]}"
-
-
-def _utc_now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def _is_resource(annotation: Any) -> bool:
-    return inspect.isclass(annotation) and issubclass(annotation, ConfigurableResource)
-
-
-def _check_record(r: AssetCheckResult) -> dict[str, Any]:
-    return {"check_name": r.check_name, "passed": bool(r.passed),
-            "severity": (r.severity or AssetCheckSeverity.ERROR).value, "description": r.description,
-            "metadata": serialize_value(dict(r.metadata or {}))}
-
-
-def _check_from_record(d: Mapping[str, Any]) -> AssetCheckResult:
-    md = deserialize_value(d["metadata"]) if d.get("metadata") else {}
-    return AssetCheckResult(check_name=d["check_name"], passed=bool(d["passed"]),
-                            severity=AssetCheckSeverity(d.get("severity", "ERROR")),
-                            description=d.get("description"),
-                            metadata={**md, "replayed_from_cache": True})
-
-
-class _BodyContext:
-    """The asset context as the body sees it: ``add_output_metadata`` collects into the artifact's
-    metadata (recorded for reuse, and valid with check outputs present); the rest is Dagster's."""
-
-    def __init__(self, context: AssetExecutionContext):
-        self._context = context
-        self.collected: dict[str, Any] = {}
-
-    def add_output_metadata(self, metadata: Mapping[str, Any], output_name: str | None = None,
-                            mapping_key: str | None = None) -> None:
-        self.collected.update(metadata)
-
-    def __getattr__(self, item: str) -> Any:
-        return getattr(self._context, item)
-
-
-def _selected(context: AssetExecutionContext, name: str) -> bool:
-    return any(k.name == name for k in context.selected_asset_check_keys)
-
-
-def atlas_asset(*, code_version: str, checks: Sequence[AtlasCheck] = (),
-                identity: Identity | None = None,
-                definition_config: PipelineConfig | None = None, **asset_kwargs: Any):
-    """``@asset`` with code/data versions, input fingerprints and reuse of current artifacts.
-
-    Args:
-        code_version: the stage's code version; bump it when the stage's code changes its output.
-        checks: checks evaluated on the computed artifact (declared as the asset's check specs).
-        identity: extra fingerprint content for assets without upstream artifacts (raw data).
-        definition_config: the config the definitions were built with, folded into the code
-            version Dagster compares for staleness (the run itself uses the ``atlas`` resource).
-        asset_kwargs: passed to ``dagster.asset`` (io_manager_key must be ``artifact_io``).
-    """
-
-    def decorate(fn: Callable[..., Any]) -> Any:
-        name = asset_kwargs.get("name") or fn.__name__
-        if identity is not None:
-            _IDENTITIES[name] = identity
-        sig = inspect.signature(fn)
-        hints = typing.get_type_hints(fn)
-        params = list(sig.parameters.values())
-        if not params or params[0].name != "context":
-            raise TypeError(f"{name}: an atlas_asset body takes `context` first")
-        resources = [p.name for p in params[1:] if _is_resource(hints.get(p.name))]
-        inputs = [p.name for p in params[1:] if p.name not in resources]
-        wants_atlas = "atlas" in resources
-        # What Dagster sees: the context and the resources (the atlas resource always); inputs are
-        # deps read by the wrapper; no return annotation (the output is a staged artifact).
-        wrapper_params = [params[0].replace(annotation=AssetExecutionContext)]
-        wrapper_params += [p.replace(annotation=hints[p.name]) for p in params[1:] if p.name in resources]
-        if not wants_atlas:
-            wrapper_params.append(inspect.Parameter("atlas", inspect.Parameter.KEYWORD_ONLY, annotation=AtlasConfig))
-
-        def run(context: AssetExecutionContext, **kwargs: Any):
-            atlas: AtlasConfig = kwargs["atlas"]
-            store: ArtifactIOManager = getattr(context.resources, IO_KEY)
-            partition = context.partition_key
-            # One run per partition at a time; the run's process is recorded so a killed run can
-            # be marked failed later (assets.runs).
-            store.lock_partition(partition, context.run.run_id)
-            tag_run_process(context.instance, context.run.run_id)
-            cfg = atlas.load()
-            sections = stage_config_hashes(cfg, name, partition, atlas)
-            config_hash = combined_config_hash(sections)
-            lazies: dict[str, LazyArtifact] = {n: store.lazy(n, partition, name) for n in inputs}
-            upstream = {n: lz.data_version for n, lz in lazies.items()}
-            fp = expected_fingerprint(name, code_version, partition, atlas, upstream, cfg)
-            check_names = {c.spec.name for c in checks}
-            token = _CURRENT.set(AssetRunInfo(name, code_version, fp, sections, upstream))
-            try:
-                # ---- reuse ----
-                record = store.record(name, partition)
-                directory = store.directory(name, partition)
-                if (record is not None and record.get("fingerprint") == fp and record.get("data_version")
-                        and check_names <= {c["check_name"] for c in record.get("checks", [])}
-                        and files_intact(directory, record.get("files", {}))):
-                    dv = record["data_version"]
-                    context.log.info(
-                        f"reused cached {name} [{partition}]: inputs, config ({', '.join(sections)}) and code "
-                        f"v{code_version} unchanged (fingerprint {fp[:12]}), data version {dv}; no recomputation")
-                    md = deserialize_value(record["metadata"]) if record.get("metadata") else {}
-                    yield _output(CachedArtifact(directory, record), dv, {
-                        **md, "reused": True, "reused_from_run": str(record.get("run_id")),
-                        "fingerprint": fp[:16], "data_version": dv,
-                    })
-                    for c in record.get("checks", []):
-                        if c["check_name"] in check_names and _selected(context, c["check_name"]):
-                            yield _check_from_record(c)
-                    return
-                # ---- recompute ----
-                why = ("no cached artifact" if record is None else
-                       "cached artifact's files changed" if record.get("fingerprint") == fp else
-                       "inputs, config or code changed")
-                context.log.info(f"computing {name} [{partition}]: {why} (fingerprint {fp[:12]})")
-                store.prepare(name, partition)  # a read-only, full or foreign target fails now, not after the work
-                t0 = time.perf_counter()
-                call = {n: lz.get() for n, lz in lazies.items()}
-                t_load = time.perf_counter() - t0
-                call.update({r: kwargs[r] for r in resources})
-                body_context = _BodyContext(context)
-                result = fn(body_context, **call)
-                events = list(result) if inspect.isgenerator(result) else [result]
-                value, out_md, body_checks = None, {}, []
-                n_out = 0
-                for ev in events:
-                    if isinstance(ev, AssetCheckResult):
-                        body_checks.append(ev)
-                    elif isinstance(ev, Output):
-                        value, out_md, n_out = ev.value, dict(ev.metadata or {}), n_out + 1
-                    else:
-                        value, n_out = ev, n_out + 1
-                if n_out != 1:
-                    raise TypeError(f"{name}: the asset body must produce exactly one output, got {n_out}")
-                compute_s = time.perf_counter() - t0
-                if name in _IDENTITIES:
-                    # The body may have made the raw files exist (generated, downloaded): record the
-                    # fingerprint of the files it actually read.
-                    fp = expected_fingerprint(name, code_version, partition, atlas, upstream, cfg)
-                results = body_checks + [c.evaluate(value, cfg) for c in checks]
-                out_md = {**body_context.collected, **out_md}
-                all_md = {**out_md,
-                          "compute_s": round(compute_s, 3), "load_inputs_s": round(t_load, 3)}
-                staged = store.stage(name, partition, value, {
-                    "code_version": code_version,
-                    "config_sections": sections,
-                    "config_hash": config_hash,
-                    "inputs": upstream,
-                    "fingerprint": fp,
-                    "created_utc": _utc_now(),
-                    "metadata": serialize_value(all_md),
-                    "checks": [_check_record(r) for r in results],
-                }, config_hash=config_hash, run_id=context.run.run_id)
-                dv = staged.record["data_version"]
-                yield _output(staged, dv, {
-                    **out_md, "reused": False, "compute_s": round(compute_s, 3),
-                    "load_inputs_s": round(t_load, 3), "fingerprint": fp[:16], "data_version": dv,
-                })
-                for r in results:
-                    if _selected(context, r.check_name):
-                        yield r
-            finally:
-                _CURRENT.reset(token)
-
-        run.__name__ = fn.__name__
-        run.__qualname__ = fn.__qualname__
-        run.__doc__ = fn.__doc__
-        run.__module__ = fn.__module__
-        run.__signature__ = inspect.Signature(wrapper_params)  # type: ignore[attr-defined]
-        existing_specs = list(asset_kwargs.pop("check_specs", []) or [])
-        deps = list(asset_kwargs.pop("deps", []) or []) + [AssetKey(n) for n in inputs]
-        metadata = {**asset_kwargs.pop("metadata", {}), CODE_VERSION_KEY: code_version,
-                    SECTIONS_KEY: ", ".join(stage_sections(name))}
-        return asset(
-            name=name, deps=deps, metadata=metadata,
-            code_version=dagster_code_version(code_version, name, definition_config),
-            check_specs=existing_specs + [c.spec for c in checks],
-            **{k: v for k, v in asset_kwargs.items() if k != "name"},
-        )(run)
-
-    return decorate
-
-
-def upstream_lineage(context: AssetExecutionContext) -> dict[str, Any]:
-    """Every ancestor artifact of the running asset (same partition), from the artifact records:
-    ``{asset: {data_version, code_version, config_hash, run_id, created_utc}}``."""
-    store: ArtifactIOManager = getattr(context.resources, IO_KEY)
-    partition = context.partition_key
-    info = current_asset_info()
-    todo = list(info.inputs) if info else [k.path[-1] for k in context.assets_def.dependency_keys]
-    out: dict[str, Any] = {}
+def lineage(context: AssetExecutionContext) -> dict[str, Any]:
+    """The running asset's ancestors (same partition), walked through the input provenance Dagster
+    recorded: ``upstream`` (data version, code version, run, time of each), the ``settings`` each
+    read (data versions) and the ``dataset_files`` version."""
+    inst, p = context.instance, context.partition_key
+    out: dict[str, Any] = {"upstream": {}, "settings": {}, "dataset_files": None}
+    todo, seen = sorted(context.assets_def.asset_deps[context.asset_key]), set()
     while todo:
-        a = todo.pop(0)
-        if a in out:
+        if (dep := todo.pop(0)) in seen or (rec := record(inst, dep, p)) is None:
             continue
-        rec = store.record(a, partition) or {}
-        out[a] = {"data_version": rec.get("data_version") or rec.get("content_hash"),
-                  "code_version": rec.get("code_version"), "config_hash": rec.get("config_hash"),
-                  "config_sections": sorted(rec.get("config_sections", {})),
-                  "run_id": rec.get("run_id"), "created_utc": rec.get("created_utc")}
-        todo.extend(rec.get("inputs", {}))
-    return dict(sorted(out.items()))
-
+        seen.add(dep)
+        if dep == DATASET_FILES:
+            out["dataset_files"] = data_version(rec)
+        elif len(dep.path) > 1:
+            out["settings"][dep.path[-1]] = data_version(rec)
+        else:
+            prov = DataProvenance.from_tags(rec.asset_materialization.tags)
+            out["upstream"][dep.path[-1]] = {
+                "data_version": data_version(rec), "code_version": prov.code_version, "run_id": rec.run_id,
+                "created_utc": _dt.datetime.fromtimestamp(rec.timestamp, _dt.timezone.utc).isoformat(timespec="seconds")}
+            todo.extend(sorted(prov.input_data_versions))
+    return {k: dict(sorted(v.items())) if isinstance(v, dict) else v for k, v in out.items()}

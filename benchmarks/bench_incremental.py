@@ -6,9 +6,10 @@ artifacts folder (the dataset itself is generated before timing starts):
 1. first run (everything computed);
 2. the same run again: step time (sum of Dagster's recorded step durations) against the first,
    every artifact file's bytes and modification time, and the run log's "reused cached" lines;
-3. with one localization setting changed (``localization.photometric_weight``): Dagster's stale status
-   before the run, which assets recompute, and whether the upstream artifacts (raw dataset, fused
-   frames, keyframes, Gaussian world) stay byte-identical with the same modification time.
+3. with one localization setting changed (``localization.photometric_weight``, given as the run's
+   config and tags as ``atlas-gs run --set`` gives it): the stale assets before the run
+   (``atlas-gs status``), which assets recompute, and whether the upstream artifacts (raw dataset,
+   fused frames, keyframes, Gaussian world) stay byte-identical with the same modification time.
 
     python benchmarks/bench_incremental.py            # a table
     python benchmarks/bench_incremental.py --json     # the same figures as JSON
@@ -43,13 +44,11 @@ def step_seconds(instance, run_id: str) -> dict[str, float]:
 
 
 def materialized(result) -> tuple[list[str], list[str]]:
-    """(recomputed, reused) asset names of a run result."""
-    rec, reu = [], []
-    for ev in result.all_events:
-        if ev.event_type_value == "ASSET_MATERIALIZATION":
-            md = ev.event_specific_data.materialization.metadata
-            (reu if md.get("reused") is not None and md["reused"].value else rec).append(ev.asset_key.path[-1])
-    return rec, reu
+    """(recomputed, reused) pipeline asset names of a run result."""
+    from assets.cli import ran
+
+    r = ran(result)
+    return r["recomputed"], r["reused"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,8 +65,10 @@ def main(argv: list[str] | None = None) -> int:
                       ATLAS_DATA_DIR=str(tmp / "data"), ATLAS_SYNC_PARTITIONS="0")
     from dagster import DagsterInstance
 
+    from assets.cli import run_request
     from assets.definitions import build_definitions, sync_dataset_partitions
-    from assets.staleness import dagster_status
+    from assets.resources import atlas_config
+    from assets.staleness import stale_assets
     from atlas_pipeline.sensors.registry import ensure_dataset_files, load_registry
 
     ensure_dataset_files(load_registry()[args.partition])  # generate the frames before timing
@@ -76,10 +77,12 @@ def main(argv: list[str] | None = None) -> int:
     with DagsterInstance.get() as instance:
         sync_dataset_partitions(instance, [args.partition])
 
+        defs = build_definitions(art)
+
         def run(overrides=None):
-            defs = build_definitions(art, overrides=overrides)
-            r = defs.resolve_job_def("atlas_gs_all").execute_in_process(partition_key=args.partition,
-                                                                         instance=instance)
+            run_config, tags = run_request("default", overrides or {})
+            r = defs.resolve_job_def("atlas_gs_all").execute_in_process(
+                partition_key=args.partition, instance=instance, run_config=run_config, tags=tags)
             assert r.success, "run failed"
             return defs, r
 
@@ -101,15 +104,14 @@ def main(argv: list[str] | None = None) -> int:
                              "reused_log_lines": reused_lines}
 
         change = {"localization.photometric_weight": 0.2}
-        defs3 = build_definitions(art, overrides=change)
-        stale_before = {a: st for a, (st, _) in dagster_status(defs3, instance, args.partition).items()}
+        stale_before = stale_assets(defs, instance, args.partition, atlas_config(None, change))
         _, r3 = run(change)
         s3 = step_seconds(instance, r3.run_id)
         snap3 = snapshot(art)
         rec3, reu3 = materialized(r3)
         up = {k: v for k, v in snap2.items() if k.split("/")[0] in UPSTREAM}
         out["localization_change"] = {
-            "override": change, "dagster_status_before": stale_before,
+            "override": change, "stale_before": stale_before,
             "step_s": round(sum(s3.values()), 3), "recomputed": rec3, "reused": reu3,
             "upstream_files": len(up),
             "upstream_files_changed": sorted(k for k in up if snap3.get(k) != up[k]),
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{sr['artifact_files']} artifact files, changed: {sr['files_changed'] or 'none'}")
         for line in sr["reused_log_lines"]:
             print(f"  log: {line}")
-        print(f"localization.photometric_weight=0.2: Dagster status before the run {lc['dagster_status_before']}")
+        print(f"localization.photometric_weight=0.2: stale before the run {json.dumps(lc['stale_before'])}")
         print(f"  recomputed {lc['recomputed']}; reused {lc['reused']}")
         print(f"  upstream ({', '.join(UPSTREAM)}): {lc['upstream_files']} files, changed bytes or mtime: "
               f"{lc['upstream_files_changed'] or 'none'}; artifacts rewritten: {out['files_changed_by_localization_change']}")

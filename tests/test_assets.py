@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from dagster import DagsterInstance, materialize
+from dagster import DagsterInstance
 
+from assets.cli import run_request
 from assets.definitions import build_definitions, sync_dataset_partitions
-from assets.io_managers import ArtifactIOManager
-from assets.resources import AtlasConfig
+from assets.resources import dataset_entry
 from atlas_pipeline.scene_memory.bundle import load_world_bundle
 
 ASSETS = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
@@ -21,16 +21,13 @@ ASSETS = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localiz
 
 def _materialize(root: Path, partition: str, profile: str = "default", overrides=None, raise_on_error=True,
                  instance=None):
-    """Materialize every asset of ``partition`` in-process (``instance``: ephemeral unless given)."""
-    defs = build_definitions(root / "artifacts", profile=profile, overrides=overrides)
+    """Run the job on ``partition`` in-process (``instance``: ephemeral unless given)."""
+    defs = build_definitions(root / "artifacts", profile=profile)
     instance = instance or DagsterInstance.ephemeral()
     sync_dataset_partitions(instance)
-    return materialize(
-        list(defs.assets), partition_key=partition, instance=instance,
-        resources={"artifact_io": ArtifactIOManager(root=str(root / "artifacts")),
-                   "atlas": AtlasConfig(profile=profile, overrides=overrides or {})},
-        raise_on_error=raise_on_error,
-    )
+    run_config, tags = run_request(profile, overrides or {})
+    return defs.resolve_job_def("atlas_gs_all").execute_in_process(
+        partition_key=partition, instance=instance, run_config=run_config, tags=tags, raise_on_error=raise_on_error)
 
 
 def test_library_does_not_import_dagster():
@@ -85,8 +82,17 @@ def test_full_graph_materializes_on_synthetic(isolated):
               for e in result.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"}
     assert checks == {"gaussians_finite_and_nonempty": True, "bundle_reload_identical": True,
                       "ate_within_bound": True, "transitions_schema": True}
+    # Timings are materialization metadata, not artifact content (equal results, equal bytes).
+    loc = json.loads((art / "localization_report" / "synth-small" / "localization.json").read_text())
+    assert "frames_per_s" not in loc["summary"] and "time_s" not in loc["frames"][0]
+    assert "seconds" not in json.loads((art / "gaussian_world" / "synth-small" / "world.json").read_text())["fit"]
+    md = {e.asset_key.path[-1]: e.event_specific_data.materialization.metadata for e in result.all_events
+          if e.event_type_value == "ASSET_MATERIALIZATION" and len(e.asset_key.path) == 1}
+    assert md["localization_report"]["frames_per_s"].value > 0 and md["gaussian_world"]["compute_s"].value > 0
+    assert all(m["compute_s"].value >= 0 for m in md.values())
 
 
+@pytest.mark.slow
 def test_bad_input_fails_and_keeps_earlier_artifacts(isolated):
     assert _materialize(isolated, "synth-small").success
     art = isolated / "artifacts"
@@ -109,4 +115,62 @@ def test_unknown_partition_name_is_refused(isolated):
     from atlas_pipeline.errors import ConfigError
 
     with pytest.raises(ConfigError):
-        AtlasConfig().dataset("no-such-dataset")
+        dataset_entry("no-such-dataset")
+
+
+def _config_fields(defs):
+    """The ``atlas`` resource's config fields as the launchpad shows them (Dagster's config schema)."""
+    schema = defs.resolve_job_def("atlas_gs_all").run_config_schema.config_type
+    return schema.fields["resources"].config_type.fields["atlas"].config_type.fields["config"].config_type.fields
+
+
+def test_launchpad_shows_every_setting_with_its_description_and_the_profiles_default(isolated):
+    from atlas_pipeline.config import load_profile
+
+    demo = json.loads(json.dumps(load_profile("demo").to_dict()))
+    fields = _config_fields(build_definitions(isolated / "artifacts", profile="demo"))
+    assert fields["profile"].default_value == "demo"
+    n = 0
+    for section, values in demo.items():
+        if not isinstance(values, dict):
+            continue
+        sub = fields[section].config_type.fields
+        assert set(sub) == set(values), section
+        for name, value in values.items():
+            f = sub[name]
+            assert f.description and f.default_provided and f.default_value == value, (section, name)
+            n += 1
+    assert n >= 40  # every field of every section
+    loc = fields["localization"].config_type.fields
+    assert "allowed: > 0" in loc["max_ate_m"].description and "ATE" in loc["max_ate_m"].description
+    assert "constant_velocity" in loc["motion_model"].description  # a Literal: an enum listing its choices
+
+
+def test_run_config_sets_one_field_and_an_invalid_value_names_it(isolated):
+    from atlas_pipeline.errors import ConfigError
+
+    atlas = build_definitions(isolated / "artifacts", profile="demo").resources["atlas"]
+    run = type(atlas)(localization={"photometric_weight": 0.5})  # what a run config of one field gives
+    cfg = run.load()
+    assert cfg.localization.photometric_weight == 0.5 and cfg.mapping.voxel_size_m == 0.04 and cfg.profile == "demo"
+    assert cfg.localization.iterations == (12, 8, 5)
+    with pytest.raises(ConfigError, match=r"run config: mapping.voxel_size_m must be a finite number > 0, got -1"):
+        type(atlas)(mapping={"voxel_size_m": -1.0}).load()
+
+
+def test_an_explicit_profile_beats_atlas_profile_and_loading_writes_nothing(isolated, monkeypatch):
+    monkeypatch.setenv("ATLAS_PROFILE", "demo")
+    assert build_definitions(isolated / "artifacts").resources["atlas"].profile == "demo"
+    assert build_definitions(isolated / "artifacts", profile="default").resources["atlas"].profile == "default"
+    home = isolated / "dagster_home"
+    subprocess.run([sys.executable, "-c", "import assets.definitions"], check=True, cwd=Path(__file__).resolve().parents[1])
+    assert list(home.iterdir()) == []  # no instance was even opened
+
+
+def test_the_data_version_tag_is_dagsters():
+    """assets.versioning reads and writes data versions through this tag: fails when Dagster moves it."""
+    from dagster._core.definitions.data_version import DATA_VERSION_TAG
+
+    from assets.versioning import DATA_VERSION_TAG as ours
+
+    assert ours == DATA_VERSION_TAG

@@ -4,13 +4,12 @@ import json
 from pathlib import Path
 
 import pytest
-from dagster import DagsterInstance, build_sensor_context, materialize
+from dagster import AssetKey, DagsterInstance, build_sensor_context
 
-from assets.cli import main
+from assets.cli import main, run_request
 from assets.definitions import build_definitions, dataset_registry_sensor, sync_dataset_partitions
-from assets.io_managers import ArtifactIOManager
-from assets.resources import AtlasConfig
-from assets.staleness import dagster_status, stale_assets
+from assets.resources import atlas_config
+from assets.staleness import stale_assets
 
 # The small synthetic frames are 160x120: registering them needs their own camera (checked whole).
 SMALL_INTRINSICS = ["--intrinsics", "131.25 131.25 79.5 59.5", "--width", "160", "--height", "120"]
@@ -21,12 +20,25 @@ DOWNSTREAM_OF_LOCALIZATION = ["localization_report", "transitions", "demo_videos
 
 
 def _run(root: Path, instance, overrides=None, raise_on_error=True):
-    defs = build_definitions(root / "artifacts", overrides=overrides)
+    """The job as `atlas-gs run --set` launches it: the overrides as run config and tags."""
+    defs = build_definitions(root / "artifacts")
     sync_dataset_partitions(instance, [PART])
-    return materialize(list(defs.assets), partition_key=PART, instance=instance,
-                       resources={"artifact_io": ArtifactIOManager(root=str(root / "artifacts")),
-                                  "atlas": AtlasConfig(overrides=overrides or {})},
-                       raise_on_error=raise_on_error)
+    run_config, tags = run_request("default", overrides or {})
+    return defs.resolve_job_def("atlas_gs_all").execute_in_process(
+        partition_key=PART, instance=instance, run_config=run_config, tags=tags, raise_on_error=raise_on_error)
+
+
+def _dagster_ui_status(defs, instance, partition) -> dict[str, str]:
+    """What Dagster's UI shows (its stale-status resolver; private API, used by this test only)."""
+    from dagster._core.asset_graph_view.asset_graph_view import AssetGraphView, TemporalContext
+    from dagster._core.definitions.data_version import CachingStaleStatusResolver
+    from dagster._time import get_current_datetime
+
+    graph = defs.resolve_asset_graph()
+    view = AssetGraphView(temporal_context=TemporalContext(effective_dt=get_current_datetime(), last_event_id=None),
+                          instance=instance, asset_graph=graph)
+    resolver = CachingStaleStatusResolver(instance=instance, asset_graph=graph, loading_context=view)
+    return {k.to_user_string(): resolver.get_status(k, partition).value for k in graph.materializable_asset_keys}
 
 
 def _files(root: Path, assets=None) -> dict[str, tuple[int, bytes]]:
@@ -36,14 +48,15 @@ def _files(root: Path, assets=None) -> dict[str, tuple[int, bytes]]:
 
 
 def _materializations(result) -> dict[str, dict]:
+    """Metadata of the pipeline assets materialized (settings/* left out)."""
     return {ev.asset_key.path[-1]: ev.event_specific_data.materialization.metadata for ev in result.all_events
-            if ev.event_type_value == "ASSET_MATERIALIZATION"}
+            if ev.event_type_value == "ASSET_MATERIALIZATION" and len(ev.asset_key.path) == 1}
 
 
 def _data_versions(instance, names):
     out = {}
     for a in names:
-        ev = instance.get_latest_materialization_event(__import__("dagster").AssetKey(a))
+        ev = instance.get_latest_materialization_event(AssetKey(a))
         out[a] = ev.dagster_event.event_specific_data.materialization.tags.get("dagster/data_version")
     return out
 
@@ -80,41 +93,64 @@ def test_second_run_reuses_everything_and_touches_nothing(persistent):
     assert "preview" in md["transitions"] and "compute_s" in md["fused_frames"]
 
 
+@pytest.mark.slow
 def test_localization_change_recomputes_only_localization_and_downstream(persistent):
     root, instance = persistent
     _run(root, instance)
     up_before = _files(root, UPSTREAM)
     change = {"localization.photometric_weight": 0.3}
-    # Dagster's view after the definitions pick up the change: localization stale, upstream fresh.
-    defs = build_definitions(root / "artifacts", overrides=change)
-    status = dagster_status(defs, instance, PART)
-    assert status["localization_report"][0] == "STALE"
-    assert all(status[a][0] == "FRESH" for a in UPSTREAM)
-    stale = stale_assets(defs, instance, PART, ArtifactIOManager(root=str(root / "artifacts")), AtlasConfig(overrides=change))
+    defs = build_definitions(root / "artifacts")
+    assert set(_dagster_ui_status(defs, instance, PART).values()) == {"FRESH"}
+    # What a run with the change would recompute: the settings of localization_report (and of the
+    # bundle, which records the whole config) changed; everything after it may change.
+    stale = stale_assets(defs, instance, PART, atlas_config(None, change))
     assert sorted(stale) == sorted(DOWNSTREAM_OF_LOCALIZATION)
+    assert stale["localization_report"] == ["settings changed: localization.photometric_weight 0.1 -> 0.3"]
+    # The UI of a code location whose profile has the change (edited, reloaded): the settings it changes
+    # show as stale (keyframes' in case the dataset is tracked; this one is not, see test_keyframes_read...).
+    ui = _dagster_ui_status(build_definitions(root / "artifacts", overrides=change), instance, PART)
+    assert sorted(k for k, v in ui.items() if v != "FRESH") == [
+        "settings/keyframes", "settings/localization_report", "settings/world_bundle"]
     result = _run(root, instance, change)
     md = _materializations(result)
     assert sorted(a for a, m in md.items() if not m["reused"].value) == sorted(DOWNSTREAM_OF_LOCALIZATION)
     assert _files(root, UPSTREAM) == up_before
     rec = json.loads((root / "artifacts" / "localization_report" / PART / "_artifact.json").read_text())
     assert rec["run_id"] == result.run_id
-    # Everything is current again, in Dagster's view and the artifacts'.
-    assert stale_assets(defs, instance, PART, ArtifactIOManager(root=str(root / "artifacts")),
-                        AtlasConfig(overrides=change)) == {}
+    # The run recorded its overrides; everything is current again, in the UI's view and for the change.
+    assert instance.get_run_by_id(result.run_id).tags["atlas/set/localization.photometric_weight"] == "0.3"
+    assert instance.get_run_by_id(result.run_id).run_config["resources"]["atlas"]["config"] == {
+        "localization": {"photometric_weight": 0.3}}
+    assert set(_dagster_ui_status(defs, instance, PART).values()) == {"FRESH"}
+    assert stale_assets(defs, instance, PART, atlas_config(None, change)) == {}
+    # Back to the profile's value: localization and after recomputed; a check threshold versions nothing.
+    assert sorted(stale_assets(defs, instance, PART, atlas_config())) == sorted(DOWNSTREAM_OF_LOCALIZATION)
+    assert sorted(stale_assets(defs, instance, PART, atlas_config(None, {**change, "localization.max_ate_m": 1.0}))) == [
+        "world_bundle"]  # its metadata.json holds the whole config
 
 
+@pytest.mark.slow
 def test_edited_raw_files_are_noticed(persistent):
     root, instance = persistent
     _run(root, instance)
     fused_before = _files(root, ["fused_frames"])
     depth = sorted((root / "data" / PART / "depth").iterdir())[3]
     depth.write_bytes(depth.read_bytes())  # same bytes, new mtime: re-read, content hash unchanged
+    # The registry sensor observes the dataset's files (the daemon records what it returns): the UI
+    # shows the raw dataset stale.
+    for event in dataset_registry_sensor(build_sensor_context(instance=instance)).asset_events:
+        instance.report_runless_asset_event(event)
+    assert _dagster_ui_status(build_definitions(root / "artifacts"), instance, PART)["raw_dataset"] == "STALE"
+    status = stale_assets(build_definitions(root / "artifacts"), instance, PART, atlas_config())
+    assert status.pop("raw_dataset") == ["dataset files changed"]
+    assert all(r.endswith("(may change)") for reasons in status.values() for r in reasons)
     result = _run(root, instance)
     md = _materializations(result)
     assert not md["raw_dataset"]["reused"].value and md["fused_frames"]["reused"].value
     assert _files(root, ["fused_frames"]) == fused_before
 
 
+@pytest.mark.slow
 def test_cli_stale_only_runs_nothing_when_current_then_only_the_changed(isolated, capsys):
     assert main(["run", PART]) == 0
     capsys.readouterr()
@@ -223,3 +259,28 @@ def test_register_dataset_job_from_the_ui(isolated, small_synthetic):
         bad = job.execute_in_process(instance=instance, raise_on_error=False, run_config={"ops": {
             "register_dataset_op": {"config": {"name": "UI Room", "path": str(small_synthetic)}}}})
         assert not bad.success and "UI Room" not in instance.get_dynamic_partitions("datasets")
+
+
+def test_keyframes_read_the_tracker_settings_exactly_when_they_track(small_manifest):
+    """One ground-truth rule: the keyframes stage's own (mapping.keyframes.uses_ground_truth). A
+    dataset with ground truth for a third of its frames is mapped from tracked poses, so its keyframes
+    depend on the tracker's settings (a groundtruth.txt being there is not enough)."""
+    import dataclasses
+
+    import numpy as np
+
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.mapping.keyframes import uses_ground_truth
+    from assets.versioning import STAGES, stage_settings
+
+    cfg = load_profile("default")
+    n = small_manifest.n_frames
+    partial = dataclasses.replace(small_manifest, has_gt=np.arange(n) < n // 3)
+    assert uses_ground_truth(small_manifest, cfg.mapping) and not uses_ground_truth(partial, cfg.mapping)
+    assert "localization.photometric_weight" not in stage_settings(cfg, "keyframes", small_manifest)
+    assert "localization.photometric_weight" in stage_settings(cfg, "keyframes", partial)
+    # Per field, not per section: the keyframe fit's settings shape the world, not the keyframes;
+    # the ATE bound is read by its check only (and recorded in the bundle's config).
+    assert "mapping.optimization_epochs" not in stage_settings(cfg, "keyframes", partial)
+    assert "mapping.optimization_epochs" in stage_settings(cfg, "gaussian_world")
+    assert [s for s in STAGES if "localization.max_ate_m" in stage_settings(cfg, s, partial)] == ["world_bundle"]

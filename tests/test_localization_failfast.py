@@ -92,12 +92,13 @@ def _assert_round_trip(rep: LocalizationReport, directory):
     assert r2.status == rep.status
     assert np.array_equal(np.isnan(r2.T_world_cam), np.isnan(rep.T_world_cam))
     assert np.allclose(r2.T_world_cam[~unknown], rep.T_world_cam[~unknown], atol=1e-8)
-    assert np.array_equal(np.isnan(r2.time_s), np.isnan(rep.time_s))
+    assert np.isnan(r2.time_s).all() and "time_s" not in d["frames"][0]  # timings are not content: not saved
     # The TUM file stays valid for evo / TUM tools: one line per known pose, none for unknown ones.
     ts, P = read_tum_trajectory(directory / "trajectory_estimated.tum")
     assert len(ts) == int((~unknown).sum()) and np.isfinite(P).all()
 
 
+@pytest.mark.slow
 def test_other_scene_without_start_pose_stops_after_the_window(world, other_scene, tmp_path):
     cfg, w = world
     rep = _localize(other_scene, cfg, w, None)
@@ -186,12 +187,12 @@ def test_report_with_nan_rows_and_summary_round_trips(tmp_path):
     rep.save(tmp_path)
     d = json.loads((tmp_path / "localization.json").read_text(),
                    parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
-    assert d["summary"]["frames_per_s"] is None and d["summary"]["f32"] is None and d["summary"]["i64"] == 3
+    assert "frames_per_s" not in d["summary"] and d["summary"]["f32"] is None and d["summary"]["i64"] == 3
     assert d["summary"]["nested"] == {"x": [None, 1.5]}
     assert [f["position_xyz"] is None for f in d["frames"]] == [False] * 3 + [True] * 3
     r2 = LocalizationReport.load(tmp_path)
     assert r2.status == status
     assert np.isnan(r2.T_world_cam[3:]).all() and np.allclose(r2.T_world_cam[:3], T[:3])
-    assert np.array_equal(np.isnan(r2.time_s), np.isnan(rep.time_s))
+    assert np.isnan(r2.time_s).all() and "time_s" not in d["frames"][0]  # timings are not content: not saved
     lines = [ln for ln in (tmp_path / "trajectory_estimated.tum").read_text().splitlines() if not ln.startswith("#")]
     assert len(lines) == 3 and all(len(ln.split()) == 8 for ln in lines)

@@ -2,6 +2,7 @@
 and the Dagster graph (the map handed from asset to asset) give the same poses, bit for bit."""
 
 import numpy as np
+import pytest
 
 from assets.cli import main
 from atlas_pipeline.localization.localizer import LocalizationReport

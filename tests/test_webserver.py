@@ -61,6 +61,11 @@ def _wait_run(url: str, run_id: str, deadline: float) -> str:
     raise AssertionError(f"run {run_id} did not finish in time")
 
 
+def _nodes(url: str) -> dict:
+    """Asset nodes by key (``settings/...`` keys have two parts)."""
+    return {"/".join(n["assetKey"]["path"]): n for n in _gql(url, NODES, {"partition": PART})["assetNodes"]}
+
+
 def _launch(url: str) -> str:
     params = {"selector": {"repositoryLocationName": "atlas_gs", "repositoryName": "__repository__",
                            "jobName": "atlas_gs_all"},
@@ -73,6 +78,12 @@ def _launch(url: str) -> str:
 
 @pytest.mark.slow
 def test_dagster_dev_materializes_a_partition_and_reports_staleness(isolated):
+    from dagster import DagsterInstance
+
+    from assets.definitions import sync_dataset_partitions
+
+    with DagsterInstance.get() as instance:  # loading the definitions writes nothing: add the partition
+        sync_dataset_partitions(instance, [PART])
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ)  # ATLAS_* and DAGSTER_HOME from the isolated fixture
@@ -96,7 +107,7 @@ def test_dagster_dev_materializes_a_partition_and_reports_staleness(isolated):
 
         run_id = _launch(url)
         assert _wait_run(url, run_id, time.time() + 240) == "SUCCESS", (isolated / "dagster_dev.log").read_text()[-3000:]
-        nodes = {tuple(n["assetKey"]["path"])[-1]: n for n in _gql(url, NODES, {"partition": PART})["assetNodes"]}
+        nodes = _nodes(url)
         assert ASSETS <= set(nodes)
         for a in ASSETS:
             mats = nodes[a]["assetMaterializations"]
@@ -109,7 +120,7 @@ def test_dagster_dev_materializes_a_partition_and_reports_staleness(isolated):
         # The same materialization again: every asset reused, still fresh.
         run2 = _launch(url)
         assert _wait_run(url, run2, time.time() + 120) == "SUCCESS"
-        nodes = {tuple(n["assetKey"]["path"])[-1]: n for n in _gql(url, NODES, {"partition": PART})["assetNodes"]}
+        nodes = _nodes(url)
         for a in ASSETS:
             m = nodes[a]["assetMaterializations"][0]
             assert m["runId"] == run2 and {e["label"]: e.get("boolValue") for e in m["metadataEntries"]}["reused"] is True

@@ -95,6 +95,10 @@ def _json_safe(v):
     return v
 
 
+# Summary figures that are timings: kept in memory (and in Dagster's metadata), never saved.
+TIMING_SUMMARY_KEYS = ("mean_time_per_frame_s", "frames_per_s")
+
+
 @dataclass
 class LocalizationReport:
     """Per-frame pose estimates of a sequence against a world, graded against ground truth.
@@ -153,8 +157,14 @@ class LocalizationReport:
         return {"dataset": self.dataset, "map_id": self.map_id, "summary": _json_safe(self.summary), "frames": frames}
 
     def save(self, directory: Path) -> list[Path]:
+        """Write the report; timings (``time_s`` per frame, the summary's rates) are not written:
+        the files are what the run found, equal bytes for an equal result (``time_s`` loads as NaN)."""
         directory.mkdir(parents=True, exist_ok=True)
-        js = write_json_atomic(directory / "localization.json", self.to_json())
+        content = self.to_json()
+        for f in content["frames"]:
+            del f["time_s"]
+        content["summary"] = {k: v for k, v in content["summary"].items() if k not in TIMING_SUMMARY_KEYS}
+        js = write_json_atomic(directory / "localization.json", content)
         est = write_tum_trajectory(directory / "trajectory_estimated.tum", self.timestamps_s, self.T_world_cam)
         gt = write_tum_trajectory(directory / "trajectory_groundtruth.tum", self.timestamps_s, self.T_world_cam_gt)
         png = directory / "trajectory_top.png"
@@ -169,7 +179,8 @@ class LocalizationReport:
             raise ArtifactError(f"{directory}: localization.json missing")
         d = json.loads(path.read_text())
         fr = d["frames"]
-        # A null position or quaternion is an unknown pose: a NaN row (as estimated).
+        # A null position or quaternion is an unknown pose: a NaN row (as estimated). Files written
+        # before timings left the content have time_s per frame: still read.
         T = np.full((len(fr), 4, 4), np.nan)
         known = [i for i, f in enumerate(fr) if f.get("position_xyz") is not None and f.get("quat_xyzw") is not None]
         if known:
