@@ -197,3 +197,26 @@ def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
         return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
 
     assert end_error(res.T_world_cam) < 0.5 * end_error(drifted)
+
+
+def test_a_loop_that_would_move_the_camera_further_than_drift_can_is_refused(loop_sequence, monkeypatch):
+    """A verified match that would move a keyframe 2 m after a short stretch of travel is a
+    look-alike place, not a loop: refused, the trajectory left alone."""
+    from atlas_pipeline.config import LocalizationConfig
+    from atlas_pipeline.mapping import loop_closure as lc
+    from atlas_pipeline.mapping.keyframes import select_keyframes
+
+    m = loop_sequence
+    gt = m.T_world_cam_gt
+    valid = m.has_gt.copy()
+    kf = select_keyframes(gt, valid, 0.08, 8.0)
+
+    def far_match(tracker, frame, model, guesses, relocalizer_factory=None, **kw):
+        T = np.array(guesses[0])
+        T[0, 3] += 2.0
+        return T, 0.9, 0.001, "relocalizer"
+
+    monkeypatch.setattr(lc, "verify_loop", far_match)
+    res = lc.close_loops(m, gt, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02, min_gap=10, radius_m=0.3)
+    assert res.record(kf)["n_loops"] == 0
+    np.testing.assert_array_equal(res.T_world_cam, gt)

@@ -70,6 +70,12 @@ LOOP_COOLDOWN_KEYFRAMES = 2
 THUMBNAIL_SIZE = (40, 30)
 THUMBNAIL_BLUR_PX = 1.0
 LOOP_MIN_APPEARANCE_NCC = 0.85
+# A verified loop is still refused when it would move the keyframe further than tracking can drift
+# over the path between the two keyframes: this share of the path length plus a floor (frame-to-
+# model RGB-D tracking drifts about 1-3 % of the distance travelled; 10 % leaves a wide margin while
+# a look-alike place metres away is caught).
+LOOP_MAX_DRIFT_FRACTION = 0.1
+LOOP_DRIFT_FLOOR_M = 0.05
 # Relocalizer fallback (seconds per try): at most this many per sequence.
 LOOP_MAX_RELOCALIZATIONS = 8
 # Pose graph: Open3D's line process keeps an uncertain (loop) edge whose error, weighted by its
@@ -416,6 +422,13 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
             if found is None:
                 continue
             T_i_in_old, frac, res, method = found
+            correction_m = float(np.linalg.norm(T_i_in_old[:3, 3] - T_kf[i, :3, 3]))
+            path_m = float(np.sum(np.linalg.norm(np.diff(T_kf[j:i + 1, :3, 3], axis=0), axis=1)))
+            if correction_m > LOOP_MAX_DRIFT_FRACTION * path_m + LOOP_DRIFT_FLOOR_M:
+                # More drift than tracking makes over that path: a look-alike place, not a loop.
+                logger.info("loop candidate keyframe %d -> %d refused: it would move the camera %.2f m after "
+                            "%.2f m of travel", i, j, correction_m, path_m)
+                continue
             edge = LoopEdge(i, int(j), invert_se3(T_kf[j]) @ T_i_in_old, frac, res, method)
             loops.append(edge)
             logger.info("loop: keyframe %d (frame %d) matches keyframe %d (frame %d), %.2f inliers, %.1f mm, %s",
