@@ -19,10 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from atlas_pipeline import pipeline as lib
-from atlas_pipeline.config import PipelineConfig, load_profile, project_root
+from atlas_pipeline.config import PipelineConfig, load_profile, parse_set_overrides, project_root
 from atlas_pipeline.errors import AtlasError, ConfigError
 from atlas_pipeline.io_utils import check_output_dir, check_output_file, check_writable
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
@@ -30,12 +28,16 @@ from atlas_pipeline.sensors.camera import TUM_CAMERAS
 from atlas_pipeline.sensors.registry import (
     DatasetEntry,
     camera_from_intrinsics,
+    load_dataset,
     load_registry,
     local_registry_path,
     register_local_dataset,
     resolve_camera,
     validate_dataset_name,
 )
+# Imported with the module, as the stage functions always were: pandas then loads before logging is
+# configured, so its import-time INFO lines stay out of the command's stderr.
+from atlas_pipeline.transition_log.transitions import log_transitions
 
 logger = logging.getLogger("atlas_gs.cli")
 
@@ -96,7 +98,11 @@ def _prepare_output_dir(output: str, kind: str, inputs: list[Any], force: bool) 
 
 
 def cmd_build(args: argparse.Namespace) -> int:
+    from atlas_pipeline.localization.localizer import tracking_map
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
     from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
+    from atlas_pipeline.scene_memory.metadata import bundle_lineage, bundle_metadata
 
     cfg = _config(args)
     entry = _dataset(args.input, args.camera)
@@ -104,41 +110,21 @@ def cmd_build(args: argparse.Namespace) -> int:
     out = _prepare_output_dir(args.output, BUNDLE_KIND, inputs, args.force)
     if args.extend:
         load_world_bundle(args.extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
-    manifest = lib.load_dataset(entry, cfg)
-    fused = lib.fuse(manifest, cfg)
+    manifest = load_dataset(entry, cfg)
+    fused = fuse(manifest, cfg)
 
     parent = None
     if args.extend:
-        from atlas_pipeline.gaussian_world.builder import GaussianWorld
-        from atlas_pipeline.mapping.mapper import extend_world, extend_world_by_tracking
-
         parent = parent_reference(args.extend)  # checks it is a bundle
-        try:
-            previous = GaussianWorld.load(Path(args.extend))
-        except AtlasError as exc:
-            raise ConfigError(f"{args.extend}: cannot extend this bundle, it has no voxel statistics "
-                              f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
-        if cfg.mapping.pose_source == "ground_truth":
-            # Ground-truth poses of the new sequence are taken to share the parent's frame.
-            keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
-            world = extend_world(previous, fused, keyframes, cfg.mapping)
-        else:
-            # A second session: relocalize in the saved world, then track and map into it.
-            world, _, _ = extend_world_by_tracking(
-                previous, manifest, cfg.mapping, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-                cfg.fusion.stride)
-        n_new_keyframes = len(world.keyframe_indices) - len(previous.keyframe_indices)
+        world, n_new_keyframes = extend_saved_world(args.extend, manifest, fused, cfg)
     else:
-        keyframes = lib.select_keyframes_stage(manifest, fused, cfg)
-        world = lib.build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
+        keyframes = select_keyframes_stage(manifest, fused, cfg)
+        world = build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
         n_new_keyframes = len(keyframes.indices)
-    from datetime import datetime, timezone
-
-    lineage = {"created_by": "atlas-gs build", "partition": entry.name, "run_id": None,
-               "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), "profile": cfg.profile,
-               "config_overrides": _overrides(args)}
-    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage, parent=parent)
-    write_world_bundle(out, world.field, meta, extras=(world,), surfels=lib.tracking_map(world), inputs=inputs)
+    lineage = bundle_lineage("atlas-gs build", partition=entry.name, run_id=None, profile=cfg.profile,
+                             config_overrides=_overrides(args), parent=parent)
+    meta = bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage)
+    write_world_bundle(out, world.field, meta, extras=(world,), surfels=tracking_map(world), inputs=inputs)
     logger.info("wrote world with %d Gaussians to %s", len(world.field), out)
     print(json.dumps({"world": str(out.resolve()), "n_gaussians": len(world.field),
                       "n_keyframes": int(n_new_keyframes), "map_id": world.map_id,
@@ -146,21 +132,15 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
-def _start_pose(args: argparse.Namespace, bundle_meta: dict[str, Any], dataset: str) -> tuple[np.ndarray | None, int]:
-    """Where localization starts: ``--start-pose``, the bundle's own anchor (same dataset), or
-    nowhere (None): the first frame is then relocalized in the world with no initial pose."""
-    if args.start_pose:
-        vals = _numbers(args.start_pose, 7, "--start-pose", "tx ty tz qx qy qz qw")
-        if np.linalg.norm(vals[3:]) < 1e-9:
-            raise ConfigError("--start-pose: the quaternion qx qy qz qw has zero length")
-        return pose_from_tq(np.array(vals[:3]), np.array(vals[3:])), 0
-    anchor = bundle_meta.get("anchor")
-    if getattr(args, "relocalize", False) or bundle_meta.get("dataset", {}).get("name") != dataset or anchor is None:
-        logging.getLogger("atlas_pipeline").info(
-            "no start pose for '%s' in this world (built from '%s'): relocalizing its first frame",
-            dataset, bundle_meta.get("dataset", {}).get("name"))
-        return None, 0
-    return np.asarray(anchor["T_world_cam"], np.float64), int(anchor["frame_index"])
+def _start_pose(args: argparse.Namespace) -> np.ndarray | None:
+    """``--start-pose`` as a ``T_world_cam``, or None; where localization then starts is
+    :func:`atlas_pipeline.scene_memory.metadata.start_pose`'s decision."""
+    if not args.start_pose:
+        return None
+    vals = _numbers(args.start_pose, 7, "--start-pose", "tx ty tz qx qy qz qw")
+    if np.linalg.norm(vals[3:]) < 1e-9:
+        raise ConfigError("--start-pose: the quaternion qx qy qz qw has zero length")
+    return pose_from_tq(np.array(vals[:3]), np.array(vals[3:]))
 
 
 def cmd_relocalize(args: argparse.Namespace) -> int:
@@ -172,7 +152,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
 
     cfg = _config(args)
     bundle = load_world_bundle(args.world)
-    manifest = lib.load_dataset(_dataset(args.input, args.camera), cfg)
+    manifest = load_dataset(_dataset(args.input, args.camera), cfg)
     frames = args.frame if args.frame else list(range(manifest.n_frames))
     bad = [i for i in frames if not 0 <= i < manifest.n_frames]
     if bad:
@@ -219,13 +199,14 @@ def cmd_evaluate_trajectory(args: argparse.Namespace) -> int:
 def cmd_localize(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.localizer import localize_sequence
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle, update_world_bundle
+    from atlas_pipeline.scene_memory.metadata import start_pose
 
     cfg = _config(args)
     bundle = load_world_bundle(args.world)  # verifies every file the bundle lists
     entry = _dataset(args.input, args.camera)
     check_writable(Path(args.world).parent)
-    manifest = lib.load_dataset(entry, cfg)
-    T0, anchor = _start_pose(args, bundle.metadata, entry.name)
+    manifest = load_dataset(entry, cfg)
+    T0, anchor = start_pose(bundle.metadata, entry.name, _start_pose(args), relocalize=args.relocalize)
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
     voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
@@ -256,9 +237,9 @@ def cmd_log_transitions(args: argparse.Namespace) -> int:
     if report.dataset != entry.name:
         raise ConfigError(f"{world}/localization.json is for dataset '{report.dataset}', not '{entry.name}'")
     if cfg.transitions.pose_source == "ground_truth":  # refresh GT from the dataset, not the report
-        manifest = lib.load_dataset(entry, cfg)
+        manifest = load_dataset(entry, cfg)
         report.T_world_cam_gt = manifest.T_world_cam_gt
-    table = lib.log_transitions(report, entry.name, int(meta.get("n_gaussians", 0)), cfg)
+    table = log_transitions(report, entry.name, int(meta.get("n_gaussians", 0)), cfg)
     update_world_bundle(world, transitions=table)
     print(json.dumps({"transitions": str((world / "transitions.parquet").resolve()), "rows": table.num_rows}, indent=2))
     return 0
@@ -269,6 +250,7 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
     from atlas_pipeline.scene_memory.bundle import load_world_bundle
     from atlas_pipeline.sensors.camera import CameraIntrinsics
 
+    from atlas_pipeline.viz.demo import orbit_trajectory, render_video
     from atlas_pipeline.viz.video import is_atlas_video
 
     cfg = _config(args)
@@ -291,9 +273,9 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
         from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses
 
         # framed from where the recording camera stood (the bundle's keyframes)
-        poses = lib.orbit_trajectory(bundle.field, cfg, bundle_keyframe_poses(bundle.metadata), camera_K=cam.K,
-                                     image_size=(cam.width, cam.height))
-    lib.render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, out, args.mode)
+        poses = orbit_trajectory(bundle.field, cfg, bundle_keyframe_poses(bundle.metadata), camera_K=cam.K,
+                                 image_size=(cam.width, cam.height))
+    render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, out, args.mode)
     print(json.dumps({"video": str(out.resolve()), "mode": args.mode}, indent=2))
     return 0
 
@@ -313,16 +295,7 @@ def _numbers(text: str, n: int, option: str, names: str) -> list[float]:
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
-    overrides: dict[str, Any] = {}
-    for item in getattr(args, "set", None) or []:
-        if "=" not in item:
-            raise ConfigError(f"--set expects key=value, got {item!r}")
-        k, v = item.split("=", 1)
-        try:
-            overrides[k.strip()] = yaml.safe_load(v)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"--set {item!r}: the value is not valid YAML ({getattr(exc, 'problem', exc)})") from None
-    return overrides
+    return parse_set_overrides(getattr(args, "set", None), "--set")
 
 
 def _dagster_setup(args: argparse.Namespace):
@@ -440,12 +413,9 @@ def cmd_status(args: argparse.Namespace) -> int:
 def cmd_import_ply(args: argparse.Namespace) -> int:
     """A Gaussian-splat PLY made elsewhere (3DGS layout) as a world bundle this pipeline can
     localize in, relocalize against, render and extend."""
-    from datetime import datetime, timezone
-
-    from atlas_pipeline.scene_memory.bundle import write_world_bundle
+    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, write_world_bundle
+    from atlas_pipeline.scene_memory.metadata import bundle_lineage
     from atlas_pipeline.scene_memory.ply import read_gaussian_ply
-
-    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND
 
     if not (np.isfinite(args.voxel) and args.voxel > 0):
         raise ConfigError(f"--voxel must be a finite number > 0, got {args.voxel}")
@@ -458,8 +428,7 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
         "gaussians": {"voxel_size_m": float(args.voxel), "isotropic": field.is_isotropic, "n_keyframes": 0,
                       "pose_source": "imported"},
         "imported_from": {"path": str(src.resolve()), "bytes": src.stat().st_size},
-        "lineage": {"created_by": "atlas-gs import-ply", "parent": None,
-                    "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")},
+        "lineage": bundle_lineage("atlas-gs import-ply"),
     }
     out = write_world_bundle(args.output, field, meta, inputs=[src])
     print(json.dumps({"world": str(Path(out).resolve()), "n_gaussians": len(field),

@@ -46,10 +46,11 @@ from atlas_pipeline.io_utils import (
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
-from atlas_pipeline.pipeline import DemoVideos, WorldBundleArtifact
+from atlas_pipeline.scene_memory.metadata import WorldBundleArtifact
 from atlas_pipeline.sensors.registry import validate_dataset_name
 from atlas_pipeline.sensors.tum import FrameManifest
 from atlas_pipeline.versioning import files_intact
+from atlas_pipeline.viz.demo import DemoVideos
 
 
 class ParquetTable:

@@ -12,7 +12,6 @@ records every input that shapes an artifact.
 
 import hashlib
 import json
-from datetime import datetime, timezone
 
 import numpy as np
 import pyarrow as pa
@@ -52,16 +51,20 @@ from assets.versioning import (
     stage_settings,
     versioned,
 )
-from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
+from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
 from atlas_pipeline.io_utils import discard_dir
-from atlas_pipeline.localization.localizer import LocalizationReport
+from atlas_pipeline.localization.localizer import LocalizationReport, localize, tracking_map
 from atlas_pipeline.mapping.keyframes import KeyframeSet
-from atlas_pipeline.perception.rgbd import FusedFrames
-from atlas_pipeline.sensors.registry import ensure_dataset_files
+from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+from atlas_pipeline.perception.rgbd import FusedFrames, fuse
+from atlas_pipeline.scene_memory.metadata import WorldBundleArtifact, bundle_lineage, bundle_metadata
+from atlas_pipeline.sensors.registry import ensure_dataset_files, load_dataset
 from atlas_pipeline.sensors.tum import FrameManifest
+from atlas_pipeline.transition_log.transitions import log_transitions
 from atlas_pipeline.versioning import dataset_signature
+from atlas_pipeline.viz.demo import render_demo_videos
 from atlas_pipeline.viz.plots import markdown_image, render_preview_png
 
 GROUP = "atlas_gs"
@@ -135,7 +138,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         cfg, name = atlas.load(), context.partition_key
         if (out := reuse(context, cfg, dataset=dataset_version(name))) is not None:
             return out
-        manifest = lib.load_dataset(dataset_entry(name), cfg, log=context.log.info)
+        manifest = load_dataset(dataset_entry(name), cfg, log=context.log.info)
         return versioned(context, manifest, {
             "n_frames": manifest.n_frames,
             "n_with_ground_truth": int(manifest.has_gt.sum()),
@@ -151,7 +154,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         cfg = atlas.load()
         if (out := reuse(context, cfg)) is not None:
             return out
-        fused = lib.fuse(raw_dataset, cfg, log=context.log.info)
+        fused = fuse(raw_dataset, cfg, log=context.log.info)
         return versioned(context, fused, {"n_points": int(len(fused.points_cam)),
                                           "mean_valid_fraction": float(fused.valid_fraction.mean())})
 
@@ -162,7 +165,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         cfg = atlas.load()
         if (out := reuse(context, cfg, raw_dataset)) is not None:
             return out
-        kf = lib.select_keyframes_stage(raw_dataset, fused_frames, cfg, log=context.log.info)
+        kf = select_keyframes_stage(raw_dataset, fused_frames, cfg, log=context.log.info)
         return versioned(context, kf, {"n_keyframes": int(len(kf.indices)), "pose_source": kf.pose_source,
                                        "keyframe_indices": MetadataValue.json([int(i) for i in kf.indices])})
 
@@ -173,7 +176,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                        fused_frames: FusedFrames, keyframes: KeyframeSet):
         cfg = atlas.load()
         if (out := reuse(context, cfg)) is None:
-            world = lib.build_gaussian_world(fused_frames, keyframes, cfg, log=context.log.info, manifest=raw_dataset)
+            world = build_gaussian_world(fused_frames, keyframes, cfg, log=context.log.info, manifest=raw_dataset)
             lo, hi = world.field.bounds()
             preview = render_preview_png(world.field, world.T_world_cam_keyframes[0])
             out = versioned(context, world, {
@@ -195,7 +198,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                             gaussian_world: GaussianWorld):
         cfg = atlas.load()
         if (out := reuse(context, cfg)) is None:
-            report = lib.localize(raw_dataset, gaussian_world, cfg, log=context.log.info)
+            report = localize(raw_dataset, gaussian_world, cfg, log=context.log.info)
             s = report.summary
             out = versioned(context, report, {
                 "n_tracked": s["n_tracked"],
@@ -222,7 +225,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                     gaussian_world: GaussianWorld):
         cfg = atlas.load()
         if (out := reuse(context, cfg)) is None:
-            table = lib.log_transitions(localization_report, context.partition_key, len(gaussian_world.field), cfg)
+            table = log_transitions(localization_report, context.partition_key, len(gaussian_world.field), cfg)
             preview = table.slice(0, 5).select(["step", "dt_s", "action_vx_mps", "action_vy_mps", "action_vz_mps",
                                                 "delta_translation_m", "delta_rotation_deg"]).to_pandas()
             out = versioned(context, table, {"n_rows": table.num_rows, "pose_source": cfg.transitions.pose_source,
@@ -241,9 +244,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         # Render into a staging folder beside the artifacts; the IO manager moves the files into place.
         staging = context.resources.artifact_io.staging_folder("demo_videos", context.partition_key)
         try:
-            videos = lib.render_demo_videos(gaussian_world.field, localization_report.T_world_cam, cam.K, cam.width,
-                                            cam.height, cfg, staging, context.partition_key, log=context.log.info,
-                                            manifest=raw_dataset)
+            videos = render_demo_videos(gaussian_world.field, localization_report.T_world_cam, cam.K, cam.width,
+                                        cam.height, cfg, staging, context.partition_key, log=context.log.info,
+                                        manifest=raw_dataset)
             return versioned(context, videos, {"orbit_frames": videos.n_orbit_frames,
                                                "trajectory_frames": videos.n_trajectory_frames,
                                                "size": MetadataValue.json(list(videos.size))})
@@ -258,7 +261,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         cfg = atlas.load()
         if (out := reuse(context, cfg)) is not None:
             return out
-        rep = lib.evaluate_rendering(raw_dataset, gaussian_world, localization_report, cfg, log=context.log.info)
+        rep = evaluate_rendering(raw_dataset, gaussian_world, localization_report, cfg, log=context.log.info)
         s = rep.summary
         md = {k: (_num(s[k]) if isinstance(s[k], float) else s[k]) for k in
               ("n_views", "mean_psnr_db", "mean_psnr_masked_db", "mean_ssim", "mean_depth_l1_m", "mean_depth_coverage")}
@@ -275,22 +278,21 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             lin = lineage(context)
             upstream = lin["upstream"]
             prefix = "atlas/set/"
-            info = {
-                "partition": context.partition_key,
-                "run_id": context.run.run_id,
-                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "profile": cfg.profile,
-                "config_overrides": {k[len(prefix):]: json.loads(v) for k, v in sorted(context.run.tags.items())
-                                     if k.startswith(prefix)},
-                "raw_content_hash": raw_dataset.content_hash,
+            info = bundle_lineage(
+                partition=context.partition_key,
+                run_id=context.run.run_id,
+                profile=cfg.profile,
+                config_overrides={k[len(prefix):]: json.loads(v) for k, v in sorted(context.run.tags.items())
+                                  if k.startswith(prefix)},
+                raw_content_hash=raw_dataset.content_hash,
                 **lin,
-                "code_versions": {**{a: u["code_version"] for a, u in upstream.items()},
-                                  "world_bundle": context.assets_def.get_asset_spec(context.asset_key).code_version},
-                "parent": None,  # the pipeline builds every partition's world from scratch
-            }
-            meta = lib.bundle_metadata(context.partition_key, context.partition_key, gaussian_world, raw_dataset, cfg, info)
-            out = versioned(context, lib.WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions,
-                                                              lib.tracking_map(gaussian_world)),
+                code_versions={**{a: u["code_version"] for a, u in upstream.items()},
+                               "world_bundle": context.assets_def.get_asset_spec(context.asset_key).code_version},
+                parent=None,  # the pipeline builds every partition's world from scratch
+            )
+            meta = bundle_metadata(context.partition_key, context.partition_key, gaussian_world, raw_dataset, cfg, info)
+            out = versioned(context, WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions,
+                                                         tracking_map(gaussian_world)),
                              {"n_gaussians": len(gaussian_world.field), "map_id": gaussian_world.map_id,
                               "upstream_data_versions": MetadataValue.json(
                                   {a: u["data_version"] for a, u in upstream.items()})})

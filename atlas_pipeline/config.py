@@ -535,3 +535,19 @@ def section_hash(section: Any) -> str:
         section = dataclasses.asdict(section)
     blob = json.dumps(section, sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def parse_set_overrides(items: list[str] | tuple[str, ...] | None, option: str = "--set") -> dict[str, Any]:
+    """``{dotted key: value}`` from ``KEY=VALUE`` strings (``--set`` of ``atlas-gs`` and the
+    benchmarks), each value parsed as YAML (``0.5``, ``true``, ``[8,5,3]``, ``null``); keys are
+    validated later by :meth:`PipelineConfig.with_overrides`. A ConfigError names the bad item."""
+    overrides: dict[str, Any] = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError(f"{option} expects key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            overrides[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{option} {item!r}: the value is not valid YAML ({getattr(exc, 'problem', exc)})") from None
+    return overrides

@@ -30,25 +30,29 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def run(manifest, cfg) -> dict:
-    from atlas_pipeline import pipeline as lib
     from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
+    from atlas_pipeline.localization.localizer import localize, tracking_map
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
     from atlas_pipeline.scene_memory.binary import BYTES_PER_GAUSSIAN
     from atlas_pipeline.scene_memory.bundle import write_world_bundle
+    from atlas_pipeline.scene_memory.metadata import bundle_metadata
 
     assert isinstance(cfg, PipelineConfig)
-    fused = lib.fuse(manifest, cfg)
-    kf = lib.select_keyframes_stage(manifest, fused, cfg)
+    fused = fuse(manifest, cfg)
+    kf = select_keyframes_stage(manifest, fused, cfg)
     t_build = time.perf_counter()
-    world = lib.build_gaussian_world(fused, kf, cfg, manifest=manifest)
+    world = build_gaussian_world(fused, kf, cfg, manifest=manifest)
     t_build = time.perf_counter() - t_build
-    report = lib.localize(manifest, world, cfg)
+    report = localize(manifest, world, cfg)
     t0 = time.perf_counter()
-    ev = lib.evaluate_rendering(manifest, world, report, cfg)
+    ev = evaluate_rendering(manifest, world, report, cfg)
     dt = time.perf_counter() - t0
     with tempfile.TemporaryDirectory() as tmp:
-        meta = lib.bundle_metadata(manifest.dataset, manifest.dataset, world, manifest, cfg)
+        meta = bundle_metadata(manifest.dataset, manifest.dataset, world, manifest, cfg)
         b = write_world_bundle(Path(tmp) / "bundle", world.field, meta, localization=report,
-                               surfels=lib.tracking_map(world))
+                               surfels=tracking_map(world))
         sizes = {p.name: p.stat().st_size for p in Path(b).iterdir() if p.is_file()}
         magic = (Path(b) / "gaussians.bin").read_bytes()[:8].decode()
     version = 2 if magic == "ATLASGS2" else 1
@@ -80,14 +84,13 @@ def main(argv: list[str] | None = None) -> int:
                          "pixels with depth within that range)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    import yaml
+    from atlas_pipeline.config import parse_set_overrides
+    from atlas_pipeline.errors import ConfigError
 
-    overrides = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key] = yaml.safe_load(value)
+    try:
+        overrides = parse_set_overrides(args.set)
+    except ConfigError as exc:
+        ap.error(str(exc))
     results = {}
     for name in args.datasets:
         m = _load(name)

@@ -41,11 +41,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from atlas_pipeline import pipeline as lib  # noqa: E402
 from atlas_pipeline.config import PipelineConfig, load_profile  # noqa: E402
+from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering  # noqa: E402
+from atlas_pipeline.localization.localizer import localize, tracking_map  # noqa: E402
+from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage  # noqa: E402
+from atlas_pipeline.perception.rgbd import fuse  # noqa: E402
 from atlas_pipeline.scene_memory.bundle import write_world_bundle  # noqa: E402
+from atlas_pipeline.scene_memory.metadata import bundle_metadata  # noqa: E402
 from atlas_pipeline.sensors.camera import TUM_CAMERAS  # noqa: E402
-from atlas_pipeline.sensors.registry import DatasetEntry, ensure_dataset_files, load_registry  # noqa: E402
+from atlas_pipeline.sensors.registry import DatasetEntry, ensure_dataset_files, load_dataset, load_registry  # noqa: E402
+from atlas_pipeline.transition_log.transitions import log_transitions  # noqa: E402
+from atlas_pipeline.viz.demo import render_demo_videos  # noqa: E402
 
 SHARED_DATA = ROOT.parent / "shared" / "data"
 TUM_SETS = {
@@ -165,21 +171,21 @@ def run_once(entry: DatasetEntry, cfg: PipelineConfig, work: Path) -> dict[str, 
         sec[stage] = time.perf_counter() - t0
         return out
 
-    manifest = timed("load_dataset", lib.load_dataset, entry, cfg, _quiet)
+    manifest = timed("load_dataset", load_dataset, entry, cfg, _quiet)
     n = manifest.n_frames
-    fused = timed("fuse", lib.fuse, manifest, cfg, _quiet)
-    keyframes = timed("keyframes", lib.select_keyframes_stage, manifest, fused, cfg, _quiet)
-    world = timed("gaussian_world", lib.build_gaussian_world, fused, keyframes, cfg, _quiet, manifest=manifest)
-    report = timed("localization", lib.localize, manifest, world, cfg, _quiet)
-    table = timed("transitions", lib.log_transitions, report, entry.name, len(world.field), cfg)
+    fused = timed("fuse", fuse, manifest, cfg, _quiet)
+    keyframes = timed("keyframes", select_keyframes_stage, manifest, fused, cfg, _quiet)
+    world = timed("gaussian_world", build_gaussian_world, fused, keyframes, cfg, _quiet, manifest=manifest)
+    report = timed("localization", localize, manifest, world, cfg, _quiet)
+    table = timed("transitions", log_transitions, report, entry.name, len(world.field), cfg)
     cam = manifest.camera
-    videos = timed("demo_videos", lib.render_demo_videos, world.field, report.T_world_cam, cam.K, cam.width,
+    videos = timed("demo_videos", render_demo_videos, world.field, report.T_world_cam, cam.K, cam.width,
                    cam.height, cfg, work / "videos", entry.name, _quiet, manifest=manifest)
-    evaluation = timed("render_evaluation", lib.evaluate_rendering, manifest, world, report, cfg, _quiet)
-    meta = lib.bundle_metadata(entry.name, entry.name, world, manifest, cfg,
-                               {"created_by": "benchmarks/bench_pipeline.py"})
+    evaluation = timed("render_evaluation", evaluate_rendering, manifest, world, report, cfg, _quiet)
+    meta = bundle_metadata(entry.name, entry.name, world, manifest, cfg,
+                           {"created_by": "benchmarks/bench_pipeline.py"})
     bundle_dir = timed("world_bundle", write_world_bundle, work / "bundle", world.field, meta, report, table,
-                       surfels=lib.tracking_map(world))
+                       surfels=tracking_map(world))
 
     frames = {s: n for s in STAGES}
     frames["demo_videos"] = videos.n_orbit_frames + 2 * videos.n_trajectory_frames  # orbit, trajectory, side by side

@@ -219,15 +219,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
     max_frames = args.max_frames or (QUICK_MAX_FRAMES if args.quick else None)
 
-    import yaml
-
     from atlas_pipeline._open3d import open3d
-    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.config import load_profile, parse_set_overrides
+    from atlas_pipeline.errors import ConfigError
 
-    overrides = {"mapping.pose_source": "estimated"}
-    for kv in args.set:
-        key, _, value = kv.partition("=")
-        overrides[key] = yaml.safe_load(value)
+    try:
+        overrides = {"mapping.pose_source": "estimated", **parse_set_overrides(args.set)}
+    except ConfigError as exc:
+        ap.error(str(exc))
     cfg = load_profile("default").with_overrides(overrides)
     cmd = " ".join(shlex.quote(a) for a in [sys.executable.split("/")[-1], "benchmarks/bench_robustness.py",
                                               *(argv if argv is not None else sys.argv[1:])])

@@ -93,9 +93,10 @@ def bench_relocalization(manifest, frames, cfg) -> dict:
     """World from the first half (ground-truth poses), second-half frames with no initial pose."""
     import dataclasses
 
-    from atlas_pipeline import pipeline as lib
     from atlas_pipeline.localization.relocalize import Relocalizer
     from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, pose_change
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
 
     half = manifest.n_frames // 2
     first = dataclasses.replace(
@@ -103,8 +104,8 @@ def bench_relocalization(manifest, frames, cfg) -> dict:
         rgb_files=manifest.rgb_files[:half], depth_files=manifest.depth_files[:half],
         T_world_cam_gt=manifest.T_world_cam_gt[:half], has_gt=manifest.has_gt[:half])
     gcfg = cfg.with_overrides({"mapping.pose_source": "ground_truth"})
-    fused = lib.fuse(first, gcfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(first, fused, gcfg), gcfg)
+    fused = fuse(first, gcfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(first, fused, gcfg), gcfg)
     # As a later session sees it: Gaussian centres from the bundle, keyframe poses from its metadata.
     model = SurfelModel.from_field(world.field.positions, world.builder.voxel_size_m)
     tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
@@ -132,16 +133,18 @@ def bench_relocalization(manifest, frames, cfg) -> dict:
 
 def _memory_child(name: str, n: int) -> None:
     """In a fresh process: localize the first ``n`` frames against a small world; print peak RSS."""
-    from atlas_pipeline import pipeline as lib
     from atlas_pipeline.config import load_profile
+    from atlas_pipeline.localization.localizer import localize
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
 
     m = _load(name, n)
     cfg = load_profile("default").with_overrides({"dataset.max_frames": 10})
     first = _load(name, 10)
-    fused = lib.fuse(first, cfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(first, fused, cfg), cfg)
+    fused = fuse(first, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(first, fused, cfg), cfg)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    rep = lib.localize(m, world, cfg)
+    rep = localize(m, world, cfg)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     print(json.dumps({"n_frames": n, "peak_rss_mb": peak / 1024.0, "rss_before_localize_mb": base / 1024.0,
                       "n_tracked": rep.summary["n_tracked"]}))
@@ -174,14 +177,13 @@ def main(argv: list[str] | None = None) -> int:
         _memory_child(args.memory_child[0], int(args.memory_child[1]))
         return 0
 
-    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.config import load_profile, parse_set_overrides
+    from atlas_pipeline.errors import ConfigError
 
-    import yaml
-
-    overrides = {"mapping.pose_source": "estimated"}
-    for kv in args.set:
-        key, _, value = kv.partition("=")
-        overrides[key] = yaml.safe_load(value)
+    try:
+        overrides = {"mapping.pose_source": "estimated", **parse_set_overrides(args.set)}
+    except ConfigError as exc:
+        ap.error(str(exc))
     cfg = load_profile("default").with_overrides(overrides)
     results: dict = {}
     for name in args.datasets:

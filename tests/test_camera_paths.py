@@ -7,11 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.render import render_gaussians
 from atlas_pipeline.geometry import look_at, rotation_angle_rad
+from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+from atlas_pipeline.perception.rgbd import fuse
+from atlas_pipeline.viz.demo import orbit_trajectory
 from atlas_pipeline.viz.camera_paths import (
     PATH_ARC,
     PATH_CENTRE_ORBIT,
@@ -41,8 +43,8 @@ def _unfitted_cfg():
 
 def _world_from(manifest):
     cfg = _unfitted_cfg()
-    fused = lib.fuse(manifest, cfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(manifest, fused, cfg), cfg)
+    fused = fuse(manifest, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(manifest, fused, cfg), cfg)
     assert world.pose_source == "ground_truth"  # the world frame is the scene frame
     return cfg, world
 
@@ -186,7 +188,7 @@ def test_old_centre_orbit_leaves_the_box_room_the_new_one_stays_inside(box_room)
     old = orbit_poses(0.5 * (p5 + p95), radius, cfg.video.orbit_height_m, N_FRAMES)
     assert not _inside_room(old[:, :3, 3], 0.0).all()
 
-    poses = lib.orbit_trajectory(field, cfg, kf)
+    poses = orbit_trajectory(field, cfg, kf)
     path = plan_camera_path(field, kf, N_FRAMES, VOXEL_M)
     assert np.allclose(poses, path.T_world_cam)
     assert path.kind == PATH_ORBIT, path.summary()
@@ -295,5 +297,5 @@ def test_orbit_trajectory_without_keyframes_keeps_the_old_call():
     rng = np.random.default_rng(2)
     field = _field(_box_surface(ROOM_MIN, ROOM_MAX, 0.1, rng), 0.05, rng)
     cfg = load_profile("default").with_overrides({"video.orbit_frames": 8})
-    poses = lib.orbit_trajectory(field, cfg)
+    poses = orbit_trajectory(field, cfg)
     assert poses.shape == (8, 4, 4) and np.isfinite(poses).all()

@@ -57,15 +57,16 @@ def test_preview_and_report_roundtrip(tmp_path):
 def test_colour_refinement_recovers_colours_from_views(small_manifest):
     """Gaussians of the small synthetic world with wrong colours: fitting them to keyframe-like views
     rendered with the right colours brings a held-out view back."""
-    from atlas_pipeline import pipeline as lib
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.gaussian_world.field import GaussianField
     from atlas_pipeline.gaussian_world.refine import refine_colours
     from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
 
     cfg = load_profile("default")
-    fused = lib.fuse(small_manifest, cfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(small_manifest, fused, cfg), cfg)
+    fused = fuse(small_manifest, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg)
     f = world.field
     cam = small_manifest.camera
     poses = small_manifest.T_world_cam_gt

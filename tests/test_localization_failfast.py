@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 
-from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.localization.localizer import (
     MISMATCH_MAX_LOST_RUN_FRAMES,
@@ -18,7 +17,9 @@ from atlas_pipeline.localization.localizer import (
     LocalizationReport,
     _MismatchGuard,
     grade,
+    localize,
     localize_sequence,
+    tracking_map,
 )
 from atlas_pipeline.localization.metrics import read_tum_trajectory
 from atlas_pipeline.localization.sequence import (
@@ -30,6 +31,8 @@ from atlas_pipeline.localization.sequence import (
     STATUS_TRACKED,
     FrameEstimate,
 )
+from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+from atlas_pipeline.perception.rgbd import fuse
 
 from tests.conftest import SMALL_SYNTH
 
@@ -38,8 +41,8 @@ from tests.conftest import SMALL_SYNTH
 def world(small_manifest):
     """The small synthetic world (seed 0), built as the pipeline builds it."""
     cfg = load_profile("default")
-    fused = lib.fuse(small_manifest, cfg)
-    return cfg, lib.build_gaussian_world(fused, lib.select_keyframes_stage(small_manifest, fused, cfg), cfg)
+    fused = fuse(small_manifest, cfg)
+    return cfg, build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg)
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +59,7 @@ def other_scene(tmp_path_factory):
 
 
 def _localize(manifest, cfg, world, T0):
-    return localize_sequence(manifest, lib.tracking_map(world), cfg.localization, T0, 0, world.map_id,
+    return localize_sequence(manifest, tracking_map(world), cfg.localization, T0, 0, world.map_id,
                              (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), prior_poses=world.T_world_cam_keyframes)
 
 
@@ -122,7 +125,7 @@ def test_other_scene_with_a_wrong_start_pose_stops_after_the_window(world, other
 @pytest.mark.slow
 def test_matching_world_is_unaffected(small_manifest, world):
     cfg, w = world
-    rep = lib.localize(small_manifest, w, cfg)
+    rep = localize(small_manifest, w, cfg)
     s = rep.summary
     assert s["outcome"] == OUTCOME_COMPLETE and s["stopped_reason"] is None
     assert s["n_not_attempted"] == 0 and s["n_attempted"] == rep.n_frames and s["n_lost"] == 0

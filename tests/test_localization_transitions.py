@@ -4,11 +4,19 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.geometry import pose_from_tq, so3_exp
+from atlas_pipeline.localization.localizer import localize
 from atlas_pipeline.localization.metrics import ate_rmse
-from atlas_pipeline.transition_log.transitions import TRANSITIONS_SCHEMA, build_transitions, read_transitions, write_transitions
+from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+from atlas_pipeline.perception.rgbd import fuse
+from atlas_pipeline.transition_log.transitions import (
+    TRANSITIONS_SCHEMA,
+    build_transitions,
+    log_transitions,
+    read_transitions,
+    write_transitions,
+)
 
 
 def test_tracker_recovers_a_known_offset(small_manifest):
@@ -45,10 +53,10 @@ def test_ate_is_invariant_to_a_rigid_offset():
 @pytest.fixture(scope="module")
 def small_run(small_manifest):
     cfg = load_profile("default")
-    fused = lib.fuse(small_manifest, cfg)
-    kf = lib.select_keyframes_stage(small_manifest, fused, cfg)
-    world = lib.build_gaussian_world(fused, kf, cfg)
-    report = lib.localize(small_manifest, world, cfg)
+    fused = fuse(small_manifest, cfg)
+    kf = select_keyframes_stage(small_manifest, fused, cfg)
+    world = build_gaussian_world(fused, kf, cfg)
+    report = localize(small_manifest, world, cfg)
     return cfg, world, report
 
 
@@ -207,11 +215,11 @@ def test_log_transitions_uses_status_only_for_estimated_poses():
     report = SimpleNamespace(map_id="m", timestamps_s=TIMES, status=[A, TR, LO, TR], summary={"anchor_index": 0},
                              pose_source_poses=lambda s: T_est if s == "estimated" else T_gt)
     cfg = load_profile("default")
-    est = lib.log_transitions(report, "p", 1, cfg).to_pandas()
+    est = log_transitions(report, "p", 1, cfg).to_pandas()
     assert est["valid_reason"].tolist() == ["ok", "after_lost", "before_lost"]
     assert est.loc[1, ["after_x_m", "action_vz_mps"]].isna().all()  # frame 2 is lost: its pose is a guess
     cfg_gt = cfg.with_overrides({"transitions.pose_source": "ground_truth"})
-    gt = lib.log_transitions(report, "p", 1, cfg_gt).to_pandas()
+    gt = log_transitions(report, "p", 1, cfg_gt).to_pandas()
     assert gt["valid"].all() and set(gt["status_before"]) == {"unknown"}
 
 

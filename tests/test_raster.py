@@ -192,7 +192,7 @@ def test_half_size_render_is_not_shifted(pos):
 
 
 def test_video_size_uses_the_raster_convention():
-    from atlas_pipeline.pipeline import _render_size
+    from atlas_pipeline.viz.demo import _render_size
 
     Kf = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
     for scale in (0.5, 0.37, 1.0):

@@ -555,7 +555,7 @@ def test_realsense_bag_topics_and_depth_units(tmp_path):
 def test_registry_kinds_detection_and_presets(isolated, tmp_path):
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.errors import ConfigError
-    from atlas_pipeline.pipeline import load_dataset
+    from atlas_pipeline.sensors.registry import load_dataset
     from atlas_pipeline.sensors.registry import load_registry, register_local_dataset
 
     _seven_scenes(tmp_path / "heads")

@@ -7,11 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from atlas_pipeline import pipeline as lib
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.errors import DatasetError
 from atlas_pipeline.geometry import pose_from_tq, so3_exp
 from atlas_pipeline.localization.localizer import localize_sequence
+from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+from atlas_pipeline.perception.rgbd import fuse
 from atlas_pipeline.localization.metrics import (
     ate,
     evaluate_trajectories,
@@ -122,8 +123,8 @@ def test_read_tum_trajectory_names_file_and_line(tmp_path):
 @pytest.mark.slow
 def test_slam_on_synthetic_without_ground_truth(small_manifest):
     cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated"})
-    fused = lib.fuse(small_manifest, cfg)
-    kf = lib.select_keyframes_stage(small_manifest, fused, cfg)
+    fused = fuse(small_manifest, cfg)
+    kf = select_keyframes_stage(small_manifest, fused, cfg)
     assert kf.pose_source == "estimated" and kf.valid.all() and len(kf.indices) >= 2
     res = evaluate_trajectories(small_manifest.timestamps_s, kf.T_world_cam, small_manifest.timestamps_s,
                                 small_manifest.T_world_cam_gt)
@@ -131,15 +132,15 @@ def test_slam_on_synthetic_without_ground_truth(small_manifest):
     # Ground truth is never read while tracking: removing it changes nothing.
     blind = dataclasses.replace(small_manifest, T_world_cam_gt=np.full_like(small_manifest.T_world_cam_gt, np.nan),
                                 has_gt=np.zeros_like(small_manifest.has_gt))
-    kf_blind = lib.select_keyframes_stage(blind, fused, cfg)
+    kf_blind = select_keyframes_stage(blind, fused, cfg)
     assert np.array_equal(kf_blind.T_world_cam, kf.T_world_cam)
 
 
 @pytest.fixture(scope="module")
 def small_world(small_manifest):
     cfg = load_profile("default")
-    fused = lib.fuse(small_manifest, cfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(small_manifest, fused, cfg), cfg)
+    fused = fuse(small_manifest, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg)
     return cfg, world
 
 
@@ -192,8 +193,8 @@ def test_relocalization_of_unseen_frames_in_a_half_sequence_world(medium_manifes
 
     cfg = load_profile("default")
     first = load_tum_sequence(medium_manifest.root, medium_manifest.camera, "first-half", 12)
-    fused = lib.fuse(first, cfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(first, fused, cfg), cfg)
+    fused = fuse(first, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(first, fused, cfg), cfg)
     model = SurfelModel.from_field(world.field.positions, world.builder.voxel_size_m)
     tracker = RGBDTracker(medium_manifest.camera, cfg.localization, (0.1, 4.0))
     reloc = Relocalizer(tracker, model, world.T_world_cam_keyframes)
@@ -215,8 +216,8 @@ def test_second_session_relocalizes_then_maps_into_the_saved_world(medium_manife
 
     cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated"})
     first = load_tum_sequence(medium_manifest.root, medium_manifest.camera, "first-half", 12)
-    fused = lib.fuse(first, cfg)
-    world = lib.build_gaussian_world(fused, lib.select_keyframes_stage(first, fused, cfg), cfg)
+    fused = fuse(first, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(first, fused, cfg), cfg)
     n_before = len(world.field)
     ext, poses, status = extend_world_by_tracking(world, medium_manifest, cfg.mapping, cfg.localization,
                                                   (0.1, 4.0), cfg.fusion.stride)

@@ -21,7 +21,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -29,9 +29,15 @@ from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 
+if TYPE_CHECKING:
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+    from atlas_pipeline.localization.localizer import LocalizationReport
+    from atlas_pipeline.sensors.tum import FrameManifest
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["psnr", "ssim", "depth_l1", "PhotometricReport", "evaluate_views", "preview_image"]
+__all__ = ["psnr", "ssim", "depth_l1", "PhotometricReport", "evaluate_views", "evaluate_rendering", "preview_image"]
 
 _LUMA = np.array([0.299, 0.587, 0.114])
 
@@ -210,3 +216,15 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     rep.summarize()
     logger.info("photometric evaluation of %s: %s", manifest.dataset, rep.summary)
     return rep
+
+
+def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: LocalizationReport,
+                       cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> PhotometricReport:
+    """The render-evaluation stage: render the world at the estimated pose of held-out frames (not
+    keyframes: they never fed the map) and compare with the real images (:func:`evaluate_views`)."""
+    held = np.setdiff1d(np.arange(manifest.n_frames), world.keyframe_indices)
+    held = held[np.isfinite(report.T_world_cam[held]).all(axis=(1, 2))][:: cfg.evaluation.view_stride]
+    if cfg.evaluation.max_views is not None:
+        held = held[: cfg.evaluation.max_views]
+    return evaluate_views(world.field, manifest, report.T_world_cam, held, "estimated", world.map_id,
+                          (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log)

@@ -20,7 +20,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -51,9 +51,13 @@ from atlas_pipeline.localization.tracker import SurfelModel
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.tum import FrameManifest
 
+if TYPE_CHECKING:
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["LocalizationReport", "localize_sequence", "grade", "OUTCOME_COMPLETE", "OUTCOME_STOPPED_WORLD_MISMATCH",
+__all__ = ["LocalizationReport", "localize_sequence", "localize", "tracking_map", "grade", "OUTCOME_COMPLETE", "OUTCOME_STOPPED_WORLD_MISMATCH",
            "MISMATCH_WINDOW_FRAMES", "MISMATCH_MAX_LOST_RUN_FRAMES"]
 
 # summary["outcome"] of a report.
@@ -384,3 +388,23 @@ def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: 
             "rpe_n_pairs": r["n_pairs"],
         })
     return summary, err_t, err_r
+
+
+def tracking_map(world: GaussianWorld) -> SurfelModel:
+    """The ``SurfelModel`` localization tracks against: surfels from the voxel statistics (the
+    fitted Gaussians render the images better but no longer mark the surface exactly)."""
+    return SurfelModel.from_builder(world.builder)
+
+
+def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
+             log: Callable[[str], None] | None = None) -> LocalizationReport:
+    """The localization stage: track the sequence against its own world, starting at the world's
+    first keyframe (whose pose the world defines), with the world's keyframe poses as
+    relocalization priors."""
+    anchor = int(world.keyframe_indices[0])
+    return localize_sequence(
+        manifest, tracking_map(world), cfg.localization,
+        T_world_cam_start=world.T_world_cam_keyframes[0], anchor_index=anchor, map_id=world.map_id,
+        depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+        prior_poses=world.T_world_cam_keyframes, log=log,
+    )

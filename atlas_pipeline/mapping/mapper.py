@@ -1,21 +1,33 @@
-"""Incremental mapping: merge keyframes one by one into a voxel Gaussian world."""
+"""Incremental mapping: merge keyframes one by one into a voxel Gaussian world.
+
+Also the pipeline's mapping stages (:func:`select_keyframes_stage`, :func:`build_gaussian_world`:
+voxel Gaussians, then fitted to the keyframe images) and the policy of extending a saved world
+(:func:`extend_saved_world`)."""
 
 from __future__ import annotations
 
 import logging
-from typing import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld, VoxelGaussianBuilder
-from atlas_pipeline.mapping.keyframes import KeyframeSet
+from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.progress import Progress
 
+if TYPE_CHECKING:
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.sensors.tum import FrameManifest
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["build_world", "extend_world", "extend_world_by_tracking"]
+LogFn = Callable[[str], None]
+
+__all__ = ["build_world", "extend_world", "extend_world_by_tracking", "select_keyframes_stage",
+           "build_gaussian_world", "extend_saved_world"]
 
 
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
@@ -109,3 +121,78 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     logger.info("extended world: %d -> %d Gaussians, %d new keyframes, %d frames lost",
                 len(world.field), len(extended.field), len(idx), status.count(STATUS_LOST))
     return extended, poses, status
+
+
+def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
+                           log: LogFn | None = None) -> KeyframeSet:
+    """The keyframes stage: mapping poses (ground truth or SLAM) and the keyframes among them."""
+    return build_keyframes(manifest, fused, cfg.mapping, cfg.localization, log)
+
+
+def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
+                         log: LogFn | None = None, manifest: FrameManifest | None = None) -> GaussianWorld:
+    """Merge the keyframes into a world; with the sequence's ``manifest``, then fit it to the
+    keyframe images: colours first (``mapping.colour_refinement_iterations``, cheap), then every
+    Gaussian parameter against colour and depth (``mapping.optimization_epochs``)."""
+    world = build_world(fused, keyframes, cfg.mapping, log)
+    mc = cfg.mapping
+    fit_colours = mc.colour_refinement_iterations > 0
+    optimize = mc.optimization_epochs > 0
+    if manifest is None or not len(world.field) or not (fit_colours or optimize):
+        return world
+    idx = [int(i) for i in world.keyframe_indices]
+    images = [manifest.read_rgb(i) for i in idx]
+    if fit_colours:
+        from atlas_pipeline.gaussian_world.refine import refine_colours
+
+        world.field = refine_colours(world.field, images, world.T_world_cam_keyframes, manifest.camera.K,
+                                     mc.colour_refinement_iterations, mc.colour_refinement_scale, log)
+    if optimize:
+        from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
+
+        lo, hi = cfg.fusion.min_depth_m, cfg.fusion.max_depth_m
+        depths = []
+        for i in idx:  # the depth the map was built from: the fusion range only
+            d = manifest.read_depth_m(i, allow_empty=True)
+            depths.append(np.where((d >= lo) & (d <= hi), d, 0.0))
+        settings = OptimizationSettings(epochs=mc.optimization_epochs, max_steps=mc.optimization_max_steps,
+                                        scale=mc.optimization_scale,
+                                        depth_weight=mc.optimization_depth_weight)
+        res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
+                                 settings, log)
+        world.field = res.field
+        world.fit = {"epochs": settings.epochs, "steps": int(len(res.loss)), "scale": settings.scale,
+                     "loss_first_epoch": float(res.loss[: len(idx)].mean()),
+                     "loss_last_epoch": float(res.loss[-min(len(idx), len(res.loss)):].mean()),
+                     "n_pruned": res.n_pruned, "seconds": round(res.seconds, 2)}
+    return world
+
+
+def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
+                       log: LogFn | None = None) -> tuple[GaussianWorld, int]:
+    """Keep mapping a new sequence into the world saved in the bundle at ``bundle_dir`` (its
+    ``world.npz`` voxel statistics): ``(extended world, number of new keyframes)``.
+
+    With ``mapping.pose_source`` ``ground_truth`` the new sequence's ground-truth poses are taken
+    to share the saved world's frame and its keyframes are merged at them; otherwise (a second
+    session) its first frame is relocalized in the saved world, then every frame is tracked and
+    mapped into it (:func:`extend_world_by_tracking`). Raises :class:`ConfigError` when the bundle
+    has no voxel statistics to extend.
+    """
+    from atlas_pipeline.errors import AtlasError, ConfigError
+
+    try:
+        previous = GaussianWorld.load(Path(bundle_dir))
+    except AtlasError as exc:
+        raise ConfigError(f"{bundle_dir}: cannot extend this bundle, it has no voxel statistics "
+                          f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
+    if cfg.mapping.pose_source == "ground_truth":
+        # Ground-truth poses of the new sequence are taken to share the parent's frame.
+        keyframes = select_keyframes_stage(manifest, fused, cfg, log)
+        world = extend_world(previous, fused, keyframes, cfg.mapping, log)
+    else:
+        # A second session: relocalize in the saved world, then track and map into it.
+        world, _, _ = extend_world_by_tracking(
+            previous, manifest, cfg.mapping, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+            cfg.fusion.stride, log)
+    return world, len(world.keyframe_indices) - len(previous.keyframe_indices)

@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from atlas_pipeline.config import FusionConfig
+from atlas_pipeline.config import FusionConfig, PipelineConfig
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.progress import Progress
@@ -25,7 +25,7 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "iter_rgbd"]
+__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "fuse", "iter_rgbd"]
 
 
 def _undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iters: int = 10):
@@ -193,3 +193,8 @@ def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
         valid_fraction=np.asarray(valid, dtype=np.float32),
         stride=cfg.stride, min_depth_m=cfg.min_depth_m, max_depth_m=cfg.max_depth_m,
     )
+
+
+def fuse(manifest: FrameManifest, cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> FusedFrames:
+    """The fusion stage: :func:`fuse_frames` with the pipeline config's ``fusion`` section."""
+    return fuse_frames(manifest, cfg.fusion, log)

@@ -13,7 +13,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import yaml
 
@@ -35,6 +35,10 @@ from atlas_pipeline.sensors.layouts import (
 
 logger = logging.getLogger(__name__)
 
+if TYPE_CHECKING:
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.sensors.tum import FrameManifest
+
 # Partition keys become folder names under artifacts/: keep them to a safe alphabet.
 DATASET_NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 
@@ -55,6 +59,7 @@ __all__ = [
     "detect_kind",
     "bag_cache_root",
     "read_dataset_manifest",
+    "load_dataset",
 ]
 
 
@@ -400,3 +405,10 @@ def ensure_dataset_files(entry: DatasetEntry, log: Callable[[str], None] | None 
             logger.warning("%s: no sha256 registered for %s; the download cannot be verified", entry.name, entry.url)
         return download_tum_archive(entry.url, entry.path, sha256=entry.sha256, log=log)
     raise DatasetError(entry.path, f"dataset folder of '{entry.name}' not found and no url to download it from")
+
+
+def load_dataset(entry: DatasetEntry, cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> FrameManifest:
+    """The pipeline's first stage: make the dataset's files exist (generate / download) and read its
+    frame manifest, whatever the layout (TUM, 7-Scenes, Replica, ScanNet, bag: ``entry.kind``)."""
+    root = ensure_dataset_files(entry, log)
+    return read_dataset_manifest(entry, cfg.dataset.max_frames, root)

@@ -17,13 +17,14 @@ JSON in cells. Units are in the column names.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from atlas_pipeline.errors import ArtifactError
+from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.geometry import invert_se3, so3_log, tq_from_pose
 from atlas_pipeline.io_utils import atomic_path
 from atlas_pipeline.localization.sequence import (
@@ -34,8 +35,12 @@ from atlas_pipeline.localization.sequence import (
     STATUS_TRACKED,
 )
 
+if TYPE_CHECKING:
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.localization.localizer import LocalizationReport
+
 __all__ = ["TRANSITIONS_SCHEMA", "VALID_REASONS", "REASON_OK", "STATUS_UNKNOWN", "build_transitions",
-           "write_transitions", "read_transitions"]
+           "log_transitions", "write_transitions", "read_transitions"]
 
 _POSE = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
@@ -243,3 +248,23 @@ def read_transitions(path: Path) -> pd.DataFrame:
     if missing:
         raise ArtifactError(f"{path}: not an Atlas-GS transitions table, missing columns {sorted(missing)}")
     return table.to_pandas()
+
+
+def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int,
+                    cfg: PipelineConfig) -> pa.Table:
+    """The transitions stage: transitions from the estimated (default) or ground-truth trajectory
+    of ``report`` (``transitions.pose_source``).
+
+    Estimated rows carry the tracking status of their frames (which decides ``valid``: lost frames
+    and relocalization jumps are not motions); ground-truth rows have none (status ``unknown``,
+    validity from pose finiteness and time only).
+    """
+    source = cfg.transitions.pose_source
+    poses = report.pose_source_poses(source)  # [N, 4, 4] T_world_cam
+    if source == "ground_truth" and not np.isfinite(poses).all(axis=(1, 2)).any():
+        raise DatasetError(partition, "transitions.pose_source is ground_truth but the dataset has no ground truth")
+    if source == "estimated":
+        # Frames before the anchor were tracked backwards from it (see localize_sequence).
+        return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source,
+                                 list(report.status), int(report.summary.get("anchor_index", 0)))
+    return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source)
