@@ -518,7 +518,9 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 def cmd_ui(args: argparse.Namespace) -> int:
     home = _default_dagster_home()
     os.chdir(project_root())
-    cmd = ["dagster", "dev", "-w", "workspace.yaml", "-h", args.host, "-p", str(args.port)]
+    # A checkout has workspace.yaml; an installed copy loads the definitions module itself.
+    where = ["-w", "workspace.yaml"] if Path("workspace.yaml").is_file() else ["-m", "assets.definitions"]
+    cmd = ["dagster", "dev", *where, "-h", args.host, "-p", str(args.port)]
     logger.info("DAGSTER_HOME=%s; starting %s", home, " ".join(cmd))
     os.execvp(cmd[0], cmd)
 
