@@ -283,7 +283,9 @@ class GaussianWorld:
             )
         meta = write_json_atomic(directory / "world.json", {
             "map_id": self.map_id, "n_gaussians": len(self.field), "voxel_size_m": b.voxel_size_m,
-            "n_keyframes": int(len(self.keyframe_indices)), "pose_source": self.pose_source, "fit": self.fit,
+            "n_keyframes": int(len(self.keyframe_indices)), "pose_source": self.pose_source,
+            # timings are run metadata, not content (equal worlds give equal bytes)
+            "fit": {k: v for k, v in self.fit.items() if k != "seconds"},
         })
         return [path, meta]
 
