@@ -17,7 +17,6 @@ Frames are read and rendered one at a time.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ import numpy as np
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
+from atlas_pipeline.safe_arrays import load_json_object_checked
 
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
@@ -144,7 +144,7 @@ class PhotometricReport:
         path = directory / "photometric.json"
         if not path.is_file():
             raise ArtifactError(f"{directory}: photometric.json missing")
-        d = json.loads(path.read_text())
+        d = load_json_object_checked(path)  # bounded size, an object, errors naming the file
         v = d["views"]
 
         def col(k: str) -> np.ndarray:

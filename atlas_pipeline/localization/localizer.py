@@ -16,7 +16,6 @@ figures are written as ``null``), so callers keep what was done.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +49,7 @@ from atlas_pipeline.localization.sequence import (
 from atlas_pipeline.localization.tracker import SurfelModel
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.tum import FrameManifest
+from atlas_pipeline.safe_arrays import load_json_object_checked
 
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
@@ -181,7 +181,7 @@ class LocalizationReport:
         path = directory / "localization.json"
         if not path.is_file():
             raise ArtifactError(f"{directory}: localization.json missing")
-        d = json.loads(path.read_text())
+        d = load_json_object_checked(path)  # bounded size, an object, errors naming the file
         fr = d["frames"]
         # A null position or quaternion is an unknown pose: a NaN row (as estimated). Files written
         # before timings left the content have time_s per frame: still read.

@@ -5,7 +5,6 @@ render side by side, rendered with the CPU Gaussian rasterizer into H.264 MP4s
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import shutil
 from dataclasses import dataclass
@@ -17,6 +16,7 @@ import numpy as np
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.io_utils import write_json_atomic
+from atlas_pipeline.safe_arrays import load_json_object_checked
 
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
@@ -70,7 +70,7 @@ class DemoVideos:
         path = directory / "videos.json"
         if not path.is_file():
             raise ArtifactError(f"{directory}: videos.json missing")
-        d = json.loads(path.read_text())
+        d = load_json_object_checked(path)  # bounded size, an object, errors naming the file
         sbs = d.get("side_by_side")
         return cls(directory / d["orbit"], directory / d["trajectory"], int(d["n_orbit_frames"]),
                    int(d["n_trajectory_frames"]), tuple(d["size"]), directory / sbs if sbs else None)
