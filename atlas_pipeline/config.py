@@ -127,9 +127,24 @@ class MappingConfig:
     # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off.
     optimization_epochs: int = _setting(30, NON_NEGATIVE)
     # Cap on its steps (one keyframe each), whatever the keyframe count.
-    optimization_max_steps: int = _setting(600, AT_LEAST_ONE)
+    optimization_max_steps: int = _setting(300, AT_LEAST_ONE)
     optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
     optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
+    # Its schedule (gaussian_world/optimize.py; measured by benchmarks/bench_fit.py). First passes at
+    # 1/factor of optimization_scale (2: a quarter of the image side at scale 0.5); 1 = none.
+    optimization_coarse_factor: int = _setting(2, AT_LEAST_ONE)
+    optimization_coarse_max_steps: int = _setting(160, NON_NEGATIVE)  # cap on those steps (whole passes); 0 = none
+    optimization_coarse_lr_scale: float = _setting(4.0, POSITIVE)  # every step size times this at the coarse level
+    # Passes in a row whose mean loss does not beat the best by plateau_rel_tol (relative) end the
+    # coarse level, then the fit; 0 = never stop early.
+    optimization_plateau_patience: int = _setting(3, NON_NEGATIVE)
+    optimization_plateau_rel_tol: float = _setting(0.005, UNIT_INTERVAL)
+    # Densify and prune (3DGS) every this many steps, up to densify_until_step; 0 = never.
+    optimization_densify_interval: int = _setting(50, NON_NEGATIVE)
+    optimization_densify_until_step: int = _setting(160, NON_NEGATIVE)
+    # Clone / split Gaussians whose mean view-space (NDC) position gradient exceeds this.
+    optimization_densify_grad_threshold: float = _setting(2e-4, POSITIVE)
+    optimization_prune_opacity: float = _setting(0.005, UNIT_INTERVAL)  # remove Gaussians below this opacity
     # Tracked poses (pose_source estimated): loops to earlier keyframes verified by the tracker,
     # then a pose graph of the keyframes (atlas_pipeline/mapping/loop_closure.py).
     loop_closure: bool = True

@@ -31,7 +31,7 @@ def _materialize(root: Path, partition: str, profile: str = "default", overrides
 
 
 def test_library_does_not_import_dagster():
-    code = ("import sys, atlas_pipeline.pipeline, atlas_pipeline.scene_memory.bundle, atlas_pipeline.versioning, "
+    code = ("import sys, atlas_pipeline.scene_memory.bundle, atlas_pipeline.versioning, "
             "atlas_pipeline.scene_memory.metadata, atlas_pipeline.viz.demo, atlas_pipeline.mapping.mapper, "
             "atlas_pipeline.viz.plots; print('dagster' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -6,6 +6,9 @@ tested against these (``tests/test_raster.py``), and ``render.render_gaussians_r
 them into a whole renderer. The one deliberate difference: ``ReferenceProjection.box_3sigma`` is the
 model's full ``SIGMA_EXTENT``-sigma footprint, which the reference renderer draws, so comparing it
 with the compiled renderer also checks the compiled box cut to the visible ellipse.
+
+``fit_gradients_reference`` is the keyframe fit's forward and image-space backward pass in the
+textbook prefix-sum form (``tests/test_optimize.py`` checks the compiled tile kernels against it).
 """
 
 from __future__ import annotations
@@ -36,13 +39,15 @@ from atlas_pipeline.gaussian_world.raster import (
     MEDIAN_DEPTH_T,
     N_FEAT,
     NEAR_M,
+    PLANE_FLATNESS,
+    PLANE_MAX_SLOPE,
     SIGMA_EXTENT,
     T_MIN,
     TILE_SIZE,
 )
 
 __all__ = ["ReferenceProjection", "project_reference", "sort_reference", "bin_tiles_reference",
-           "composite_reference"]
+           "composite_reference", "plane_slopes_reference", "fit_gradients_reference"]
 
 
 class ReferenceProjection(NamedTuple):
@@ -53,6 +58,9 @@ class ReferenceProjection(NamedTuple):
     feat: np.ndarray  # [N, N_FEAT] float64 (u, v, conic a, b, c, opacity, r, g, b, z)
     box: np.ndarray  # [N, 4] int64 (x0, x1, y0, y1), cut to the visible ellipse, as the compiled box
     box_3sigma: np.ndarray  # [N, 4] int64, the uncut SIGMA_EXTENT-sigma square
+    jw: np.ndarray  # [N, 2, 3] float64 J W, the clamped perspective Jacobian times the camera rotation
+    cov2d: np.ndarray  # [N, 2, 2] float64 pixel covariance (low-pass included)
+    slopes: np.ndarray  # [N, 2] float64 (dz/du, dz/dv) of each Gaussian's plane (plane_slopes_reference)
 
 
 def project_reference(
@@ -129,8 +137,127 @@ def project_reference(
     feat[:, FEAT_OPACITY] = opa
     feat[:, [FEAT_RED, FEAT_GREEN, FEAT_BLUE]] = np.asarray(colors).astype(np.float64)
     feat[:, FEAT_Z] = z
+    slopes = plane_slopes_reference(R, np.asarray(scales).astype(np.float64), W, p_cam, fx, fy)
     return ReferenceProjection(valid, np.where(valid, z, 0.0), feat, box.astype(np.int64),
-                               box_3sigma.astype(np.int64))
+                               box_3sigma.astype(np.int64), JW, cov2d, slopes)
+
+
+def plane_slopes_reference(
+    R: np.ndarray,  # [N, 3, 3] Gaussian rotations (local axes to world)
+    scales: np.ndarray,  # [N, 3]
+    W: np.ndarray,  # [3, 3] world -> camera rotation
+    p_cam: np.ndarray,  # [N, 3] camera-frame means
+    fx: float,
+    fy: float,
+) -> np.ndarray:
+    """Reference of ``raster.plane_depth_slopes``: ``[N, 2]`` ``(dz/du, dz/dv)`` of the plane through
+    each mean normal to its shortest axis, from ``z(u, v) = (n . mu) / (n . ray(u, v))`` with
+    ``ray = ((u - cx) / fx, (v - cy) / fy, 1)`` differentiated at the mean's pixel; 0 where the
+    Gaussian is not flat (shortest scale over ``PLANE_FLATNESS`` times the middle one) or seen
+    edge-on, clamped at ``PLANE_MAX_SLOPE * z / f``."""
+    n = len(scales)
+    srt = np.sort(scales, axis=1)
+    shortest = np.argmin(scales, axis=1)  # first of equal minima, as the compiled test
+    normal_cam = (R[np.arange(n), :, shortest]) @ W.T  # [N, 3]
+    z = p_cam[:, 2]
+    c = np.einsum("ij,ij->i", normal_cam, p_cam)
+    ok = (srt[:, 0] <= PLANE_FLATNESS * srt[:, 1]) & (np.abs(c) >= 1e-9)
+    cs = np.where(ok, c, 1.0)
+    # d/du of c / (n . ray) at the mean (where n . ray = c / z): -c nx / (fx (c / z)^2) = -z^2 nx / (fx c)
+    su = -z * z * normal_cam[:, 0] / (fx * cs)
+    sv = -z * z * normal_cam[:, 1] / (fy * cs)
+    lim_u, lim_v = PLANE_MAX_SLOPE * z / fx, PLANE_MAX_SLOPE * z / fy
+    return np.where(ok[:, None], np.stack([np.clip(su, -lim_u, lim_u), np.clip(sv, -lim_v, lim_v)], axis=1), 0.0)
+
+
+def fit_gradients_reference(
+    feat: np.ndarray,  # [M, N_FEAT] sorted front to back (colours in [0, 1])
+    slopes: np.ndarray,  # [M, 2] depth slopes in that order
+    box: np.ndarray,  # [M, 4] (x0, x1, y0, y1)
+    image: np.ndarray,  # [H, W, 3] in [0, 1]
+    depth_obs: np.ndarray,  # [H, W] metres, 0 = no reading
+    w_rgb: float,
+    w_depth: float,
+    w_cover: float,
+    background: np.ndarray = np.zeros(3),  # [3] in [0, 1]
+) -> tuple[float, np.ndarray]:
+    """Reference of the keyframe fit's forward and image-space backward pass
+    (``optimize._forward_tiles`` / ``_backward_tiles`` / the slot sums): ``(loss, g2d [M, 10])``.
+
+    ``loss = sum_p w_rgb |f(p) - image(p)|_1 + w_depth |D(p) / acc(p) - depth(p)|`` (over pixels with
+    a reading and ``acc >= DEPTH_MIN_ALPHA``) ``+ w_cover T_final(p)`` (pixels with a reading), with
+    ``f`` and ``D`` composited as ``composite_reference`` does and each Gaussian's depth at a pixel
+    ``z + s_u dx + s_v dy``. ``g2d`` rows are ``d loss / d (u, v, conic a, b, c, opacity, r, g, b, z)``
+    from the textbook form: a second front-to-back pass with prefix sums ``P`` of colour and depth,
+    ``d f / d alpha_i = T_i c_i - (f - P_i - w_i c_i) / (1 - alpha_i)`` (what lies behind), float64
+    with ``np.exp``; a capped alpha (``ALPHA_MAX``) moves with nothing but colour and depth.
+    """
+    height, width = image.shape[:2]
+    bg = np.asarray(background, np.float64)
+    m = feat.shape[0]
+
+    def footprint(g: int, Tr: np.ndarray):
+        u, v, ca, cb, cc, opa = feat[g, [FEAT_U, FEAT_V, FEAT_CONIC_A, FEAT_CONIC_B, FEAT_CONIC_C, FEAT_OPACITY]]
+        ys = slice(int(box[g, 2]), int(box[g, 3]) + 1)
+        xs = slice(int(box[g, 0]), int(box[g, 1]) + 1)
+        dx = np.arange(xs.start, xs.stop)[None, :] - u
+        dy = np.arange(ys.start, ys.stop)[:, None] - v
+        gauss = np.exp(-0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy)
+        raw = opa * gauss
+        alpha = np.minimum(ALPHA_MAX, raw)
+        ok = (alpha >= ALPHA_MIN) & (Tr[ys, xs] >= T_MIN)
+        zp = feat[g, FEAT_Z] + slopes[g, 0] * dx + slopes[g, 1] * dy
+        return ys, xs, dx, dy, gauss, raw, np.where(ok, alpha, 0.0), ok, zp
+
+    Tr = np.ones((height, width))
+    C = np.zeros((height, width, 3))
+    D = np.zeros((height, width))
+    for g in range(m):
+        ys, xs, _, _, _, _, a, _, zp = footprint(g, Tr)
+        w = a * Tr[ys, xs]
+        C[ys, xs] += w[..., None] * feat[g, [FEAT_RED, FEAT_GREEN, FEAT_BLUE]]
+        D[ys, xs] += w * zp
+        Tr[ys, xs] *= 1.0 - a
+    f = C + Tr[..., None] * bg
+    res = f - image
+    loss = w_rgb * np.abs(res).sum()
+    G = w_rgb * np.sign(res)  # d loss / d f
+    acc = 1.0 - Tr
+    seen = depth_obs > 0
+    use_d = seen & (acc >= DEPTH_MIN_ALPHA)
+    dn = np.where(use_d, D / np.where(use_d, acc, 1.0), 0.0)
+    loss += w_depth * np.abs(dn - depth_obs)[use_d].sum()
+    GD = np.where(use_d, w_depth * np.sign(dn - depth_obs) / np.where(use_d, acc, 1.0), 0.0)  # d loss / d D
+    gcov = np.where(seen, -w_cover, 0.0) if w_cover > 0 else np.zeros((height, width))
+    loss += w_cover * Tr[seen].sum() if w_cover > 0 else 0.0
+    Tf = Tr
+
+    g2d = np.zeros((m, 10))
+    T = np.ones((height, width))
+    P = np.zeros((height, width, 3))
+    Pd = np.zeros((height, width))
+    for g in range(m):
+        ys, xs, dx, dy, gauss, raw, a, ok, zp = footprint(g, T)
+        Tp = T[ys, xs]
+        w = a * Tp
+        inv = 1.0 / (1.0 - a)
+        c = feat[g, [FEAT_RED, FEAT_GREEN, FEAT_BLUE]]
+        df = Tp[..., None] * c - (f[ys, xs] - P[ys, xs] - w[..., None] * c) * inv[..., None]
+        dD = Tp * zp - (D[ys, xs] - Pd[ys, xs] - w * zp) * inv
+        dacc = Tf[ys, xs] * inv  # d acc / d alpha = T_final / (1 - alpha)
+        ga = ((G[ys, xs] * df).sum(axis=2) + GD[ys, xs] * (dD - dn[ys, xs] * dacc) + gcov[ys, xs] * dacc)
+        gs = np.where(ok & (raw < ALPHA_MAX), ga, 0.0)
+        gp = gs * np.minimum(ALPHA_MAX, raw)
+        ca, cb, cc = feat[g, [FEAT_CONIC_A, FEAT_CONIC_B, FEAT_CONIC_C]]
+        gz = w * GD[ys, xs]
+        g2d[g] = [(gp * (ca * dx + cb * dy)).sum() - slopes[g, 0] * gz.sum(),
+                  (gp * (cc * dy + cb * dx)).sum() - slopes[g, 1] * gz.sum(),
+                  -0.5 * (gp * dx * dx).sum(), -(gp * dx * dy).sum(), -0.5 * (gp * dy * dy).sum(),
+                  (gs * gauss).sum(), *(w[..., None] * G[ys, xs]).sum(axis=(0, 1)), gz.sum()]
+        P[ys, xs] += w[..., None] * c
+        Pd[ys, xs] += w * zp
+        T[ys, xs] = Tp * (1.0 - a)
+    return float(loss), g2d
 
 
 def sort_reference(

@@ -251,7 +251,10 @@ class GaussianWorld:
         T_world_cam_keyframes: ``[K, 4, 4]`` the poses they were merged with.
         pose_source: ``ground_truth`` or ``estimated``.
         history: ``[K]`` number of Gaussians after each merge.
-        fit: how the field was fitted to the keyframe images (JSON-ready; empty when it was not).
+        fit: how the field was fitted to the keyframe images (JSON-ready; empty when it was not):
+            the keyframe fit's own record, ``optimize.OptimizationResult.record`` (steps and passes
+            that ran, ``stop_reason``, ``final_loss``, the coarse level, Gaussians cloned, split and
+            pruned). Content only: timings are run metadata, never part of the world.
     """
 
     field: GaussianField

@@ -10,10 +10,14 @@ splatting), in named stages as gsplat's ``rendering.py`` has them:
    the perspective Jacobian at the mean, its x/z and y/z clamped to ``1 + FRUSTUM_MARGIN`` times the
    half field of view (as gsplat: Gaussians far outside the image do not get huge footprints);
    conic ``cov2d^-1`` and the pixel box the Gaussian may touch (its ``SIGMA_EXTENT``-sigma square,
-   trimmed to the ellipse outside of which ``alpha < ALPHA_MIN`` anyway).
+   trimmed to the ellipse outside of which ``alpha < ALPHA_MIN`` anyway). With ``keep_aux`` it also
+   keeps the intermediates (``AUX_*``: camera-frame mean, ``J W``, ``J W R S``, covariance, the
+   depth slopes of the Gaussian's plane) that a backward pass needs, so the keyframe fit never
+   projects a view twice.
 4. ``sort_by_depth``: front to back in camera depth, ties in input order.
 5. ``bin_tiles``: per ``TILE_SIZE`` x ``TILE_SIZE`` tile, the Gaussians whose box touches it, still
-   front to back.
+   front to back. ``pair_slots`` (5b, for backward passes) numbers every (tile, Gaussian) pair
+   Gaussian by Gaussian, so per-pair results written by tile can be summed per Gaussian after.
 6. ``composite_tiles``: per pixel, front to back,
    ``alpha_i = min(ALPHA_MAX, opacity_i exp(-0.5 d^T conic_i d))``, skipped below ``ALPHA_MIN``;
    ``C += T alpha_i c_i``, ``D += T alpha_i z_i``, ``T *= 1 - alpha_i``; a pixel stops once
@@ -23,7 +27,8 @@ splatting), in named stages as gsplat's ``rendering.py`` has them:
 ``prepare_splats`` runs stages 3-5 (what every caller needs before its own tile loop). Compiled
 kernels elsewhere (the fits' backward passes) build on the device helpers ``world_to_camera``,
 ``rotmat_from_quat``, ``jacobian_clamp_limits``, ``projection_rows``, ``pixel_covariance``,
-``pixel_alpha`` and ``tile_pixel_bounds``, so their forward model is this one by construction.
+``pixel_alpha``, ``exp_neg_fast`` and ``tile_pixel_bounds``, so their forward model is this one by
+construction.
 
 Pixel centres are at integer pixel coordinates: a point at ``(u, v) = K p / z`` lands in the centre
 of pixel ``(round(u), round(v))``, pixel ``i`` covers ``[i - 0.5, i + 0.5)``. ``scale_intrinsics`` /
@@ -48,12 +53,14 @@ __all__ = [
     "TILE_SIZE", "ALPHA_MAX", "COLOR_LEVELS", "ALPHA_MIN", "T_MIN", "LOW_PASS_PX2", "FRUSTUM_MARGIN", "DEPTH_MIN_ALPHA",
     "SIGMA_EXTENT", "POWER_MIN", "BOX_SLACK_PX", "MEDIAN_DEPTH_T", "NEAR_M",
     "FEAT_U", "FEAT_V", "FEAT_CONIC_A", "FEAT_CONIC_B", "FEAT_CONIC_C", "FEAT_OPACITY", "FEAT_RED",
-    "FEAT_GREEN", "FEAT_BLUE", "FEAT_Z", "N_FEAT",
+    "FEAT_GREEN", "FEAT_BLUE", "FEAT_Z", "N_FEAT", "AUX_X", "AUX_Y", "AUX_Z", "AUX_P", "AUX_A", "AUX_B",
+    "AUX_CXX", "AUX_CXY", "AUX_CYY", "AUX_TXZ", "AUX_TYZ", "AUX_SLOPE_U", "AUX_SLOPE_V", "N_AUX",
+    "PLANE_FLATNESS", "PLANE_MAX_SLOPE",
     "RasterInputs", "PinholeView", "Projection", "TileBins", "SplatTiles",
     "validate_inputs", "view_from_pose", "project_gaussians", "sort_by_depth", "gather_sorted", "bin_tiles",
-    "prepare_splats", "composite_tiles", "scale_intrinsics", "scaled_image_size", "scale_camera",
+    "pair_slots", "prepare_splats", "composite_tiles", "scale_intrinsics", "scaled_image_size", "scale_camera",
     "world_to_camera", "rotmat_from_quat", "jacobian_clamp_limits", "projection_rows", "pixel_covariance",
-    "pixel_alpha", "tile_pixel_bounds",
+    "plane_depth_slopes", "pixel_alpha", "tile_pixel_bounds", "exp_neg_fast",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -78,6 +85,16 @@ NEAR_M = 0.05  # default near plane (metres)
 FEAT_U, FEAT_V, FEAT_CONIC_A, FEAT_CONIC_B, FEAT_CONIC_C, FEAT_OPACITY, FEAT_RED, FEAT_GREEN, FEAT_BLUE, FEAT_Z = (
     range(10))
 N_FEAT = 10
+# Columns of the projection intermediates a backward pass reads (``project_gaussians(keep_aux=True)``):
+# camera-frame mean, ``P = J W`` (2x3, row major), rows ``a``, ``b`` of ``P R S``, the pixel
+# covariance (low-pass included) and the clamped ``x / z``, ``y / z`` the Jacobian was taken at.
+# ``AUX_SLOPE_U`` / ``_V``: the screen-space slopes ``(dz/du, dz/dv)`` of the plane through the mean
+# normal to the Gaussian's shortest axis (``plane_depth_slopes``), for depths read on the surface.
+AUX_X, AUX_Y, AUX_Z, AUX_P, AUX_A, AUX_B, AUX_CXX, AUX_CXY, AUX_CYY, AUX_TXZ, AUX_TYZ, AUX_SLOPE_U, AUX_SLOPE_V = (
+    0, 1, 2, 3, 9, 12, 15, 16, 17, 18, 19, 20, 21)
+N_AUX = 22
+PLANE_FLATNESS = 0.5  # a Gaussian is a plane when its shortest scale is at most this times the middle one
+PLANE_MAX_SLOPE = 3.0  # plane depth slopes clamped at tan(72 deg): 3 m of depth per metre across
 
 
 # --------------------------------------------------------------------------------------------
@@ -348,6 +365,37 @@ def pixel_covariance(p00, p01, p02, p10, p11, p12, m00, m01, m02, m10, m11, m12,
 
 
 @njit(cache=True, inline="always")
+def plane_depth_slopes(r00, r01, r02, r10, r11, r12, r20, r21, r22, sx, sy, sz, Rcw, x, y, z, fx, fy):
+    """``(dz/du, dz/dv)``: how the depth of the plane through the camera-frame mean ``(x, y, z)``,
+    normal to the Gaussian's shortest axis (rotation ``r``, scales ``s``), changes along the pixel
+    rays: ``z(u, v) ~ z + dz/du (u - u0) + dz/dv (v - v0)``. A Gaussian then reports the depth of its
+    surface at a pixel, not of its centre (which on a slanted surface reads nearer for the front-most
+    Gaussians). ``(0, 0)`` for Gaussians that are not flat (``PLANE_FLATNESS``) or seen edge-on;
+    clamped at ``PLANE_MAX_SLOPE``."""
+    a = 0 if (sx <= sy and sx <= sz) else (1 if sy <= sz else 2)
+    smid = sx + sy + sz - min(sx, min(sy, sz)) - max(sx, max(sy, sz))
+    smin = sx if a == 0 else (sy if a == 1 else sz)
+    if smin > PLANE_FLATNESS * smid:
+        return 0.0, 0.0
+    if a == 0:  # the shortest axis: column a of the rotation
+        n0, n1, n2 = r00, r10, r20
+    elif a == 1:
+        n0, n1, n2 = r01, r11, r21
+    else:
+        n0, n1, n2 = r02, r12, r22
+    nx = Rcw[0, 0] * n0 + Rcw[0, 1] * n1 + Rcw[0, 2] * n2
+    ny = Rcw[1, 0] * n0 + Rcw[1, 1] * n1 + Rcw[1, 2] * n2
+    nz = Rcw[2, 0] * n0 + Rcw[2, 1] * n1 + Rcw[2, 2] * n2
+    c = nx * x + ny * y + nz * z  # n . mu: z(u, v) = c / (n . ray(u, v))
+    if abs(c) < 1e-9:
+        return 0.0, 0.0
+    lim_u = PLANE_MAX_SLOPE * z / fx
+    lim_v = PLANE_MAX_SLOPE * z / fy
+    return (min(lim_u, max(-lim_u, -z * z * nx / (fx * c))),
+            min(lim_v, max(-lim_v, -z * z * ny / (fy * c))))
+
+
+@njit(cache=True, inline="always")
 def pixel_alpha(feat, box, g, px, py):
     """``(alpha, gauss, dx, dy)`` of sorted Gaussian row ``g`` of ``feat`` ``[M, N_FEAT]`` /
     ``box`` ``[M, 4]`` at pixel ``(px, py)``: the scalar form of the compositing test. alpha is 0
@@ -391,12 +439,17 @@ class Projection(NamedTuple):
     depth: np.ndarray  # [N] float64 camera z (0 where not valid)
     feat: np.ndarray  # [N, N_FEAT] float32 (u, v, conic a, b, c, opacity, r, g, b, z)
     box: np.ndarray  # [N, 4] int32 inclusive pixel range (x0, x1, y0, y1)
+    # [N, N_AUX] float64 projection intermediates (AUX_* columns; rows of drawn Gaussians), kept for a
+    # backward pass so it need not project the view again; [0, N_AUX] when not asked for
+    aux: np.ndarray
 
 
 @njit(cache=True, parallel=True)
-def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, height, near):
+def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, height, near, aux):
     """``Projection`` fields of ``pos``, ``scl`` ``[N, 3]``, ``quat`` ``[N, 4]``, ``col`` ``[N, 3]``,
-    ``opa`` ``[N]`` (float32 or float64), ``Rcw`` ``[3, 3]``, ``tcw`` ``[3]``.
+    ``opa`` ``[N]`` (float32 or float64), ``Rcw`` ``[3, 3]``, ``tcw`` ``[3]``; the ``AUX_*``
+    intermediates of each drawn Gaussian into ``aux`` ``[N, N_AUX]`` float64 when it has N rows
+    (``[0, N_AUX]``: not kept).
 
     The box is the ``SIGMA_EXTENT``-sigma square cut to the bounding box of the ellipse
     ``d^T conic d <= 2 ln(opacity / ALPHA_MIN)``, outside of which ``alpha < ALPHA_MIN`` anyway, so
@@ -408,6 +461,7 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
     feat = np.zeros((n, N_FEAT), dtype=np.float32)
     box = np.zeros((n, 4), dtype=np.int32)
     lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamp_limits(fx, fy, cx, cy, width, height)
+    keep_aux = aux.shape[0] == n
     for i in prange(n):
         o = np.float64(opa[i])
         if o * COLOR_LEVELS < 1.0:  # can never reach alpha >= ALPHA_MIN
@@ -420,9 +474,9 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
         sy = np.float64(scl[i, 1])
         sz = np.float64(scl[i, 2])
         # cov2d = P Sigma P^T = (P M)(P M)^T with M = R S, P = J W
-        p00, p01, p02, p10, p11, p12, _, _ = projection_rows(
+        p00, p01, p02, p10, p11, p12, txz, tyz = projection_rows(
             Rcw, fx, fy, x, y, z, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
-        _, _, _, _, _, _, cxx, cxy, cyy = pixel_covariance(
+        a0, a1, a2, b0, b1, b2, cxx, cxy, cyy = pixel_covariance(
             p00, p01, p02, p10, p11, p12,
             r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz)
         det = cxx * cyy - cxy * cxy
@@ -458,7 +512,30 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
         box[i, 1] = np.int32(x1)
         box[i, 2] = np.int32(y0)
         box[i, 3] = np.int32(y1)
-    return valid, depth, feat, box
+        if keep_aux:
+            aux[i, AUX_X] = x
+            aux[i, AUX_Y] = y
+            aux[i, AUX_Z] = z
+            aux[i, AUX_P + 0] = p00
+            aux[i, AUX_P + 1] = p01
+            aux[i, AUX_P + 2] = p02
+            aux[i, AUX_P + 3] = p10
+            aux[i, AUX_P + 4] = p11
+            aux[i, AUX_P + 5] = p12
+            aux[i, AUX_A + 0] = a0
+            aux[i, AUX_A + 1] = a1
+            aux[i, AUX_A + 2] = a2
+            aux[i, AUX_B + 0] = b0
+            aux[i, AUX_B + 1] = b1
+            aux[i, AUX_B + 2] = b2
+            aux[i, AUX_CXX] = cxx
+            aux[i, AUX_CXY] = cxy
+            aux[i, AUX_CYY] = cyy
+            aux[i, AUX_TXZ] = txz
+            aux[i, AUX_TYZ] = tyz
+            aux[i, AUX_SLOPE_U], aux[i, AUX_SLOPE_V] = plane_depth_slopes(
+                r00, r01, r02, r10, r11, r12, r20, r21, r22, sx, sy, sz, Rcw, x, y, z, fx, fy)
+    return valid, depth, feat, box, aux
 
 
 def project_gaussians(
@@ -469,11 +546,14 @@ def project_gaussians(
     opacities: np.ndarray,  # [N] in [0, 1]
     view: PinholeView,
     near_m: float = NEAR_M,
+    keep_aux: bool = False,
 ) -> Projection:
-    """Stage 3: project every Gaussian (compiled, threaded). Arrays all float32 or all float64."""
+    """Stage 3: project every Gaussian (compiled, threaded). Arrays all float32 or all float64.
+    ``keep_aux``: also return each drawn Gaussian's ``AUX_*`` intermediates (for a backward pass)."""
+    aux = np.empty((len(positions) if keep_aux else 0, N_AUX))
     return Projection(*_project_kernel(
         positions, scales, rotations_xyzw, colors, opacities, view.R_cam_world, view.centre_world,
-        view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m))
+        view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, aux))
 
 
 # --------------------------------------------------------------------------------------------
@@ -608,6 +688,44 @@ def bin_tiles(
     return TileBins(tile_start, tile_ids, tiles_x, n_tiles)
 
 
+@njit(cache=True)
+def _pair_slots_kernel(box, tile_start, tiles_x):
+    m = box.shape[0]
+    n_tiles = tile_start.shape[0] - 1
+    gauss_start = np.empty(m + 1, dtype=np.int64)
+    tile_slot = np.empty(tile_start[n_tiles], dtype=np.int32)
+    fill = tile_start[:-1].copy()
+    s = 0
+    for k in range(m):  # the order _bin_tiles_kernel fills the tiles in
+        gauss_start[k] = s
+        tx0 = box[k, 0] // TILE_SIZE
+        tx1 = box[k, 1] // TILE_SIZE
+        for ty in range(box[k, 2] // TILE_SIZE, box[k, 3] // TILE_SIZE + 1):
+            for tx in range(tx0, tx1 + 1):
+                t = ty * tiles_x + tx
+                tile_slot[fill[t]] = s
+                fill[t] += 1
+                s += 1
+    gauss_start[m] = s
+    return tile_slot, gauss_start
+
+
+def pair_slots(
+    box: np.ndarray,  # [M, 4] int32 boxes of the sorted Gaussians (as given to bin_tiles)
+    tile_start: np.ndarray,  # [n_tiles + 1] int64, from bin_tiles
+    tiles_x: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 5b, for backward passes: ``(tile_slot [P] int32, gauss_start [M + 1] int64)``.
+
+    Every (tile, Gaussian) pair ``tile_ids[k]`` (``bin_tiles``) gets a slot ``tile_slot[k]``; the slots of
+    sorted Gaussian ``g`` are ``gauss_start[g] .. gauss_start[g + 1] - 1``, its tiles in row-major
+    order. A tile loop writes a per-pair result into its slot (no two tiles share one: no atomics,
+    no locks), and a per-Gaussian loop sums its slots in a fixed order (the same bits whatever the
+    number of threads).
+    """
+    return _pair_slots_kernel(box, tile_start, tiles_x)
+
+
 class SplatTiles(NamedTuple):
     """What every tile loop reads: the drawn Gaussians sorted front to back, binned into tiles."""
 
@@ -620,6 +738,7 @@ class SplatTiles(NamedTuple):
     n_tiles: int
     width: int
     height: int
+    aux: np.ndarray  # [N, N_AUX] float64 projection intermediates, input rows ([0, N_AUX]: not kept)
 
 
 def prepare_splats(
@@ -630,16 +749,18 @@ def prepare_splats(
     opacities: np.ndarray,  # [N]
     view: PinholeView,
     near_m: float = NEAR_M,
+    keep_aux: bool = False,
 ) -> SplatTiles | None:
-    """Stages 3-5: project, sort and bin; None when the view draws no Gaussian."""
-    proj = project_gaussians(positions, scales, rotations_xyzw, colors, opacities, view, near_m)
+    """Stages 3-5: project, sort and bin; None when the view draws no Gaussian. ``keep_aux``: the
+    projection intermediates ride along (``SplatTiles.aux``, input row order)."""
+    proj = project_gaussians(positions, scales, rotations_xyzw, colors, opacities, view, near_m, keep_aux)
     order = sort_by_depth(proj.valid, proj.depth)
     if order.size == 0:
         return None
     feat, box = gather_sorted(order, proj.feat, proj.box)
     bins = bin_tiles(box, view.width, view.height)
     return SplatTiles(order, feat, box, bins.tile_start, bins.tile_ids, bins.tiles_x, bins.n_tiles,
-                      view.width, view.height)
+                      view.width, view.height, proj.aux)
 
 
 # --------------------------------------------------------------------------------------------
@@ -648,7 +769,7 @@ def prepare_splats(
 
 
 @njit(cache=True, inline="always")
-def _exp_neg(x):
+def exp_neg_fast(x):
     """``exp(x)`` for float32 ``x`` in ``[POWER_MIN, 0]`` to ~2e-6 relative error, plain arithmetic.
 
     ``math.exp`` is a libm call that blocks SIMD; this (Taylor polynomial of ``exp(x / 16)``,
@@ -748,7 +869,7 @@ def _composite_worker(
                     dx = lj - ux
                     power = nha * dx * dx + qy - by * dx
                     power = power if power > p_min else p_min
-                    e = op * _exp_neg(power)
+                    e = op * exp_neg_fast(power)
                     alpha = e if e < a_max else a_max
                     Tl = Tv[j]
                     ok = (alpha >= a_min) & (Tl >= t_min) & (lj >= lx0) & (lj <= lx1)

@@ -155,16 +155,10 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
         for i in idx:  # the depth the map was built from: the fusion range only
             d = manifest.read_depth_m(i, allow_empty=True)
             depths.append(np.where((d >= lo) & (d <= hi), d, 0.0))
-        settings = OptimizationSettings(epochs=mc.optimization_epochs, max_steps=mc.optimization_max_steps,
-                                        scale=mc.optimization_scale,
-                                        depth_weight=mc.optimization_depth_weight)
         res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
-                                 settings, log)
+                                 OptimizationSettings.from_mapping(mc), log)
         world.field = res.field
-        world.fit = {"epochs": settings.epochs, "steps": int(len(res.loss)), "scale": settings.scale,
-                     "loss_first_epoch": float(res.loss[: len(idx)].mean()),
-                     "loss_last_epoch": float(res.loss[-min(len(idx), len(res.loss)):].mean()),
-                     "n_pruned": res.n_pruned}  # no timing: the record is content
+        world.fit = res.record  # no timing: the record is content
     return world
 
 
