@@ -114,6 +114,12 @@ FIT_STAGES = ("projection", "forward", "backward", "adam", "densify")  # Optimiz
 CHILD_ID_BIT = np.uint64(1 << 63)
 _SPLIT_SCALE_DIV = 1.6  # Kerbl et al.: the two halves of a split Gaussian have 1/1.6 of its scales
 _LOGIT_CLAMP = 12.0
+# The coarse level gets at most this share of the fit's passes: the fit scale must keep enough
+# passes to restore the detail (a 4-keyframe world with 30 passes otherwise ran 29 of them coarse).
+COARSE_MAX_PASS_FRACTION = 0.5
+# No coarse level when its image would be narrower than this: a few dozen pixels hold no geometry
+# worth fitting, and their larger steps only shake what the fit scale then has to undo.
+MIN_COARSE_WIDTH_PX = 32
 
 
 @dataclass(frozen=True)
@@ -137,8 +143,9 @@ class OptimizationSettings:
         seed: order of the keyframes in each pass, and the samples of split Gaussians.
         coarse_factor: the first passes run at ``scale / coarse_factor`` (2: a quarter of the image
             side when the fit is at half; 1 = no coarse level).
-        coarse_max_steps: cap on the steps at the coarse scale (whole passes, one pass at least left
-            for the fit scale; 0 = no coarse level); the level also ends on a plateau.
+        coarse_max_steps: cap on the steps at the coarse scale (whole passes, at most
+            ``COARSE_MAX_PASS_FRACTION`` of the fit's passes; 0 = no coarse level; none either when
+            its image would be narrower than ``MIN_COARSE_WIDTH_PX``); the level also ends on a plateau.
         coarse_lr_scale: every step size times this at the coarse level (the gross geometry: scales
             growing over what depth did not map, positions moving; the fit scale then refines).
         plateau_patience: passes in a row without progress that end a level (0: never stop early).
@@ -1066,8 +1073,10 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     n_cap = s.epochs * n_views if s.max_steps is None else min(s.epochs * n_views, s.max_steps)
     if n_cap < 1:
         return OptimizationResult(field, np.zeros(0), 0, 0.0)
-    # whole passes only, and one pass at least left for the fit scale
-    coarse_passes = max(0, min(s.coarse_max_steps // n_views, n_cap // n_views - 1)) if coarse else 0
+    # whole passes only, and at least as many left for the fit scale
+    coarse = coarse and images[0].shape[1] / fc >= MIN_COARSE_WIDTH_PX
+    coarse_passes = (max(0, min(s.coarse_max_steps // n_views, int(n_cap // n_views * COARSE_MAX_PASS_FRACTION)))
+                     if coarse else 0)
     levels = ([_Level("coarse", fc, images, depths_m, K)] if coarse_passes else []) + [
         _Level("fine", f, images, depths_m, K)]
 
