@@ -149,13 +149,13 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             "dataset_version": dataset_version(name),  # after generating or downloading it
         })
 
-    @stage("fused_frames", "1", "Back-projected coloured points of every frame (camera frame), depth range and stride from config.")
+    @stage("fused_frames", "2", "Back-projected coloured points of every frame (camera frame), in chunks of 32 frames; depth range and stride from config.")
     def fused_frames(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest):
         cfg = atlas.load()
         if (out := reuse(context, cfg)) is not None:
             return out
         fused = fuse(raw_dataset, cfg, log=context.log.info)
-        return versioned(context, fused, {"n_points": int(len(fused.points_cam)),
+        return versioned(context, fused, {"n_points": fused.n_points,
                                           "mean_valid_fraction": float(fused.valid_fraction.mean())})
 
     @stage("keyframes", "7", "Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "

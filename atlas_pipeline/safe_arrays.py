@@ -46,7 +46,7 @@ from atlas_pipeline.errors import ArtifactError, AtlasError, BundleFormatError, 
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["load_npz_checked", "load_json_object_checked", "is_finite_number", "NPZ_MAX_DEFLATE_RATIO",
+__all__ = ["load_npz_checked", "save_npz_deterministic", "load_json_object_checked", "is_finite_number", "NPZ_MAX_DEFLATE_RATIO",
            "NPY_MAX_HEADER_BYTES", "NPZ_MAX_MEMBERS", "JSON_SIDECAR_MAX_BYTES"]
 
 # Deflate emits at most 258 bytes per ~2-bit code, so its output is at most ~1032 times its input
@@ -284,6 +284,23 @@ def load_npz_checked(path: str | Path, expected: Mapping[str, MemberSpec] | None
     except _CORRUPT_ZIP as exc:
         raise _error(error_type, path, f"corrupt npz archive ({type(exc).__name__}: {str(exc)[:200]})") from None
     return out
+
+
+# Every member of a project-written .npz carries this timestamp (the zip format's earliest), so the
+# same arrays give the same bytes: numpy's savez stamps the wall clock, which made equal artifacts
+# hash differently (content hashes are data versions).
+NPZ_MEMBER_DATE_TIME = (1980, 1, 1, 0, 0, 0)
+
+
+def save_npz_deterministic(file, **arrays: np.ndarray) -> None:
+    """``np.savez`` (uncompressed, loadable by ``np.load``) with fixed member timestamps and order,
+    so equal arrays give byte-identical files. ``file`` is a path or a binary file object."""
+    with zipfile.ZipFile(file, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=NPZ_MEMBER_DATE_TIME)
+            info.compress_type = zipfile.ZIP_STORED
+            with zf.open(info, "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
 
 
 # Sidecar JSON of an npz artifact (world.json, fused.json, keyframes.json) is a few kB; a file

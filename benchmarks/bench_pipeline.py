@@ -200,7 +200,7 @@ def run_once(entry: DatasetEntry, cfg: PipelineConfig, work: Path) -> dict[str, 
     return {
         "stages": {st: {"seconds": sec[st], "frames": frames[st]} for st in STAGES},
         "n_frames": n,
-        "n_fused_points": int(len(fused.points_cam)),
+        "n_fused_points": fused.n_points,
         "n_keyframes": int(len(keyframes.indices)),
         "mapping_pose_source": keyframes.pose_source,
         "n_gaussians": n_g,

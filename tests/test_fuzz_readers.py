@@ -465,11 +465,19 @@ def build_targets(root: Path) -> dict[str, FuzzTarget]:
                         np.array([0.5, 0.0, 0.4, 0.3], np.float32), 2, 0.1, 4.0)
     fused.save(_make_folder(tmp, "fused"))
     json_magic = [b"", b"{", b"{\"a\": "]
-    for name, stem, cls in (("world_npz", "world", GaussianWorld), ("keyframes_npz", "keyframes", KeyframeSet),
-                            ("fused_npz", "fused", FusedFrames)):
+    def read_fused(d: Path):  # the index at load, then every chunk (read lazily, per frame)
+        f = FusedFrames.load(d)
+        return [f.frame(i) for i in range(f.n_frames)]
+
+    for name, stem, call in (("world_npz", "world", GaussianWorld.load), ("keyframes_npz", "keyframes", KeyframeSet.load),
+                             ("fused_npz", "fused", read_fused)):
         npz = FuzzFile(f"{stem}.npz", [(tmp / stem / f"{stem}.npz").read_bytes()], "npz", magic=npz_magic)
         sidecar = FuzzFile(f"{stem}.json", [(tmp / stem / f"{stem}.json").read_bytes()], "text", magic=json_magic)
-        add(name, [npz, npz, npz, sidecar], (lambda c: lambda d: lambda: c.load(d))(cls))
+        files = [npz, npz, npz, sidecar]
+        if stem == "fused":  # the points chunk too
+            files.append(FuzzFile("fused-00000.npz", [(tmp / stem / "fused-00000.npz").read_bytes()], "npz",
+                                  magic=npz_magic))
+        add(name, files, (lambda c: lambda d: lambda: c(d))(call))
 
     # -- world bundle: metadata.json fuzzed, the Gaussians and surfels valid
     bundle_dir = write_world_bundle(tmp / "bundle", fld, {"name": "fuzz", "dataset": {"name": "fuzz"}}, surfels=surfels)

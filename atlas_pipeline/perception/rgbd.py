@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass
+import os
+import shutil
+import tempfile
+import weakref
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -19,7 +23,12 @@ from atlas_pipeline.config import FusionConfig, PipelineConfig
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.progress import Progress
-from atlas_pipeline.safe_arrays import is_finite_number, load_json_object_checked, load_npz_checked
+from atlas_pipeline.safe_arrays import (
+    is_finite_number,
+    load_json_object_checked,
+    load_npz_checked,
+    save_npz_deterministic,
+)
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.tum import FrameManifest
 
@@ -93,106 +102,223 @@ def iter_rgbd(manifest: FrameManifest, indices=None):
         yield i, rgb, depth
 
 
-# fused.npz members: (dtype kinds or exact dtype, ndim); shapes in FusedFrames.
-_FUSED_MEMBERS = {"points_cam": ("f", 2), "colors": (np.uint8, 2), "offsets": ("iu", 1), "valid_fraction": ("f", 1)}
+# Frames per points chunk (``fused-NNNNN.npz``): at 640x480 and stride 2 a chunk is ~37 MB, which
+# bounds what fusing or reading holds, whatever the sequence length (issue 14: a 1,200-frame
+# sequence was one 904 MB array).
+FUSED_CHUNK_FRAMES = 32
+FUSED_INDEX_FILE = "fused.npz"  # offsets and valid fractions of every frame (small)
+FUSED_META_FILE = "fused.json"
+FUSED_CHUNK_PATTERN = "fused-{:05d}.npz"
+# Members (dtype kinds or exact dtype, ndim); shapes in FusedFrames.
+_FUSED_INDEX_MEMBERS = {"offsets": ("iu", 1), "valid_fraction": ("f", 1)}
+_FUSED_CHUNK_MEMBERS = {"points_cam": ("f", 2), "colors": (np.uint8, 2)}
 
 
 @dataclass
 class FusedFrames:
-    """Coloured camera-frame points of every frame, concatenated.
+    """Coloured camera-frame points of every frame, in frame order.
 
     Points stay in the camera frame so this artifact does not depend on which poses (ground truth
-    or estimated) the mapper uses later.
+    or estimated) the mapper uses later. They are held either in memory (``points_cam`` /
+    ``colors``) or, as :func:`fuse_frames` and :meth:`load` give them, in chunks of
+    ``chunk_frames`` frames on disk (``chunk_dir``), read one chunk at a time by :meth:`frame`: so
+    no stage holds the points of the whole sequence.
+
+    On disk (:meth:`save`): ``fused.npz`` (``offsets``, ``valid_fraction``), ``fused.json``
+    (settings, counts, chunk size) and ``fused-00000.npz``... (``points_cam``, ``colors`` of the
+    frames ``[k * chunk_frames, (k + 1) * chunk_frames)``), each readable with ``np.load``.
 
     Attributes:
-        points_cam: ``[M, 3]`` float32, metres, camera frame of the frame they came from.
-        colors: ``[M, 3]`` uint8 RGB.
+        points_cam: ``[M, 3]`` float32, metres, camera frame of the frame they came from; None
+            when the points live in ``chunk_dir``.
+        colors: ``[M, 3]`` uint8 RGB (None likewise).
         offsets: ``[N + 1]`` int64; frame ``i`` owns rows ``offsets[i]:offsets[i+1]``.
         valid_fraction: ``[N]`` float32 share of sampled pixels with usable depth.
         stride, min_depth_m, max_depth_m: the settings that produced them.
+        chunk_dir: folder of the chunk files, or None (in memory).
+        chunk_frames: frames per chunk.
     """
 
-    points_cam: np.ndarray
-    colors: np.ndarray
+    points_cam: np.ndarray | None
+    colors: np.ndarray | None
     offsets: np.ndarray
     valid_fraction: np.ndarray
     stride: int
     min_depth_m: float
     max_depth_m: float
+    chunk_dir: Path | None = None
+    chunk_frames: int = FUSED_CHUNK_FRAMES
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_frames(self) -> int:
         return len(self.offsets) - 1
 
+    @property
+    def n_points(self) -> int:
+        return int(self.offsets[-1])
+
+    @property
+    def n_chunks(self) -> int:
+        return -(-self.n_frames // self.chunk_frames)
+
+    def _chunk(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """Points and colours of chunk ``c`` (the last one read stays cached), checked against the index."""
+        if self._cache.get("c") == c:
+            return self._cache["pts"], self._cache["cols"]
+        path = self.chunk_dir / FUSED_CHUNK_PATTERN.format(c)
+        z = load_npz_checked(path, _FUSED_CHUNK_MEMBERS, error_type=ArtifactError)
+        pts, cols = z["points_cam"], z["colors"]
+        a = int(self.offsets[c * self.chunk_frames])
+        b = int(self.offsets[min((c + 1) * self.chunk_frames, self.n_frames)])
+        if pts.shape != (b - a, 3) or cols.shape != pts.shape:
+            raise ArtifactError(f"{path}: points_cam {list(pts.shape)} and colors {list(cols.shape)} must both be "
+                                f"[{b - a}, 3] (the index's points of frames {c * self.chunk_frames}..)")
+        if not np.isfinite(pts).all():
+            raise ArtifactError(f"{path}: points_cam has NaN or infinite values")
+        self._cache.update(c=c, pts=pts.astype(np.float32, copy=False), cols=cols)
+        return self._cache["pts"], cols
+
     def frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``(points_cam [Mi, 3], colors [Mi, 3])`` of frame ``i`` (views, no copy)."""
-        a, b = self.offsets[i], self.offsets[i + 1]
-        return self.points_cam[a:b], self.colors[a:b]
+        if not 0 <= i < self.n_frames:
+            raise IndexError(f"frame {i} out of range [0, {self.n_frames})")
+        a, b = int(self.offsets[i]), int(self.offsets[i + 1])
+        if self.chunk_dir is None:
+            return self.points_cam[a:b], self.colors[a:b]
+        c = i // self.chunk_frames
+        pts, cols = self._chunk(c)
+        base = int(self.offsets[c * self.chunk_frames])
+        return pts[a - base:b - base], cols[a - base:b - base]
+
+    def _write_chunks(self, directory: Path) -> list[Path]:
+        """The chunk files in ``directory``: written from memory, or linked (else copied) from ``chunk_dir``."""
+        out = []
+        for c in range(self.n_chunks):
+            path = directory / FUSED_CHUNK_PATTERN.format(c)
+            if self.chunk_dir is not None:
+                src = self.chunk_dir / FUSED_CHUNK_PATTERN.format(c)
+                if src.resolve() != path.resolve():
+                    with atomic_path(path) as tmp:
+                        try:  # same file system: no copy of what may be gigabytes
+                            os.link(src, tmp)
+                        except OSError:
+                            shutil.copyfile(src, tmp)
+            else:
+                a = int(self.offsets[c * self.chunk_frames])
+                b = int(self.offsets[min((c + 1) * self.chunk_frames, self.n_frames)])
+                with atomic_path(path) as tmp:
+                    save_npz_deterministic(tmp, points_cam=self.points_cam[a:b], colors=self.colors[a:b])
+            out.append(path)
+        return out
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
-        path = directory / "fused.npz"
+        chunks = self._write_chunks(directory)
+        path = directory / FUSED_INDEX_FILE
         with atomic_path(path) as tmp:
-            np.savez(tmp, points_cam=self.points_cam, colors=self.colors, offsets=self.offsets,
-                     valid_fraction=self.valid_fraction)
-        meta = write_json_atomic(directory / "fused.json", {
-            "n_frames": self.n_frames, "n_points": int(len(self.points_cam)), "stride": self.stride,
+            save_npz_deterministic(tmp, offsets=self.offsets, valid_fraction=self.valid_fraction)
+        meta = write_json_atomic(directory / FUSED_META_FILE, {
+            "n_frames": self.n_frames, "n_points": self.n_points, "stride": self.stride,
             "min_depth_m": self.min_depth_m, "max_depth_m": self.max_depth_m,
+            "chunk_frames": self.chunk_frames, "n_chunks": self.n_chunks,
         })
-        return [path, meta]
+        return [path, meta, *chunks]
 
     @classmethod
     def load(cls, directory: Path) -> "FusedFrames":
-        """Read :meth:`save`'s folder; arrays are checked (dtype, shape, offsets that partition the
-        points, finite points) and a malformed file raises ``ArtifactError`` naming it."""
-        path, meta_path = directory / "fused.npz", directory / "fused.json"
+        """Read :meth:`save`'s folder: the index and settings now (checked: dtypes, shapes, offsets
+        that partition the points, every chunk file present), each chunk when a frame of it is read
+        (checked then). A malformed file raises ``ArtifactError`` naming it."""
+        path, meta_path = directory / FUSED_INDEX_FILE, directory / FUSED_META_FILE
         if not path.is_file() or not meta_path.is_file():
-            raise ArtifactError(f"{directory}: fused frames missing fused.npz or fused.json")
+            raise ArtifactError(f"{directory}: fused frames missing {FUSED_INDEX_FILE} or {FUSED_META_FILE}")
         meta = load_json_object_checked(meta_path)
         stride, lo, hi = meta.get("stride"), meta.get("min_depth_m"), meta.get("max_depth_m")
-        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-            raise ArtifactError(f"{meta_path}: stride must be an integer >= 1, got {stride!r}")
+        chunk_frames, n_points = meta.get("chunk_frames"), meta.get("n_points")
+        for name, v in (("stride", stride), ("chunk_frames", chunk_frames)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ArtifactError(f"{meta_path}: {name} must be an integer >= 1, got {v!r}")
+        if isinstance(n_points, bool) or not isinstance(n_points, int) or n_points < 0:
+            raise ArtifactError(f"{meta_path}: n_points must be an integer >= 0, got {n_points!r}")
         if not (is_finite_number(lo) and is_finite_number(hi)):
             raise ArtifactError(f"{meta_path}: min_depth_m and max_depth_m must be finite numbers, got {lo!r}, {hi!r}")
-        z = load_npz_checked(path, _FUSED_MEMBERS, error_type=ArtifactError)
-        pts, cols, offsets, valid = z["points_cam"], z["colors"], z["offsets"], z["valid_fraction"]
+        z = load_npz_checked(path, _FUSED_INDEX_MEMBERS, error_type=ArtifactError)
+        offsets, valid = z["offsets"], z["valid_fraction"]
         n = len(valid)
-        if pts.shape[1:] != (3,) or cols.shape != pts.shape or offsets.shape != (n + 1,):
-            raise ArtifactError(f"{path}: points_cam {list(pts.shape)}, colors {list(cols.shape)}, offsets "
-                                f"{list(offsets.shape)} and valid_fraction {list(valid.shape)} must be "
-                                "[M, 3], [M, 3], [N + 1], [N]")
-        if offsets[0] != 0 or int(offsets[-1]) != len(pts) or (np.diff(offsets.astype(np.int64)) < 0).any():
-            raise ArtifactError(f"{path}: offsets must rise from 0 to the number of points ({len(pts)})")
-        if not np.isfinite(pts).all():
-            raise ArtifactError(f"{path}: points_cam has NaN or infinite values")
+        if offsets.shape != (n + 1,):
+            raise ArtifactError(f"{path}: offsets {list(offsets.shape)} and valid_fraction {list(valid.shape)} "
+                                "must be [N + 1] and [N]")
+        if offsets[0] != 0 or int(offsets[-1]) != n_points or (np.diff(offsets.astype(np.int64)) < 0).any():
+            raise ArtifactError(f"{path}: offsets must rise from 0 to the number of points ({n_points})")
         if not (np.isfinite(valid).all() and (valid >= 0).all() and (valid <= 1).all()):
             raise ArtifactError(f"{path}: valid_fraction must lie in [0, 1]")
-        return cls(points_cam=pts.astype(np.float32), colors=cols, offsets=offsets.astype(np.int64),
-                   valid_fraction=valid.astype(np.float32), stride=stride, min_depth_m=float(lo), max_depth_m=float(hi))
+        out = cls(points_cam=None, colors=None, offsets=offsets.astype(np.int64),
+                  valid_fraction=valid.astype(np.float32), stride=stride, min_depth_m=float(lo),
+                  max_depth_m=float(hi), chunk_dir=directory, chunk_frames=chunk_frames)
+        missing = [FUSED_CHUNK_PATTERN.format(c) for c in range(out.n_chunks)
+                   if not (directory / FUSED_CHUNK_PATTERN.format(c)).is_file()]
+        if missing:
+            raise ArtifactError(f"{directory}: fused frames missing chunk file(s) {', '.join(missing[:3])}")
+        return out
+
+
+class _ChunkSpool:
+    """Writes the points of consecutive frames into chunk files of ``chunk_frames`` frames in a
+    temporary folder this process creates (removed when the returned FusedFrames is collected)."""
+
+    def __init__(self, chunk_frames: int):
+        self.dir = Path(tempfile.mkdtemp(prefix="atlas-fused-"))
+        self.chunk_frames = chunk_frames
+        self.pts: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+        self.n_chunks = 0
+
+    def add(self, pts: np.ndarray, cols: np.ndarray) -> None:
+        self.pts.append(pts.astype(np.float32, copy=False))
+        self.cols.append(cols.astype(np.uint8, copy=False))
+        if len(self.pts) == self.chunk_frames:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.pts:
+            return
+        path = self.dir / FUSED_CHUNK_PATTERN.format(self.n_chunks)
+        save_npz_deterministic(path, points_cam=np.concatenate(self.pts), colors=np.concatenate(self.cols))
+        self.pts, self.cols = [], []
+        self.n_chunks += 1
 
 
 def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
-                log: Callable[[str], None] | None = None) -> FusedFrames:
-    """Back-project every frame of ``manifest`` with the settings of ``cfg``."""
+                log: Callable[[str], None] | None = None, chunk_frames: int = FUSED_CHUNK_FRAMES) -> FusedFrames:
+    """Back-project every frame of ``manifest`` with the settings of ``cfg``, streaming: frames
+    are read one at a time and their points written in chunks of ``chunk_frames`` frames to a
+    temporary folder, so memory holds one chunk whatever the sequence length."""
     progress = Progress("fusing frames", manifest.n_frames, log)
-    pts_list, col_list, counts, valid = [], [], [], []
+    spool = _ChunkSpool(chunk_frames)
+    counts, valid = [], []
     n_sampled = len(range(0, manifest.camera.height, cfg.stride)) * len(range(0, manifest.camera.width, cfg.stride))
-    for i, rgb, depth in iter_rgbd(manifest):
-        pts, cols = backproject(depth, rgb, manifest.camera, cfg.stride, cfg.min_depth_m, cfg.max_depth_m)
-        pts_list.append(pts)
-        col_list.append(cols)
-        counts.append(len(pts))
-        valid.append(len(pts) / n_sampled)
-        progress.update()
+    try:
+        for i, rgb, depth in iter_rgbd(manifest):
+            pts, cols = backproject(depth, rgb, manifest.camera, cfg.stride, cfg.min_depth_m, cfg.max_depth_m)
+            spool.add(pts, cols)
+            counts.append(len(pts))
+            valid.append(len(pts) / n_sampled)
+            progress.update()
+        spool.flush()
+    except BaseException:
+        shutil.rmtree(spool.dir, ignore_errors=True)
+        raise
     offsets = np.zeros(len(counts) + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
-    return FusedFrames(
-        points_cam=np.concatenate(pts_list).astype(np.float32),
-        colors=np.concatenate(col_list).astype(np.uint8),
-        offsets=offsets,
-        valid_fraction=np.asarray(valid, dtype=np.float32),
+    out = FusedFrames(
+        points_cam=None, colors=None, offsets=offsets, valid_fraction=np.asarray(valid, dtype=np.float32),
         stride=cfg.stride, min_depth_m=cfg.min_depth_m, max_depth_m=cfg.max_depth_m,
+        chunk_dir=spool.dir, chunk_frames=chunk_frames,
     )
+    # The spool is ours (made above): it goes when the artifact object does; save() links its files.
+    weakref.finalize(out, shutil.rmtree, str(spool.dir), True)
+    return out
 
 
 def fuse(manifest: FrameManifest, cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> FusedFrames:

@@ -1,0 +1,167 @@
+"""How the pipeline scales with sequence length: seconds, per-frame time and peak memory per stage.
+
+For each frame count N the synthetic room (the registry's ``synthetic`` entry with ``n_frames``
+set to N: the same scene, a longer path) is generated into a temporary data folder (not timed),
+then every stage runs through the library in a fresh child process, in the order the Dagster graph
+runs them: load, fuse, keyframes, gaussian_world, localization, transitions, render_evaluation.
+A sampler thread reads the process's resident set (``/proc/self/statm``) every
+``SAMPLE_INTERVAL_S``; a stage's peak is the largest sample taken while it ran (memory freed by
+an earlier stage may still be resident, so a stage's peak is an upper bound on its own need).
+
+    python benchmarks/bench_scale.py                       # N = 100 500 2000
+    python benchmarks/bench_scale.py --frames 60 240 --json scale.json
+
+The table gives, per N: seconds and peak RSS (MB) per stage, the whole run's peak, seconds per
+frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged),
+and the held-out PSNR (full frame / within mapped pixels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE_INTERVAL_S = 0.05  # RSS sampling period: short against every stage at these sizes
+STAGES = ("load_dataset", "fuse", "keyframes", "gaussian_world", "localization", "transitions",
+          "render_evaluation")
+DEFAULT_FRAMES = (100, 500, 2000)  # issue 14's curve
+
+
+class RssSampler(threading.Thread):
+    """Samples this process's resident set size; :meth:`peak_since` gives the largest since a mark."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.page = os.sysconf("SC_PAGE_SIZE")
+        self.peak = 0
+        self._stop = threading.Event()
+
+    def rss(self) -> int:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * self.page
+
+    def mark(self) -> None:
+        self.peak = self.rss()
+
+    def run(self) -> None:
+        while not self._stop.wait(SAMPLE_INTERVAL_S):
+            self.peak = max(self.peak, self.rss())
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+def child(n_frames: int, data_dir: str, profile: str) -> dict:
+    """Every stage once on the synthetic room at ``n_frames`` (run inside a fresh process)."""
+    sys.path.insert(0, str(ROOT))
+    os.environ["ATLAS_DATA_DIR"] = data_dir
+    import dataclasses
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
+    from atlas_pipeline.localization.localizer import localize
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
+    from atlas_pipeline.sensors.registry import load_dataset, load_registry
+    from atlas_pipeline.transition_log.transitions import log_transitions
+
+    quiet = lambda *_: None  # noqa: E731
+    cfg = load_profile(profile)
+    base = load_registry()["synthetic"]
+    entry = dataclasses.replace(base, name=f"synthetic-{n_frames}", path=Path(data_dir) / f"synthetic-{n_frames}",
+                                params={**base.params, "n_frames": n_frames})
+    sampler = RssSampler()
+    sampler.start()
+    out: dict = {"n_frames": n_frames, "stages": {}}
+
+    def timed(stage: str, fn, *args, **kwargs):
+        sampler.mark()
+        t0 = time.perf_counter()
+        res = fn(*args, **kwargs)
+        sec = time.perf_counter() - t0
+        out["stages"][stage] = {"seconds": round(sec, 2), "peak_rss_mb": round(max(sampler.peak, sampler.rss()) / 2**20)}
+        return res
+
+    manifest = timed("load_dataset", load_dataset, entry, cfg, quiet)
+    fused = timed("fuse", fuse, manifest, cfg, quiet)
+    keyframes = timed("keyframes", select_keyframes_stage, manifest, fused, cfg, quiet)
+    world = timed("gaussian_world", build_gaussian_world, fused, keyframes, cfg, quiet, manifest=manifest)
+    report = timed("localization", localize, manifest, world, cfg, quiet)
+    timed("transitions", log_transitions, report, entry.name, len(world.field), cfg)
+    ev = timed("render_evaluation", evaluate_rendering, manifest, world, report, cfg, quiet)
+    sampler.stop()
+    import resource
+
+    out.update(n_keyframes=int(len(keyframes.indices)), n_gaussians=int(len(world.field)),
+               peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+               psnr_db=ev.summary.get("mean_psnr_db"), psnr_masked_db=ev.summary.get("mean_psnr_masked_db"),
+               ate_m=report.summary.get("ate_rmse_m"))
+    return out
+
+
+def generate(n_frames: int, data_dir: str) -> None:
+    """The synthetic room at ``n_frames`` into ``data_dir`` (before any timing)."""
+    sys.path.insert(0, str(ROOT))
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
+    from atlas_pipeline.sensors.registry import load_registry
+
+    params = {**load_registry()["synthetic"].params, "n_frames": n_frames}
+    generate_synthetic_dataset(Path(data_dir) / f"synthetic-{n_frames}", SyntheticSpec(**params))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", nargs="+", type=int, default=list(DEFAULT_FRAMES))
+    ap.add_argument("--profile", default="default")
+    ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--data", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child is not None:
+        print(json.dumps(child(args.child, args.data, args.profile)))
+        return 0
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="atlas-bench-scale-") as data:
+        for n in args.frames:
+            generate(n, data)
+            proc = subprocess.run([sys.executable, __file__, "--child", str(n), "--data", data,
+                                   "--profile", args.profile], capture_output=True, text=True, cwd=ROOT)
+            if proc.returncode != 0:
+                print(f"N={n}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+                return 1
+            rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    print(f"synthetic room, profile {args.profile}; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    print("seconds / peak RSS MB per stage:")
+    print(f"{'frames':>7} " + " ".join(f"{s[:14]:>16}" for s in STAGES))
+    for r in rows:
+        print(f"{r['n_frames']:>7} " + " ".join(
+            f"{r['stages'][s]['seconds']:>8.1f}/{r['stages'][s]['peak_rss_mb']:<7d}" for s in STAGES))
+    base = None
+    print(f"\n{'frames':>7} {'keyframes':>9} {'Gaussians':>10} {'total s':>8} {'s/frame':>8} {'ratio':>6} "
+          f"{'peak MB':>8} {'PSNR':>6} {'masked':>7} {'ATE cm':>7}")
+    for r in rows:
+        total = sum(st["seconds"] for st in r["stages"].values())
+        per = total / r["n_frames"]
+        base = base or per
+        f = lambda v, d=2: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731
+        print(f"{r['n_frames']:>7} {r['n_keyframes']:>9} {r['n_gaussians']:>10} {total:>8.1f} {per:>8.3f} "
+              f"{per / base:>6.2f} {r['peak_rss_mb']:>8} {f(r['psnr_db']):>6} {f(r['psnr_masked_db']):>7} "
+              f"{f(None if r['ate_m'] is None else r['ate_m'] * 100):>7}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
