@@ -275,11 +275,13 @@ class SurfelModel:
     def save(self, path: Path) -> Path:
         """``surfels.npz``: centres and normals ``[M, 3]`` float32, radius_m (no pickled objects)."""
         from atlas_pipeline.io_utils import atomic_path
+        from atlas_pipeline.safe_arrays import save_npz_deterministic
 
         with atomic_path(Path(path)) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, centres=np.asarray(self.centres, np.float32),
-                         normals=np.asarray(self.normals, np.float32), radius_m=np.float64(self.radius_m))
+            with open(tmp, "wb") as fh:  # equal surfels, equal bytes (the bundle's hashes)
+                save_npz_deterministic(fh, centres=np.asarray(self.centres, np.float32),
+                                       normals=np.asarray(self.normals, np.float32),
+                                       radius_m=np.float64(self.radius_m))
         return Path(path)
 
     @classmethod
