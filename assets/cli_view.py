@@ -50,8 +50,35 @@ def cmd_view(args: argparse.Namespace) -> int:
     report: Path | None = Path(args.report).expanduser() if args.report else None
     if report is None and not (world / "localization.json").is_file():
         report = partition_report
+    if args.rrd:
+        return _write_rrd(args, world, report)
     return run_viewer(world, host=args.host, port=args.port, report=report, read_dataset=not args.no_dataset,
                       announce=lambda line: print(line, flush=True))
+
+
+def _write_rrd(args: argparse.Namespace, world: Path, report: Path | None) -> int:
+    """``--rrd FILE``: a Rerun recording instead of the browser viewer. An existing FILE is replaced
+    only with ``--force`` and only when it is a Rerun recording (never a user's other file)."""
+    try:
+        from atlas_pipeline.viz.rerun_export import export_rerun
+    except ImportError as exc:  # optional: the [rerun] extra
+        raise ConfigError(f"--rrd needs the Rerun SDK ({exc}); install it with pip install 'atlas-gs[rerun]'") from None
+    out = Path(args.rrd).expanduser()
+    if out.suffix != ".rrd":
+        raise ConfigError(f"--rrd {out}: the file name must end in .rrd")
+    if not out.parent.is_dir():
+        raise ConfigError(f"--rrd {out}: folder {out.parent} does not exist")
+    if out.exists():
+        if not args.force:
+            raise ConfigError(f"--rrd {out} exists; give --force to replace it")
+        if not out.is_file() or out.read_bytes()[:4] != RRD_MAGIC:
+            raise ConfigError(f"--rrd {out} exists and is not a Rerun recording: not replaced")
+    export_rerun(world, out, report=report, read_dataset=not args.no_dataset, frame_step=args.frame_step)
+    print(out.resolve(), flush=True)
+    return 0
+
+
+RRD_MAGIC = b"RRF2"  # first bytes of a Rerun recording file (checked before --force replaces one)
 
 
 def add_view_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -72,5 +99,10 @@ def add_view_command(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     v.add_argument("--no-dataset", action="store_true",
                    help="do not read the dataset's frames: keyframe frusta without images, ground truth "
                         "only from the report")
+    v.add_argument("--rrd", default=None, metavar="FILE.rrd",
+                   help="write a Rerun recording instead of serving: the Gaussians, trajectories, keyframes, "
+                        "and per frame the pose, RGB, depth and tracking status (open with `rerun FILE.rrd`)")
+    v.add_argument("--frame-step", type=int, default=1, metavar="N", help="--rrd: every N-th frame (default 1)")
+    v.add_argument("--force", action="store_true", help="--rrd: replace an existing recording")
     v.set_defaults(func=cmd_view)
     return v
