@@ -48,6 +48,200 @@ ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "lo
                "transitions", "demo_videos", "render_evaluation", "world_bundle"]
 
 
+# ---- output: one short log format, Dagster's chatter off unless -v, progress bars -------------------
+
+# Third-party loggers that say nothing a user of atlas-gs needs, even with -v (numba's DEBUG lines
+# alone are thousands a compile).
+MUTED_LOGGERS = ("numba", "matplotlib", "PIL", "asyncio", "urllib3", "filelock", "fsspec", "grpc", "websockets",
+                 "sqlalchemy")  # sqlalchemy: every SQL statement of the instance's database
+# Dagster's own loggers and its database migrations': shown with -v only (instance notices, migration lines).
+DAGSTER_LOGGERS = ("dagster", "alembic")
+WARNINGS_LOGGER = "py.warnings"  # where logging.captureWarnings sends them (-v)
+RUN_LOGGER = "atlas_gs.run"  # the CLI's view of Dagster run events (stage summaries; all events with -v)
+# Loggers whose INFO lines the default (quiet) output keeps: the command's own.
+QUIET_INFO_LOGGERS = ("atlas_gs.cli", RUN_LOGGER)
+DAGSTER_META_ATTR = "dagster_meta"  # what Dagster's log manager attaches to the records it passes on
+SECONDS_PER_MS = 1e-3
+
+
+def _out(text: str) -> None:
+    """A result on stdout, after any progress bar is cleared from the terminal."""
+    from atlas_pipeline.progress import current_terminal
+
+    term = current_terminal()
+    if term is not None:
+        term.clear()
+    print(text, flush=True)
+
+
+def _took(seconds: float) -> str:
+    from atlas_pipeline.progress import format_duration
+
+    return f"{seconds:.1f} s" if seconds < 60 else format_duration(seconds)
+
+
+def _dagster_error(ev: Any) -> str:
+    """The message of a failed step's error (the cause's, where the step wrapped one)."""
+    err = getattr(ev.event_specific_data, "error", None)
+    if err is None:
+        return "failed"
+    return (err.cause.message if err.cause else err.message).strip()
+
+
+class _CliFormatter(logging.Formatter):
+    """``message`` for INFO, ``warning: message`` otherwise; Dagster's records as
+    ``step: message`` (``step EVENT: message`` for its events) instead of its 110-character prefix."""
+
+    def __init__(self, verbose: bool):
+        super().__init__()
+        self.verbose = verbose
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = getattr(record, "atlas_text", None)
+        if text is None:
+            meta = getattr(record, DAGSTER_META_ATTR, None)
+            if isinstance(meta, dict) and "orig_message" in meta:
+                ev = meta.get("dagster_event")
+                text = str(meta["orig_message"])
+                if ev is not None:
+                    text = f"{ev.event_type_value}: {text}"
+                    if ev.is_failure and self.verbose:
+                        text += f": {_dagster_error(ev)}"
+                if meta.get("step_key"):
+                    text = f"{meta['step_key']}: {text}"
+            else:
+                text = record.getMessage()
+        if record.exc_info and self.verbose:
+            text += "\n" + self.formatException(record.exc_info)
+        return text if record.levelno == logging.INFO else f"{record.levelname.lower()}: {text}"
+
+
+class _CliHandler(logging.Handler):
+    """Writes records below the progress bar (:class:`atlas_pipeline.progress.Terminal`); decides
+    what the quiet default shows, and turns Dagster's step events into one line per stage."""
+
+    def __init__(self, terminal: Any, verbose: bool):
+        super().__init__(logging.DEBUG)
+        self.terminal = terminal
+        self.verbose = verbose
+        self.setFormatter(_CliFormatter(verbose))
+        self._reused: dict[str, bool] = {}
+        self._warned: set[str] = set()
+
+    def _shown(self, record: logging.LogRecord) -> bool:
+        name = record.name
+        if any(name == m or name.startswith(m + ".") for m in MUTED_LOGGERS) and record.levelno < logging.WARNING:
+            return False
+        meta = getattr(record, DAGSTER_META_ATTR, None)
+        if isinstance(meta, dict) and meta.get("dagster_event") is not None:
+            return self._dagster_event(record, meta["dagster_event"])
+        if name == WARNINGS_LOGGER:
+            # once each, on one line ("file:line: Category: message"; the source line left out),
+            # however many times and from wherever Dagster raises it
+            first = record.getMessage().strip().splitlines()[0] if record.getMessage().strip() else ""
+            if first in self._warned:
+                return False
+            self._warned.add(first)
+            record.atlas_text = first
+            return True
+        if self.verbose:
+            return True
+        if any(name == d or name.startswith(d + ".") for d in DAGSTER_LOGGERS):
+            return record.levelno >= logging.ERROR  # instance notices and migrations: -v only
+        if record.levelno >= logging.WARNING:
+            return True
+        return any(name == q or name.startswith(q + ".") for q in QUIET_INFO_LOGGERS) and not isinstance(meta, dict)
+
+    def _dagster_event(self, record: logging.LogRecord, ev: Any) -> bool:
+        """Dagster's events: all with -v; else a line per finished pipeline stage, a failed step,
+        a failed check."""
+        kind = ev.event_type_value
+        if kind == "ASSET_MATERIALIZATION" and ev.asset_key is not None and len(ev.asset_key.path) == 1:
+            reused = ev.event_specific_data.materialization.metadata.get("reused")
+            self._reused[ev.asset_key.path[-1]] = bool(reused is not None and reused.value)
+        if self.verbose:
+            return True
+        step = ev.step_key or ""
+        if kind == "STEP_SUCCESS" and step in ASSET_ORDER:
+            ms = getattr(ev.event_specific_data, "duration_ms", None)
+            took = f"  {_took(ms * SECONDS_PER_MS)}" if ms is not None else ""
+            record.atlas_text = f"{step:<20s} {'reused' if self._reused.get(step) else 'computed'}{took}"
+            record.levelno, record.levelname = logging.INFO, "INFO"
+            return True
+        if kind == "STEP_FAILURE":
+            record.atlas_text = f"{step} failed: {_dagster_error(ev)}"
+            record.levelno, record.levelname = logging.ERROR, "ERROR"
+            return True
+        if kind == "ASSET_CHECK_EVALUATION" and not ev.event_specific_data.passed:
+            d = ev.event_specific_data
+            record.atlas_text = f"check {d.asset_key.to_user_string()}:{d.check_name} failed: {d.description or ''}".strip()
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            return True
+        return False
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            if self._shown(record):
+                self.terminal.write_line(self.format(record))
+        except Exception:  # noqa: BLE001 - logging must never break the command
+            self.handleError(record)
+
+
+class _CliOutput:
+    """The command's stderr for the duration of ``main``: one handler on the root logger, levels of
+    Dagster's and third-party loggers, warnings (ignored; with -v shown once, as log lines) and
+    the progress terminal. Everything is restored on exit (``main`` may run many times in a process)."""
+
+    def __init__(self, verbose: bool):
+        self.verbose = verbose
+
+    def __enter__(self) -> "_CliOutput":
+        import warnings
+
+        from atlas_pipeline.progress import Terminal, use_terminal
+
+        self.terminal = Terminal(sys.stderr)
+        self.handler = _CliHandler(self.terminal, self.verbose)
+        root = logging.getLogger()
+        self._levels = {n: logging.getLogger(n).level for n in ("", *MUTED_LOGGERS, *DAGSTER_LOGGERS, RUN_LOGGER)}
+        root.setLevel(logging.DEBUG if self.verbose else logging.INFO)
+        for n in MUTED_LOGGERS:
+            logging.getLogger(n).setLevel(logging.WARNING)
+        for n in DAGSTER_LOGGERS:
+            logging.getLogger(n).setLevel(logging.DEBUG if self.verbose else logging.WARNING)
+        logging.getLogger(RUN_LOGGER).setLevel(logging.DEBUG)  # step events are DEBUG: summaries need them
+        root.addHandler(self.handler)
+        self._warnings = warnings.catch_warnings()
+        self._warnings.__enter__()
+        # Dagster's BetaWarning / PreviewWarning / deprecations: nothing for a user to act on by default
+        warnings.simplefilter("once" if self.verbose else "ignore")
+        logging.captureWarnings(self.verbose)
+        self._terminal_ctx = use_terminal(self.terminal)
+        self._terminal_ctx.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._terminal_ctx.__exit__(None, None, None)
+        logging.captureWarnings(False)
+        self._warnings.__exit__(None, None, None)
+        logging.getLogger().removeHandler(self.handler)
+        for n, level in self._levels.items():
+            logging.getLogger(n).setLevel(level)
+
+
+def _run_logger_defs() -> dict[str, Any]:
+    """The job's loggers for a run started by the CLI: Dagster's records go to the ``atlas_gs.run``
+    logger (the CLI's format and filter) instead of Dagster's coloured console logger. The run's
+    event log, which the web UI shows, is written by the instance either way."""
+    from dagster import logger as dagster_logger
+
+    @dagster_logger(description="atlas-gs command line: Dagster's records in the CLI's format")
+    def atlas_cli(_init_context):
+        return logging.getLogger(RUN_LOGGER)
+
+    return {"console": atlas_cli}
+
+
 def _config(args: argparse.Namespace) -> PipelineConfig:
     from assets.resources import resolve_profile
 
@@ -126,7 +320,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     meta = bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage)
     write_world_bundle(out, world.field, meta, extras=(world,), surfels=tracking_map(world), inputs=inputs)
     logger.info("wrote world with %d Gaussians to %s", len(world.field), out)
-    print(json.dumps({"world": str(out.resolve()), "n_gaussians": len(world.field),
+    _out(json.dumps({"world": str(out.resolve()), "n_gaussians": len(world.field),
                       "n_keyframes": int(n_new_keyframes), "map_id": world.map_id,
                       "parent": parent}, indent=2, default=str))
     return 0
@@ -177,7 +371,7 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
         rows.append(row)
         logger.info("frame %d: %s (confidence %.2f, from %s hypothesis)", i, "placed" if r.ok else "not placed",
                     r.confidence, r.source)
-    print(json.dumps({"world": str(Path(args.world).resolve()), "frames": rows,
+    _out(json.dumps({"world": str(Path(args.world).resolve()), "frames": rows,
                       "n_placed": sum(r["ok"] for r in rows)}, indent=2))
     return 0
 
@@ -192,7 +386,7 @@ def cmd_evaluate_trajectory(args: argparse.Namespace) -> int:
     if res["n_matched"] < 3:
         raise ConfigError(f"only {res['n_matched']} poses of {args.estimated} have a ground-truth pose within "
                           f"{args.max_dt} s in {args.groundtruth}: nothing to evaluate")
-    print(json.dumps(res, indent=2))
+    _out(json.dumps(res, indent=2))
     return 0
 
 
@@ -214,7 +408,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
                                prior_poses=bundle_keyframe_poses(bundle.metadata))
     update_world_bundle(args.world, localization=report)
-    print(json.dumps({"world": str(Path(args.world).resolve()), **{  # to_json: unknown numbers are null
+    _out(json.dumps({"world": str(Path(args.world).resolve()), **{  # to_json: unknown numbers are null
         k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.to_json()["summary"].items()}}, indent=2))
     if report.summary.get("outcome", "complete") != "complete":
         # The report (what was tried, what failed) is in the bundle; the command itself failed.
@@ -241,7 +435,7 @@ def cmd_log_transitions(args: argparse.Namespace) -> int:
         report.T_world_cam_gt = manifest.T_world_cam_gt
     table = log_transitions(report, entry.name, int(meta.get("n_gaussians", 0)), cfg)
     update_world_bundle(world, transitions=table)
-    print(json.dumps({"transitions": str((world / "transitions.parquet").resolve()), "rows": table.num_rows}, indent=2))
+    _out(json.dumps({"transitions": str((world / "transitions.parquet").resolve()), "rows": table.num_rows}, indent=2))
     return 0
 
 
@@ -276,7 +470,7 @@ def cmd_demo_video(args: argparse.Namespace) -> int:
         poses = orbit_trajectory(bundle.field, cfg, bundle_keyframe_poses(bundle.metadata), camera_K=cam.K,
                                  image_size=(cam.width, cam.height))
     render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, out, args.mode)
-    print(json.dumps({"video": str(out.resolve()), "mode": args.mode}, indent=2))
+    _out(json.dumps({"video": str(out.resolve()), "mode": args.mode}, indent=2))
     return 0
 
 
@@ -316,11 +510,33 @@ def _dagster_setup(args: argparse.Namespace):
     for p in partitions:
         if p not in registry:
             raise ConfigError(f"dataset '{p}' is not registered; known: {', '.join(registry)}")
+    if getattr(args, "func", None) is cmd_run:  # `status` only reads; a run fetches what it needs first
+        partitions = [p for p in partitions if _fetch(registry[p], skip_on_error=getattr(args, "all", False))]
     defs = build_definitions(profile=args.profile)
     instance = DagsterInstance.get()
     reap_dead_runs(instance)  # runs left STARTED by a killed process are marked failed
     sync_dataset_partitions(instance, partitions)
     return defs, instance, partitions, atlas, overrides
+
+
+def _fetch(entry: DatasetEntry, skip_on_error: bool = False) -> bool:
+    """Download a preset whose frames are not on disk (with a progress bar), so that it can become a
+    partition before its run; True when the entry's data is there now. ``skip_on_error``
+    (``--all``): a failed download is a warning and the dataset is left out, not the end of the command."""
+    from atlas_pipeline.errors import DatasetError
+    from atlas_pipeline.sensors.registry import ensure_dataset_files, needs_download
+
+    if not needs_download(entry):
+        return True
+    try:
+        ensure_dataset_files(entry)
+    except DatasetError as exc:
+        if not skip_on_error:
+            raise
+        logger.warning("%s left out: %s", entry.name, exc)
+        return False
+    logger.info("%s: downloaded into %s", entry.name, entry.path)
+    return True
 
 
 def run_request(profile: str, overrides: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
@@ -340,8 +556,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     from assets.staleness import stale_assets, stale_selection
 
     defs, instance, partitions, atlas, overrides = _dagster_setup(args)
-    job = defs.resolve_job_def("atlas_gs_all")
+    # Dagster's records in the CLI's format (quiet by default); the run log in the UI is unchanged
+    job = defs.resolve_job_def("atlas_gs_all").with_logger_defs(_run_logger_defs())
     run_config, tags = run_request(atlas.profile, overrides)
+    run_config = {**run_config, "loggers": {"console": {}}}  # a logger runs only when the run config names it
     failed = 0
     for p in partitions:
         root = artifacts_root()
@@ -351,8 +569,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             for a, reasons in stale.items():
                 logger.info("%s [%s] stale: %s", a, p, "; ".join(reasons))
             if not stale:
-                print(json.dumps({"partition": p, "stale": [], "ran": False,
-                                  "world_bundle": str(root / "world_bundle" / p)}, indent=2))
+                current = {"partition": p, "stale": [], "ran": False}
+                if (root / "world_bundle" / p / "metadata.json").is_file():  # only a path that exists
+                    current["world_bundle"] = str(root / "world_bundle" / p)
+                _out(json.dumps(current, indent=2) if _json_output(args) else
+                     f"{p}: all {len(ASSET_ORDER)} assets current, nothing to run"
+                     + (f"\n  world bundle  {current['world_bundle']}" if "world_bundle" in current else ""))
                 continue
             selection = stale_selection(stale)
         try:
@@ -386,8 +608,39 @@ def cmd_run(args: argparse.Namespace) -> int:
                     d = ev.event_specific_data
                     summary.setdefault("failed_checks", []).append(
                         f"{d.asset_key.to_user_string()}:{d.check_name}: {d.description or ''}".strip())
-        print(json.dumps(summary, indent=2))
+        _out(json.dumps(summary, indent=2) if _json_output(args) else _run_words(summary))
     return 1 if failed else 0
+
+
+def _json_output(args: argparse.Namespace) -> bool:
+    """JSON for ``--json``, and for a stdout that is not a terminal (scripts, pipes: the output
+    ``run`` always had); words for a person at a terminal."""
+    return bool(getattr(args, "json", False)) or not sys.stdout.isatty()
+
+
+def _run_words(summary: dict[str, Any]) -> str:
+    """A run's result for a person: what ran, the outputs that exist (marked when an earlier run
+    wrote them), errors and failed checks."""
+    p, ok = summary["partition"], summary["success"]
+    done = set(summary.get("recomputed", [])) | set(summary.get("reused", []))
+    head = (f"{p}: {len(summary.get('recomputed', []))} assets computed, {len(summary.get('reused', []))} reused"
+            if ok else f"{p}: run failed")
+    lines = [f"{head} (run {summary['run_id']})"]
+    outputs = [("world bundle", summary.get("world_bundle"), "world_bundle"),
+               ("transitions", summary.get("transitions"), "transitions"),
+               *[("video", v, "demo_videos") for v in summary.get("videos", [])]]
+    for label, path, asset in outputs:
+        if path:
+            earlier = "" if asset in done else "  (from an earlier run)"
+            lines.append(f"  {label:<13s} {path}{earlier}")
+    loc = summary.get("localization")
+    if loc:
+        ate = loc.get("ate_rmse_m")
+        lines.append(f"  localization  {loc.get('n_tracked')} tracked, {loc.get('n_lost')} lost, "
+                     f"{loc.get('n_relocalized')} relocalized" + (f", ATE {ate * 1000:.1f} mm" if ate is not None else ""))
+    lines += [f"  error: {e}" for e in summary.get("errors", [])]
+    lines += [f"  failed check: {c}" for c in summary.get("failed_checks", [])]
+    return "\n".join(lines)
 
 
 def ran(result) -> dict[str, list[str]]:
@@ -406,8 +659,21 @@ def cmd_status(args: argparse.Namespace) -> int:
     from assets.staleness import stale_assets
 
     defs, instance, partitions, atlas, _ = _dagster_setup(args)
-    print(json.dumps({p: stale_assets(defs, instance, p, atlas) for p in partitions}, indent=2))
+    stale = {p: stale_assets(defs, instance, p, atlas) for p in partitions}
+    _out(json.dumps(stale, indent=2) if args.json else "\n".join(_status_words(p, s) for p, s in stale.items()))
     return 0
+
+
+def _status_words(partition: str, stale: dict[str, list[str]]) -> str:
+    """``synthetic: all 9 assets current``, or the stale / missing assets in pipeline order with why."""
+    if not stale:
+        return f"{partition}: all {len(ASSET_ORDER)} assets current"
+    lines = [f"{partition}: {len(stale)} of {len(ASSET_ORDER)} assets would be recomputed "
+             "(`atlas-gs run --stale-only` runs them)"]
+    width = max(len(a) for a in stale)
+    for asset in sorted(stale, key=lambda a: ASSET_ORDER.index(a) if a in ASSET_ORDER else len(ASSET_ORDER)):
+        lines.append(f"  {asset:<{width}s}  {'; '.join(stale[asset])}")
+    return "\n".join(lines)
 
 
 def cmd_import_ply(args: argparse.Namespace) -> int:
@@ -431,7 +697,7 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
         "lineage": bundle_lineage("atlas-gs import-ply"),
     }
     out = write_world_bundle(args.output, field, meta, inputs=[src])
-    print(json.dumps({"world": str(Path(out).resolve()), "n_gaussians": len(field),
+    _out(json.dumps({"world": str(Path(out).resolve()), "n_gaussians": len(field),
                       "anisotropic": not field.is_isotropic}, indent=2))
     return 0
 
@@ -452,7 +718,7 @@ def cmd_lineage(args: argparse.Namespace) -> int:
     lin = read_lineage(target)
     if not args.show_config and not args.json:
         lin = {k: v for k, v in lin.items() if k != "config"}
-    print(json.dumps(lin, indent=2) if args.json else format_lineage(lin))
+    _out(json.dumps(lin, indent=2) if args.json else format_lineage(lin))
     return 0
 
 
@@ -463,8 +729,29 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     if args.dataset_cmd == "list":
         for name, e in load_registry().items():
             present = "present" if e.path.exists() else ("generated on demand" if e.kind == "synthetic" else
-                                                         "downloaded on demand" if e.url else "MISSING")
-            print(f"{name:24s} {e.kind:10s} {present:22s} {e.path}")
+                                                         "not fetched" if e.url else "MISSING")
+            _out(f"{name:24s} {e.kind:10s} {present:22s} {e.path}")
+        return 0
+    if args.dataset_cmd == "fetch":
+        from atlas_pipeline.sensors.registry import dataset_on_disk, ensure_dataset_files
+
+        reg = load_registry()
+        if args.name not in reg:
+            raise ConfigError(f"dataset '{args.name}' is not registered; known: {', '.join(reg)}")
+        entry = reg[args.name]
+        if not dataset_on_disk(entry) and not entry.url:
+            raise DatasetError(entry.path, f"dataset folder of '{entry.name}' not found and no url to download it from")
+        was_there = dataset_on_disk(entry) and entry.path.exists()
+        path = ensure_dataset_files(entry)  # generates a synthetic one, downloads a preset (progress bar)
+        _default_dagster_home()
+        from dagster import DagsterInstance
+
+        from assets.definitions import sync_dataset_partitions
+
+        with DagsterInstance.get() as instance:
+            added = sync_dataset_partitions(instance, [entry.name])
+        _out(json.dumps({"dataset": entry.name, "path": str(path), "fetched": not was_there,
+                         "partition_added": bool(added), "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
         return 0
     if args.dataset_cmd == "add":
         path = Path(args.path).expanduser()
@@ -493,7 +780,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
         with DagsterInstance.get() as instance:
             sync_dataset_partitions(instance, [entry.name])
-        print(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path()),
+        _out(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path()),
                           "partition_added": entry.name, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
         return 0
     if args.dataset_cmd == "sync":
@@ -504,13 +791,13 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
         with DagsterInstance.get() as instance:
             added = sync_dataset_partitions(instance, args.names or None)
-        print(json.dumps({"partitions_added": added, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
+        _out(json.dumps({"partitions_added": added, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
         return 0
     if args.dataset_cmd == "show":
         reg = load_registry()
         if args.name not in reg:
             raise ConfigError(f"dataset '{args.name}' is not registered")
-        print(json.dumps(reg[args.name].describe(), indent=2))
+        _out(json.dumps(reg[args.name].describe(), indent=2))
         return 0
     return 2
 
@@ -527,7 +814,8 @@ def cmd_ui(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="atlas-gs", description="Atlas-GS: RGB-D to a persistent 3D Gaussian world.")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="more output: library and Dagster log lines, Dagster's run events, warnings, debug")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     def common(sp: argparse.ArgumentParser) -> None:
@@ -606,10 +894,13 @@ def build_parser() -> argparse.ArgumentParser:
     dagster_args(r)
     r.add_argument("--stale-only", action="store_true",
                    help="materialize only the stale or missing assets (nothing when all are current)")
+    r.add_argument("--json", action="store_true",
+                   help="print the result as JSON (the default when stdout is not a terminal)")
     r.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="which assets of a partition are stale or missing, and why")
     dagster_args(st)
+    st.add_argument("--json", action="store_true", help="machine-readable: {partition: {asset: [reasons]}}")
     st.set_defaults(func=cmd_status)
 
     li = sub.add_parser("lineage", help="print the lineage of a world bundle")
@@ -626,6 +917,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("names", nargs="*")
     sh = dsub.add_parser("show", help="one dataset's registry entry")
     sh.add_argument("name")
+    fe = dsub.add_parser("fetch", help="download a preset's frames (or generate a synthetic dataset) and add its "
+                                       "partition; a preset is not a partition before this (or its first run)")
+    fe.add_argument("name")
     add = dsub.add_parser("add", help="register a recording (TUM, 7-Scenes, Replica, ScanNet folder or a "
                                       "ROS/RealSense bag) as a dataset (adds a partition)")
     add.add_argument("name")
@@ -656,22 +950,26 @@ def build_parser() -> argparse.ArgumentParser:
     from assets.cli_view import add_view_command
 
     add_view_command(sub)
+    # -v after the command too (`atlas-gs run synthetic -v`); SUPPRESS keeps a -v given before it
+    parsers = list(sub.choices.values()) + list(dsub.choices.values())
+    for sp in parsers:
+        sp.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                        help="more output (as before the command)")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    try:
-        return int(args.func(args) or 0)
-    except AtlasError as exc:
-        logger.error("%s", exc)
-        return EXIT_ERROR
-    except OSError as exc:  # an OS error the library did not wrap: still name the path
-        where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f) or "(no path given by the OS)"
-        logger.error("%s: %s", where, exc.strerror or exc)
-        return EXIT_ERROR
+    with _CliOutput(args.verbose):
+        try:
+            return int(args.func(args) or 0)
+        except AtlasError as exc:
+            logger.error("%s", exc)
+            return EXIT_ERROR
+        except OSError as exc:  # an OS error the library did not wrap: still name the path
+            where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f) or "(no path given by the OS)"
+            logger.error("%s: %s", where, exc.strerror or exc)
+            return EXIT_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -4,11 +4,14 @@ Partitions are the registered datasets, kept as Dagster *dynamic* partitions nam
 registering a folder adds a partition without touching code. Three ways keep the instance's
 partitions in step with the registry (``configs/datasets.yaml`` + the local registry file):
 
-* ``atlas-gs dataset add`` / ``atlas-gs run`` add them directly;
+* ``atlas-gs dataset add`` / ``dataset fetch`` / ``run`` add them directly;
 * the ``dataset_registry_sensor`` (running by default under ``dagster dev``) adds every registered
   dataset that is not a partition yet, so an entry written by hand or by the CLI shows in the UI;
 * the ``register_dataset`` job lets the UI's launchpad register a TUM-layout folder;
 * ``atlas-gs dataset sync`` adds them to a fresh ``$DAGSTER_HOME`` before ``dagster asset materialize``.
+
+Only datasets a run can build offline are partitions: synthetic ones and those on disk. A download
+preset (``url`` in the registry) becomes one once fetched, so the UI never offers runs that must fail.
 
 Loading this module reads the profile and the registry and writes nothing. The profile is
 ``$ATLAS_PROFILE`` (default ``default``) unless :func:`build_definitions` names one.
@@ -20,7 +23,9 @@ from pathlib import Path
 from typing import Any, Optional
 
 from dagster import (
+    AssetKey,
     AssetObservation,
+    AssetRecordsFilter,
     AssetSelection,
     Config,
     DagsterInstance,
@@ -47,7 +52,9 @@ from assets.runs import reap_dead_runs
 from assets.versioning import DATA_VERSION_TAG, DATASET_FILES, data_version, record
 from atlas_pipeline.sensors.registry import (
     camera_from_intrinsics,
+    dataset_on_disk,
     load_registry,
+    needs_download,
     register_local_dataset,
     validate_dataset_name,
 )
@@ -68,11 +75,44 @@ def registered_partition_names() -> list[str]:
     return [validate_dataset_name(n) for n in load_registry()]
 
 
-def sync_dataset_partitions(instance: DagsterInstance, names: list[str] | None = None) -> list[str]:
-    """Add every registered dataset (or ``names``) that is not a partition yet; returns the added ones."""
-    wanted = [validate_dataset_name(n) for n in (names if names is not None else registered_partition_names())]
+def available_partition_names() -> list[str]:
+    """Registered datasets a run can build offline (registry order): synthetic ones and those on
+    disk. A download preset is left out until fetched (``atlas-gs dataset fetch NAME``), so the UI
+    does not offer partitions whose runs must fail without the network."""
+    return [validate_dataset_name(n) for n, e in load_registry().items() if dataset_on_disk(e)]
+
+
+def unfetched_partitions(instance: DagsterInstance) -> list[str]:
+    """Partitions of download presets whose frames are not on disk and that were never
+    materialized (added by an older atlas-gs): nothing is lost by removing them."""
     have = set(instance.get_dynamic_partitions(DATASETS.name))
-    new = [n for n in wanted if n not in have]
+    out = []
+    for name, entry in load_registry().items():
+        if name in have and needs_download(entry) and not instance.fetch_materializations(
+                AssetRecordsFilter(asset_key=AssetKey("raw_dataset"), asset_partitions=[name]), limit=1).records:
+            out.append(name)
+    return out
+
+
+def sync_dataset_partitions(instance: DagsterInstance, names: list[str] | None = None) -> list[str]:
+    """Add every registered dataset (or each of ``names``) that a run can build offline and that is
+    not a partition yet; returns the added ones. Without ``names``, partitions of presets never
+    fetched nor materialized are removed. A name whose frames are not on disk is not added."""
+    registry = load_registry()
+    if names is None:
+        for name in unfetched_partitions(instance):
+            instance.delete_dynamic_partition(DATASETS.name, name)
+            logger.info("removed partition %s: not downloaded yet (`atlas-gs dataset fetch %s` adds it)", name, name)
+    wanted = [validate_dataset_name(n) for n in (names if names is not None else available_partition_names())]
+    have = set(instance.get_dynamic_partitions(DATASETS.name))
+    new = []
+    for n in wanted:
+        if n in have:
+            continue
+        if n in registry and not dataset_on_disk(registry[n]):
+            logger.info("%s is not on disk yet: not a partition until `atlas-gs dataset fetch %s`", n, n)
+            continue
+        new.append(n)
     if new:
         instance.add_dynamic_partitions(DATASETS.name, new)
         logger.info("added dataset partitions: %s", ", ".join(new))
@@ -95,21 +135,23 @@ def changed_datasets(instance: DagsterInstance, names: list[str]) -> list[AssetO
 
 @sensor(minimum_interval_seconds=30, default_status=DefaultSensorStatus.RUNNING,
         description="Adds a dynamic partition for every dataset in the registry (configs/datasets.yaml and "
-                    "the local registry) that is not one yet, and observes dataset_files of every dataset whose "
-                    "files changed.")
+                    "the local registry) that a run can build offline and that is not one yet (a download "
+                    "preset once `atlas-gs dataset fetch` put its frames on disk), removes partitions of presets "
+                    "never fetched nor materialized, and observes dataset_files of every dataset whose files changed.")
 def dataset_registry_sensor(context: SensorEvaluationContext):
     reap_dead_runs(context.instance)  # runs whose process died are marked failed (assets.runs)
     try:
-        names = registered_partition_names()
+        names = available_partition_names()
+        gone = unfetched_partitions(context.instance)
     except Exception as exc:  # a broken registry file: say which and what, do not crash the daemon
         return SkipReason(f"dataset registry unreadable: {exc}")
     have = set(context.instance.get_dynamic_partitions(DATASETS.name))
     new = [n for n in names if n not in have]
     observed = changed_datasets(context.instance, [n for n in names if n in have])
-    if not new and not observed:
-        return SkipReason(f"all {len(names)} registered datasets are partitions, none changed on disk")
-    return SensorResult(dynamic_partitions_requests=[DATASETS.build_add_request(new)] if new else [],
-                        asset_events=observed)
+    if not new and not gone and not observed:
+        return SkipReason(f"all {len(names)} datasets on disk are partitions, none changed on disk")
+    requests = ([DATASETS.build_add_request(new)] if new else []) + ([DATASETS.build_delete_request(gone)] if gone else [])
+    return SensorResult(dynamic_partitions_requests=requests, asset_events=observed)
 
 
 class RegisterDatasetConfig(Config):

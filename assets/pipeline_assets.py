@@ -12,6 +12,7 @@ records every input that shapes an artifact.
 
 import hashlib
 import json
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -65,14 +66,33 @@ from atlas_pipeline.sensors.tum import FrameManifest
 from atlas_pipeline.transition_log.transitions import log_transitions
 from atlas_pipeline.versioning import dataset_signature
 from atlas_pipeline.viz.demo import render_demo_videos
-from atlas_pipeline.viz.plots import markdown_image, render_preview_png
+from atlas_pipeline.viz.plots import markdown_image, preview_size, render_preview_png
 
 GROUP = "atlas_gs"
 IO = "artifact_io"
 
 
+METADATA_SIG_DIGITS = 4  # floats shown in the UI: 0.001118, 21.32, not 0.0011175289268451744
+
+
+def _sig(x: float) -> float:
+    """``x`` to :data:`METADATA_SIG_DIGITS` significant digits."""
+    return float(f"{x:.{METADATA_SIG_DIGITS}g}")
+
+
 def _num(x: float) -> float | None:
-    return float(x) if x is not None and np.isfinite(x) else None
+    return _sig(float(x)) if x is not None and np.isfinite(x) else None
+
+
+def _rounded(v: Any) -> Any:
+    """Floats (also inside lists and dicts, for JSON metadata) rounded for reading; NaN / inf kept."""
+    if isinstance(v, (float, np.floating)):
+        return _sig(float(v)) if np.isfinite(v) else float(v)
+    if isinstance(v, dict):
+        return {k: _rounded(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_rounded(x) for x in v]
+    return v
 
 
 def _md_table(df) -> str:
@@ -142,7 +162,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         return versioned(context, manifest, {
             "n_frames": manifest.n_frames,
             "n_with_ground_truth": int(manifest.has_gt.sum()),
-            "duration_s": float(manifest.timestamps_s[-1] - manifest.timestamps_s[0]),
+            "duration_s": _num(manifest.timestamps_s[-1] - manifest.timestamps_s[0]),
             "camera": MetadataValue.json(manifest.camera.to_dict()),
             "dataset_root": MetadataValue.path(str(manifest.root)),
             "raw_content_hash": manifest.content_hash[:16],
@@ -156,7 +176,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             return out
         fused = fuse(raw_dataset, cfg, log=context.log.info)
         return versioned(context, fused, {"n_points": fused.n_points,
-                                          "mean_valid_fraction": float(fused.valid_fraction.mean())})
+                                          "mean_valid_fraction": _num(fused.valid_fraction.mean())})
 
     @stage("keyframes", "7", "Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
                              "no ground truth) the RGB-D tracker's own trajectory and keyframes.")
@@ -169,7 +189,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         return versioned(context, kf, {"n_keyframes": int(len(kf.indices)), "pose_source": kf.pose_source,
                                        "keyframe_indices": MetadataValue.json([int(i) for i in kf.indices])})
 
-    @stage("gaussian_world", "6", "Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 "
+    @stage("gaussian_world", "7", "Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 "
                                   "ids), then fitted to the keyframe images and depths (positions, scales, rotations, "
                                   "opacities, colours).", check=GAUSSIANS_VALID)
     def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
@@ -178,14 +198,18 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         if (out := reuse(context, cfg)) is None:
             world = build_gaussian_world(fused_frames, keyframes, cfg, log=context.log.info, manifest=raw_dataset)
             lo, hi = world.field.bounds()
-            preview = render_preview_png(world.field, world.T_world_cam_keyframes[0])
+            # the dataset's camera at a readable size (its own, halved while wide), not a thumbnail
+            cam = raw_dataset.camera
+            pw, ph = preview_size(cam.width, cam.height)
+            K = np.diag([pw / cam.width, ph / cam.height, 1.0]) @ cam.K
+            preview = render_preview_png(world.field, world.T_world_cam_keyframes[0], pw, ph, K=K)
             out = versioned(context, world, {
                 "n_gaussians": len(world.field),
                 "map_id": world.map_id,
-                "voxel_size_m": world.builder.voxel_size_m,
+                "voxel_size_m": _num(world.builder.voxel_size_m),
                 "extent_m": MetadataValue.json([round(float(v), 3) for v in hi - lo]),
                 "gaussians_after_each_keyframe": MetadataValue.json([int(h) for h in world.history]),
-                "fit": MetadataValue.json(world.fit),  # with its timing (world.json keeps the rest)
+                "fit": MetadataValue.json(_rounded(world.fit)),  # with its timing (world.json keeps the rest)
                 "render_preview": MetadataValue.md(markdown_image(preview, "render from the first keyframe")),
             })
         yield out
@@ -253,7 +277,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         finally:
             discard_dir(staging)  # empty once the videos moved into the staged artifact
 
-    @stage("render_evaluation", "1", "The world rendered at held-out (non-keyframe) frames from their estimated poses: "
+    @stage("render_evaluation", "2", "The world rendered at held-out (non-keyframe) frames from their estimated poses: "
                                      "PSNR, SSIM and depth L1 against the real images, and a preview (real | rendered | "
                                      "depth error).")
     def render_evaluation(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
@@ -263,10 +287,10 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             return out
         rep = evaluate_rendering(raw_dataset, gaussian_world, localization_report, cfg, log=context.log.info)
         s = rep.summary
-        md = {k: (_num(s[k]) if isinstance(s[k], float) else s[k]) for k in
+        md = {k: (_num(s[k]) if isinstance(s[k], (float, np.floating)) else s[k]) for k in
               ("n_views", "mean_psnr_db", "mean_psnr_masked_db", "mean_ssim", "mean_depth_l1_m", "mean_depth_coverage")}
         if rep.preview_png:
-            md["preview"] = MetadataValue.md(markdown_image(rep.preview_png, "real | rendered | depth error"))
+            md["preview"] = MetadataValue.md(markdown_image(rep.preview_png, "real | rendered | depth error (cm)"))
         return versioned(context, rep, md)
 
     @stage("world_bundle", "7", "World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, surfels.npz "

@@ -157,7 +157,7 @@ def test_cli_stale_only_runs_nothing_when_current_then_only_the_changed(isolated
     assert main(["run", PART, "--stale-only"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["stale"] == [] and out["ran"] is False
-    assert main(["status", PART, "--set", "localization.photometric_weight=0.5"]) == 0
+    assert main(["status", PART, "--json", "--set", "localization.photometric_weight=0.5"]) == 0
     status = json.loads(capsys.readouterr().out)[PART]
     assert sorted(status) == sorted(DOWNSTREAM_OF_LOCALIZATION)
     assert main(["run", PART, "--stale-only", "--set", "localization.photometric_weight=0.5"]) == 0

@@ -159,7 +159,10 @@ class PhotometricReport:
         return rep
 
 
-def _error_colormap(err_m: np.ndarray, valid: np.ndarray, max_m: float = 0.05) -> np.ndarray:
+PREVIEW_MAX_ERROR_M = 0.05  # the error preview's colour scale: 0 to 5 cm (more saturates)
+
+
+def _error_colormap(err_m: np.ndarray, valid: np.ndarray, max_m: float = PREVIEW_MAX_ERROR_M) -> np.ndarray:
     """Depth error ``[H, W]`` as an RGB image: black (0) to red / yellow (``max_m``); blue = no depth."""
     t = np.clip(np.nan_to_num(err_m) / max_m, 0, 1)
     img = np.stack([np.clip(2 * t, 0, 1), np.clip(2 * t - 1, 0, 1), np.zeros_like(t)], axis=-1)
@@ -182,7 +185,7 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     compare with frame ``i`` of ``manifest``. Frames without a finite pose are skipped."""
     from atlas_pipeline.gaussian_world.render import render_gaussians
     from atlas_pipeline.progress import Progress
-    from atlas_pipeline.viz.plots import png_bytes
+    from atlas_pipeline.viz.plots import error_panels_png, preview_size
 
     cam = manifest.camera
     idx = [int(i) for i in frame_indices if np.isfinite(T_world_cam[int(i)]).all()]
@@ -211,8 +214,14 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
         depth = manifest.read_depth_m(i, allow_empty=True)
         r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
                              T_world_cam[i], cam.K, cam.width, cam.height, background=background)
-        img = preview_image(real, r.rgb, r.depth_median_m, depth)
-        rep.preview_png = png_bytes(img[::2, ::2])  # half size: it travels in run metadata
+        # at the size the UI shows previews (the dataset's, halved while wide), with a colour bar
+        pw, ph = preview_size(cam.width, cam.height)
+        step = max(1, cam.width // pw)
+        valid = (depth > 0) & np.isfinite(r.depth_median_m) & (r.depth_median_m > 0)
+        err = np.where(valid, np.abs(r.depth_median_m - depth), 0.0)
+        rep.preview_png = error_panels_png(real[::step, ::step], r.rgb[::step, ::step], err[::step, ::step],
+                                           valid[::step, ::step], PREVIEW_MAX_ERROR_M,
+                                           title=f"frame {i}: PSNR {psnr(real, r.rgb):.1f} dB")
     rep.summarize()
     logger.info("photometric evaluation of %s: %s", manifest.dataset, rep.summary)
     return rep

@@ -8,12 +8,14 @@ import logging
 import os
 import tarfile
 import tempfile
+import urllib.parse
 import urllib.request
 import zlib
 from pathlib import Path, PurePosixPath
 from typing import Callable
 
 from atlas_pipeline.errors import DatasetError
+from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.tum import check_tum_layout
 
 logger = logging.getLogger(__name__)
@@ -27,30 +29,32 @@ MAX_MEMBER_BYTES = 1 << 30
 MAX_UNPACKED_BYTES = 64 << 30
 MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
 _COPY_CHUNK_BYTES = 1 << 20
+BYTES_PER_MB = 1e6
+DOWNLOAD_LOG_EVERY_S = 5.0  # the run log gets a line every 5 s of a download (a terminal gets a bar)
 
 
 def download_file(url: str, dest: Path, sha256: str | None = None, timeout_s: float = 60.0,
                   log: Callable[[str], None] | None = None) -> Path:
     """Stream ``url`` to ``dest`` (via a temporary file), checking ``sha256`` when given."""
-    log = log or logger.info
     dest.parent.mkdir(parents=True, exist_ok=True)
     h = hashlib.sha256()
     tmp = dest.with_name(dest.name + ".part")
     try:
         with urllib.request.urlopen(url, timeout=timeout_s) as resp, open(tmp, "wb") as out:
             total = int(resp.headers.get("Content-Length") or 0)
-            done, next_report = 0, 0
-            while True:
-                chunk = resp.read(1 << 20)
-                if not chunk:
-                    break
-                out.write(chunk)
-                h.update(chunk)
-                done += len(chunk)
-                if done >= next_report:
-                    of = f" of {total / 1e6:.1f}" if total else ""
-                    log(f"downloaded {done / 1e6:.1f}{of} MB from {url}")
-                    next_report = done + (50 << 20)
+            done = 0
+            # named by the URL's file, never by the temporary file it goes to
+            name = PurePosixPath(urllib.parse.urlsplit(url).path).name or url
+            with Progress(f"downloading {name}", total / BYTES_PER_MB if total else None, log,
+                          every_s=DOWNLOAD_LOG_EVERY_S, unit="MB") as progress:
+                while True:
+                    chunk = resp.read(_COPY_CHUNK_BYTES)
+                    if not chunk:
+                        break
+                    out.write(chunk)
+                    h.update(chunk)
+                    done += len(chunk)
+                    progress.update(len(chunk) / BYTES_PER_MB)
         if total and done != total:
             raise DatasetError(dest, f"download of {url} truncated: {done} of {total} bytes")
         if sha256 and h.hexdigest() != sha256.lower():

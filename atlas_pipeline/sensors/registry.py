@@ -60,6 +60,9 @@ __all__ = [
     "bag_cache_root",
     "read_dataset_manifest",
     "load_dataset",
+    "ensure_dataset_files",
+    "dataset_on_disk",
+    "needs_download",
 ]
 
 
@@ -387,6 +390,17 @@ def register_local_dataset(
     return entry
 
 
+def dataset_on_disk(entry: DatasetEntry) -> bool:
+    """Whether a run can build the entry without the network: a synthetic entry (generated on
+    demand) or a recording whose files are on disk. Only these are offered as partitions."""
+    return entry.kind == "synthetic" or recording_exists(entry.kind, entry.path)
+
+
+def needs_download(entry: DatasetEntry) -> bool:
+    """A download preset whose frames are not on disk yet (``atlas-gs dataset fetch`` makes them)."""
+    return bool(entry.url) and not dataset_on_disk(entry)
+
+
 def ensure_dataset_files(entry: DatasetEntry, log: Callable[[str], None] | None = None) -> Path:
     """Make the entry's frames exist on disk: generate synthetic data or download an archive."""
     log = log or logger.info
@@ -400,7 +414,7 @@ def ensure_dataset_files(entry: DatasetEntry, log: Callable[[str], None] | None 
     if entry.url:
         from atlas_pipeline.sensors.download import download_tum_archive
 
-        log(f"{entry.name}: {entry.path} not found, downloading {entry.url}")
+        log(f"{entry.name}: not on disk yet, downloading {entry.url} into {entry.path}")
         if not entry.sha256:
             logger.warning("%s: no sha256 registered for %s; the download cannot be verified", entry.name, entry.url)
         return download_tum_archive(entry.url, entry.path, sha256=entry.sha256, log=log)

@@ -190,7 +190,8 @@ def write_mp4(
             logger.debug("closing the ffmpeg writer after an error failed", exc_info=True)
         tmp.unlink(missing_ok=True)
         raise
-    logger.info("wrote %d frames (%dx%d, %.3g fps) to %s", n, shape[1], shape[0], fps, path)
+    # the file's name only: its folder may be a staging folder the caller moves into place
+    logger.info("wrote %s: %d frames (%dx%d, %.3g fps)", path.name, n, shape[1], shape[0], fps)
     return n
 
 
