@@ -47,7 +47,8 @@ from atlas_pipeline.gaussian_world.raster import (
 )
 
 __all__ = ["ReferenceProjection", "project_reference", "sort_reference", "bin_tiles_reference",
-           "composite_reference", "plane_slopes_reference", "fit_gradients_reference"]
+           "composite_reference", "plane_slopes_reference", "fit_gradients_reference", "visible_reference",
+           "tile_pair_counts_reference", "bin_tile_batch_reference"]
 
 
 class ReferenceProjection(NamedTuple):
@@ -287,6 +288,42 @@ def bin_tiles_reference(
             lists.append(np.flatnonzero(hit))
     tile_start = np.concatenate([[0], np.cumsum([len(ids) for ids in lists])]).astype(np.int64)
     return tile_start, np.concatenate(lists).astype(np.int64)
+
+
+def visible_reference(
+    valid: np.ndarray,  # [N] bool
+    depth: np.ndarray,  # [N] camera z
+    feat: np.ndarray,  # [N, N_FEAT]
+    box: np.ndarray,  # [N, 4]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference of ``raster.project_visible`` + ``raster.sort_visible`` from a whole-view
+    projection: ``(feat [M, N_FEAT], box [M, 4], depth [M])`` of the valid rows, front to back."""
+    order = sort_reference(valid, depth)
+    return feat[order], box[order], depth[order]
+
+
+def tile_pair_counts_reference(
+    box: np.ndarray,  # [M, 4] (x0, x1, y0, y1)
+    width: int,
+    height: int,
+) -> np.ndarray:
+    """Reference of ``raster.tile_pair_counts``: ``[n_tiles]`` boxes overlapping each tile (row major),
+    tile by tile."""
+    tile_start, _ = bin_tiles_reference(box, width, height)
+    return np.diff(tile_start)
+
+
+def bin_tile_batch_reference(
+    box: np.ndarray,  # [M, 4] (x0, x1, y0, y1) of the sorted Gaussians
+    width: int,
+    height: int,
+    t0: int,
+    t1: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of ``raster.bin_tile_batch``: ``(tile_start [t1 - t0 + 1], tile_ids [P])`` of tiles
+    ``t0 .. t1 - 1``, cut out of the whole view's ``bin_tiles_reference``."""
+    tile_start, tile_ids = bin_tiles_reference(box, width, height)
+    return tile_start[t0:t1 + 1] - tile_start[t0], tile_ids[tile_start[t0]:tile_start[t1]]
 
 
 def composite_reference(

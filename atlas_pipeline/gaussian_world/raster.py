@@ -24,7 +24,16 @@ splatting), in named stages as gsplat's ``rendering.py`` has them:
    ``T < T_MIN`` (the contribution that crosses the threshold is kept). ``rgb = round(C + T bg)``,
    ``alpha = 1 - T``, ``depth = D / alpha`` where ``alpha >= DEPTH_MIN_ALPHA``, else 0.
 
-``prepare_splats`` runs stages 3-5 (what every caller needs before its own tile loop). Compiled
+``prepare_splats`` runs stages 3-5 (what every caller needs before its own tile loop).
+
+The renderer runs the same stages in bounded memory (``render.render_gaussians``; same image bit
+for bit): ``project_visible`` projects ``PROJECT_CHUNK`` Gaussians at a time and keeps only the
+drawn ones (compacted, input order); ``sort_visible`` puts them front to back in place (no sorted
+copy); ``tile_pair_counts`` counts the (tile, Gaussian) pairs per tile without listing them;
+``tile_batches`` cuts the tiles (row-major) into runs of at most ``max_tile_pairs`` pairs;
+``bin_tile_batch`` lists one run's pairs and ``composite_tile_batch`` draws it into the output
+images. Peak memory is then O(N) with a small constant plus O(pairs per batch), whatever the
+view (``render.render_peak_bytes`` states it). Compiled
 kernels elsewhere (the fits' backward passes) build on the device helpers ``world_to_camera``,
 ``rotmat_from_quat``, ``jacobian_clamp_limits``, ``projection_rows``, ``pixel_covariance``,
 ``pixel_alpha``, ``exp_neg_fast`` and ``tile_pixel_bounds``, so their forward model is this one by
@@ -59,6 +68,8 @@ __all__ = [
     "RasterInputs", "PinholeView", "Projection", "TileBins", "SplatTiles",
     "validate_inputs", "view_from_pose", "project_gaussians", "sort_by_depth", "gather_sorted", "bin_tiles",
     "pair_slots", "prepare_splats", "composite_tiles", "scale_intrinsics", "scaled_image_size", "scale_camera",
+    "PROJECT_CHUNK", "MAX_TILE_PAIRS", "VisibleSplats", "project_visible", "sort_visible", "tile_pair_counts",
+    "tile_batches", "bin_tile_batch", "composite_tile_batch",
     "world_to_camera", "rotmat_from_quat", "jacobian_clamp_limits", "projection_rows", "pixel_covariance",
     "plane_depth_slopes", "pixel_alpha", "tile_pixel_bounds", "exp_neg_fast",
 ]
@@ -80,6 +91,11 @@ POWER_MIN = -6.0  # exp(-6) = 0.0025 < ALPHA_MIN: beyond it no opacity <= 1 give
 BOX_SLACK_PX = 1e-3  # widening of the alpha-cut box, so rounding never drops a visible pixel
 MEDIAN_DEPTH_T = 0.5  # the median depth is read where the transmittance crosses this
 NEAR_M = 0.05  # default near plane (metres)
+# Bounded-memory rendering (``project_visible`` ... ``composite_tile_batch``):
+PROJECT_CHUNK = 1 << 18  # Gaussians projected at a time: 17 MB of per-chunk buffers at any N, and
+#                          few enough launches of the threaded kernel (each costs ms on a busy machine)
+MAX_TILE_PAIRS = 1 << 22  # (tile, Gaussian) pairs listed at once: 16 MB of int32; a 640x480 view of
+#                           a few million Gaussians usually fits in one or two batches
 
 # Columns of the per-Gaussian feature rows handed from projection to compositing.
 FEAT_U, FEAT_V, FEAT_CONIC_A, FEAT_CONIC_B, FEAT_CONIC_C, FEAT_OPACITY, FEAT_RED, FEAT_GREEN, FEAT_BLUE, FEAT_Z = (
@@ -108,7 +124,7 @@ class RasterInputs(NamedTuple):
     positions: np.ndarray  # [N, 3] float32, world frame (metres)
     scales: np.ndarray  # [N, 3] float32, standard deviations (metres)
     rotations_xyzw: np.ndarray  # [N, 4] float32
-    colors: np.ndarray  # [N, 3] float32 in [0, 255]
+    colors: np.ndarray  # [N, 3] float32 in [0, 255] (uint8 when validated with float_colors=False)
     opacities: np.ndarray  # [N] float32 in [0, 1]
     T_world_cam: np.ndarray  # [4, 4] float64 camera-to-world
     K: np.ndarray  # [3, 3] float64
@@ -156,8 +172,12 @@ def validate_inputs(
     height,
     background,  # [3]
     near_m,
+    float_colors: bool = True,
 ) -> RasterInputs:
-    """Check and convert the renderer's inputs; ``ValueError`` naming the bad one otherwise."""
+    """Check and convert the renderer's inputs; ``ValueError`` naming the bad one otherwise.
+
+    ``float_colors=False``: uint8 colours are kept as they are (no float32 copy of 12 bytes per
+    Gaussian; the projection converts each to the same float32); other dtypes are converted."""
     pos = _as_float_array("positions", positions, (3,))
     n = pos.shape[0]
     scl = _as_float_array("scales", scales, (3,))
@@ -167,7 +187,12 @@ def validate_inputs(
         np.issubdtype(col_raw.dtype, np.integer) or np.issubdtype(col_raw.dtype, np.floating)
     ):
         raise ValueError(f"colors: expected uint8 RGB values, got dtype {col_raw.dtype}")
-    col = _as_float_array("colors", col_raw, (3,))
+    if not float_colors and col_raw.dtype == np.uint8:
+        col = np.ascontiguousarray(col_raw)
+        if col.ndim != 2 or col.shape[1:] != (3,):
+            raise ValueError(f"colors: expected shape [N, 3], got {list(col.shape)}")
+    else:
+        col = _as_float_array("colors", col_raw, (3,))
     opa_raw = np.asarray(opacities)
     if opa_raw.ndim == 2 and opa_raw.shape[1] == 1:  # [N, 1] as stored by some PLY writers
         opa_raw = opa_raw[:, 0]
@@ -764,6 +789,218 @@ def prepare_splats(
 
 
 # --------------------------------------------------------------------------------------------
+# Bounded memory: stages 3-5 without per-input-Gaussian buffers or a whole-view pair list
+# --------------------------------------------------------------------------------------------
+
+
+class VisibleSplats(NamedTuple):
+    """The drawn Gaussians of one view, compacted (``project_visible``; ``sort_visible`` puts them
+    front to back in place)."""
+
+    feat: np.ndarray  # [M, N_FEAT] float32 feature rows
+    box: np.ndarray  # [M, 4] int32 inclusive pixel boxes (x0, x1, y0, y1)
+    depth: np.ndarray  # [M] float64 camera z
+
+
+@njit(cache=True)
+def _compact_rows(valid, depth, feat, box, depth_out, feat_out, box_out, m):
+    """Append the rows of ``feat`` ``[C, N_FEAT]`` / ``box`` ``[C, 4]`` / ``depth`` ``[C]`` where
+    ``valid`` ``[C]`` to the outputs at row ``m``, in order; returns the new row count."""
+    for i in range(valid.shape[0]):
+        if valid[i]:
+            depth_out[m] = depth[i]
+            for j in range(feat.shape[1]):
+                feat_out[m, j] = feat[i, j]
+            for j in range(4):
+                box_out[m, j] = box[i, j]
+            m += 1
+    return m
+
+
+def _shrink_rows(a: np.ndarray, m: int) -> np.ndarray:
+    """``a[:m]`` without a copy: the buffer is reallocated to ``m`` rows (``ndarray.resize``; a large
+    buffer gives back its tail pages), so a capacity of N rows of which M were written costs M."""
+    a.resize((m,) + a.shape[1:], refcheck=False)
+    return a
+
+
+def project_visible(
+    positions: np.ndarray,  # [N, 3]
+    scales: np.ndarray,  # [N, 3]
+    rotations_xyzw: np.ndarray,  # [N, 4]
+    colors: np.ndarray,  # [N, 3] (float32, or uint8: converted per row)
+    opacities: np.ndarray,  # [N]
+    view: PinholeView,
+    near_m: float = NEAR_M,
+    chunk: int = PROJECT_CHUNK,
+) -> VisibleSplats:
+    """Stage 3 in bounded memory: ``project_gaussians`` on ``chunk`` Gaussians at a time, keeping the
+    drawn rows only (input order). The rows equal ``project_gaussians``'s valid rows bit for bit.
+
+    Memory: the outputs are allocated for N rows but only the M drawn ones are written and kept
+    (64 bytes per drawn Gaussian: ``N_FEAT`` float32, 4 int32, a float64 depth), plus the per-chunk
+    buffers (65 bytes per chunk row).
+    """
+    n = positions.shape[0]
+    feat = np.empty((n, N_FEAT), np.float32)
+    box = np.empty((n, 4), np.int32)
+    depth = np.empty(n, np.float64)
+    no_aux = np.empty((0, N_AUX))
+    m = 0
+    for i in range(0, n, max(1, int(chunk))):
+        c = slice(i, i + chunk)
+        valid, d, f, b, _ = _project_kernel(
+            positions[c], scales[c], rotations_xyzw[c], colors[c], opacities[c], view.R_cam_world,
+            view.centre_world, view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, no_aux)
+        m = _compact_rows(valid, d, f, b, depth, feat, box, m)
+    return VisibleSplats(_shrink_rows(feat, m), _shrink_rows(box, m), _shrink_rows(depth, m))
+
+
+@njit(cache=True)
+def _permute_rows_inplace(order, feat, box, depth):
+    """``feat[:] = feat[order]``, ``box[:] = box[order]``, ``depth[:] = depth[order]`` in place,
+    cycle by cycle (``order`` ``[M]`` int32, a permutation, is used as the visited mark and
+    restored)."""
+    m = order.shape[0]
+    nf = feat.shape[1]
+    ftmp = np.empty(nf, feat.dtype)
+    btmp = np.empty(4, box.dtype)
+    for start in range(m):
+        if order[start] < 0 or order[start] == start:
+            continue
+        for j in range(nf):
+            ftmp[j] = feat[start, j]
+        for j in range(4):
+            btmp[j] = box[start, j]
+        dtmp = depth[start]
+        k = start
+        while True:
+            src = order[k]
+            order[k] = -1 - src  # visited
+            if src == start:
+                for j in range(nf):
+                    feat[k, j] = ftmp[j]
+                for j in range(4):
+                    box[k, j] = btmp[j]
+                depth[k] = dtmp
+                break
+            for j in range(nf):
+                feat[k, j] = feat[src, j]
+            for j in range(4):
+                box[k, j] = box[src, j]
+            depth[k] = depth[src]
+            k = src
+    for k in range(m):
+        if order[k] < 0:
+            order[k] = -1 - order[k]
+
+
+def sort_visible(vis: VisibleSplats) -> np.ndarray:
+    """Stage 4 in place: rows of ``vis`` front to back, ties in input order (the order of
+    ``sort_by_depth``); returns that order ``[M]`` int32 (rows of the unsorted ``vis``). No sorted
+    copy: 8 bytes per drawn Gaussian for the radix sort."""
+    if len(vis.depth) == 0:
+        return np.zeros(0, np.int32)
+    order = _radix_argsort_positive(vis.depth)
+    _permute_rows_inplace(order, vis.feat, vis.box, vis.depth)
+    return order
+
+
+@njit(cache=True)
+def _tile_pair_counts_kernel(box, tiles_x, tiles_y):
+    """Pairs per tile ``[tiles_y, tiles_x]`` int64 of ``box`` ``[M, 4]`` (2D difference array: O(M)
+    work whatever the footprints)."""
+    diff = np.zeros((tiles_y + 1, tiles_x + 1), dtype=np.int64)
+    for k in range(box.shape[0]):
+        tx0 = box[k, 0] // TILE_SIZE
+        tx1 = box[k, 1] // TILE_SIZE + 1
+        ty0 = box[k, 2] // TILE_SIZE
+        ty1 = box[k, 3] // TILE_SIZE + 1
+        diff[ty0, tx0] += 1
+        diff[ty0, tx1] -= 1
+        diff[ty1, tx0] -= 1
+        diff[ty1, tx1] += 1
+    for ty in range(tiles_y + 1):
+        for tx in range(1, tiles_x + 1):
+            diff[ty, tx] += diff[ty, tx - 1]
+    for ty in range(1, tiles_y + 1):
+        for tx in range(tiles_x + 1):
+            diff[ty, tx] += diff[ty - 1, tx]
+    return diff[:tiles_y, :tiles_x].copy()
+
+
+def tile_pair_counts(
+    box: np.ndarray,  # [M, 4] int32 boxes (x0, x1, y0, y1)
+    width: int,
+    height: int,
+) -> np.ndarray:
+    """Stage 5a: ``[n_tiles]`` int64 number of boxes touching each tile (row major), the lengths of
+    ``bin_tiles``'s lists, without listing them."""
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    return _tile_pair_counts_kernel(box, tiles_x, tiles_y).reshape(-1)
+
+
+def tile_batches(
+    counts: np.ndarray,  # [n_tiles] pairs per tile
+    max_tile_pairs: int | None = MAX_TILE_PAIRS,
+) -> list[tuple[int, int]]:
+    """Stage 5b: runs ``[(t0, t1)]`` of consecutive tiles (row major) covering every tile, each with at
+    most ``max_tile_pairs`` pairs (a run of one tile may hold more: a tile is never split). None:
+    one run."""
+    n_tiles = len(counts)
+    if max_tile_pairs is None or n_tiles == 0:
+        return [(0, n_tiles)]
+    cum = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])  # [n_tiles + 1]
+    out = []
+    t0 = 0
+    while t0 < n_tiles:
+        # the last tile whose run from t0 stays within the budget; at least one tile
+        t1 = int(np.searchsorted(cum, cum[t0] + int(max_tile_pairs), side="right")) - 1
+        t1 = min(n_tiles, max(t1, t0 + 1))
+        out.append((t0, t1))
+        t0 = t1
+    return out
+
+
+@njit(cache=True)
+def _bin_tile_batch_kernel(box, tiles_x, t0, t1, tile_start, tile_ids):
+    """Fill ``tile_ids`` with the rows of ``box`` ``[M, 4]`` touching tiles ``t0 .. t1 - 1``, per tile
+    in row order (``tile_start`` ``[t1 - t0 + 1]``: the run's offsets)."""
+    fill = tile_start[:-1].copy()
+    ty_a = t0 // tiles_x
+    ty_b = (t1 - 1) // tiles_x
+    for k in range(box.shape[0]):
+        tx0 = box[k, 0] // TILE_SIZE
+        tx1 = box[k, 1] // TILE_SIZE
+        for ty in range(max(box[k, 2] // TILE_SIZE, ty_a), min(box[k, 3] // TILE_SIZE, ty_b) + 1):
+            row = ty * tiles_x
+            for tx in range(max(tx0, t0 - row), min(tx1, t1 - 1 - row) + 1):
+                t = row + tx - t0
+                tile_ids[fill[t]] = k
+                fill[t] += 1
+
+
+def bin_tile_batch(
+    box: np.ndarray,  # [M, 4] int32 boxes of the sorted Gaussians
+    counts: np.ndarray,  # [n_tiles] from tile_pair_counts
+    width: int,
+    t0: int,
+    t1: int,
+    out: np.ndarray | None = None,  # [>= P] int32 buffer to fill (reused across runs)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 5c: ``(tile_start [t1 - t0 + 1] int64, tile_ids [P] int32)`` of tiles ``t0 .. t1 - 1``:
+    the slice of ``bin_tiles``'s lists for those tiles (same rows, same order)."""
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tile_start = np.zeros(t1 - t0 + 1, np.int64)
+    np.cumsum(counts[t0:t1], out=tile_start[1:])
+    p = int(tile_start[-1])
+    tile_ids = np.empty(p, np.int32) if out is None else out[:p]
+    _bin_tile_batch_kernel(box, tiles_x, t0, t1, tile_start, tile_ids)
+    return tile_start, tile_ids
+
+
+# --------------------------------------------------------------------------------------------
 # Stage 6: compositing
 # --------------------------------------------------------------------------------------------
 
@@ -798,14 +1035,15 @@ def _to_u8(x):
 
 @njit(cache=True)
 def _composite_worker(
-    worker, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg,
+    worker, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, t0, n_tiles, bg,
     rgb, depth_out, alpha_out, median_out,
 ):
-    """Composite tiles ``worker, worker + n_workers, ...`` front to back into the output images.
+    """Composite tiles ``t0 + worker, t0 + worker + n_workers, ...`` (of ``t0 .. t0 + n_tiles - 1``)
+    front to back into the output images.
 
     ``feat`` ``[M, N_FEAT]`` / ``box`` ``[M, 4]`` are the sorted Gaussians, ``tile_start`` /
-    ``tile_ids`` from ``bin_tiles``; writes rgb ``[H, W, 3]`` uint8, depth, alpha and median depth
-    ``[H, W]`` float32 in place.
+    ``tile_ids`` from ``bin_tiles`` (``t0 = 0``) or ``bin_tile_batch`` (indexed from ``t0``); writes
+    rgb ``[H, W, 3]`` uint8, depth, alpha and median depth ``[H, W]`` float32 in place.
 
     For each (tile, Gaussian) pair every touched tile row is processed as one 16-wide branch-free
     vector (lanes outside the Gaussian's box, below ``ALPHA_MIN`` or already terminated get alpha
@@ -828,7 +1066,7 @@ def _composite_worker(
     Dm = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     t_median = np.float32(MEDIAN_DEPTH_T)
     for t in range(worker, n_tiles, n_workers):
-        px0, py0, px1, py1 = tile_pixel_bounds(t, tiles_x, width, height)
+        px0, py0, px1, py1 = tile_pixel_bounds(t0 + t, tiles_x, width, height)
         T[:] = 1.0
         Cr[:] = 0.0
         Cg[:] = 0.0
@@ -909,10 +1147,21 @@ def _composite_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, n
     # Worker w takes tiles w, w + n_workers, ...: interleaving balances busy and empty regions.
     for w in prange(n_workers):
         _composite_worker(
-            w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg,
+            w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, 0, n_tiles, bg,
             rgb, depth_out, alpha_out, median_out,
         )
     return rgb, depth_out, alpha_out, median_out
+
+
+@njit(cache=True, parallel=True)
+def _composite_batch_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, t0, n_tiles, bg, n_workers,
+                            rgb, depth_out, alpha_out, median_out):
+    """Tiles ``t0 .. t0 + n_tiles - 1`` into the given output images, ``n_workers`` threads."""
+    for w in prange(n_workers):
+        _composite_worker(
+            w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, t0, n_tiles, bg,
+            rgb, depth_out, alpha_out, median_out,
+        )
 
 
 def composite_tiles(
@@ -926,3 +1175,23 @@ def composite_tiles(
         splats.tile_start, splats.tile_ids, splats.feat, splats.box, splats.width, splats.height,
         splats.tiles_x, splats.n_tiles, np.asarray(background, np.float32), n_workers,
     )
+
+
+def composite_tile_batch(
+    feat: np.ndarray,  # [M, N_FEAT] float32 sorted front to back
+    box: np.ndarray,  # [M, 4] int32 in that order
+    tile_start: np.ndarray,  # [t1 - t0 + 1] int64 from bin_tile_batch
+    tile_ids: np.ndarray,  # [P] int32 from bin_tile_batch
+    t0: int,
+    background: np.ndarray,  # [3] in [0, 255]
+    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],  # rgb [H, W, 3] uint8, depth, alpha, median [H, W]
+) -> None:
+    """Stage 6 for one run of tiles (``bin_tile_batch``): writes those tiles' pixels of ``out``; every
+    tile is drawn exactly as ``composite_tiles`` draws it."""
+    rgb, depth_out, alpha_out, median_out = out
+    height, width = rgb.shape[:2]
+    n_tiles = len(tile_start) - 1
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    n_workers = max(1, min(n_tiles, numba.get_num_threads()))
+    _composite_batch_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, int(t0), n_tiles,
+                            np.asarray(background, np.float32), n_workers, rgb, depth_out, alpha_out, median_out)

@@ -30,6 +30,23 @@ Skew in ``K`` is ignored.
 which the colour and keyframe fits share. ``render_gaussians_reference`` chains the plain NumPy
 references of the same stages (:mod:`atlas_pipeline.gaussian_world._raster_reference`) to check it.
 The constants of the model (``TILE_SIZE``, ``ALPHA_MAX``, ...) live in ``raster``.
+
+Memory (big worlds): ``render_gaussians`` runs the raster stages in bounded memory (see
+``raster``): only the drawn Gaussians are kept, sorted in place, and the (tile, Gaussian) pairs are
+listed a batch of tiles at a time (at most ``max_tile_pairs``), so a view of N Gaussians needs at
+most ``render_peak_bytes(N, W, H)`` beyond the caller's arrays::
+
+    4 N      validation temporaries (the caller's float32 / uint8 arrays are used in place)
+    72 M     drawn Gaussians (M <= N): feature row, box, depth (64) and the sort's order (8)
+    4 P_b    one batch of (tile, Gaussian) pairs, P_b <= max(max_tile_pairs, M)
+    32 T     per-tile pair counts and offsets (T tiles of 16x16 pixels)
+    15 W H   the result (rgb, depth, alpha, median depth)
+    + ~21 MB per-chunk projection buffers (raster.PROJECT_CHUNK), the radix sort's histogram,
+      per-thread tile buffers
+
+with the worst case M = N (every Gaussian in view): at most 76 bytes per Gaussian. The image is the
+same bit for bit as the one-pass stages the fits use (``raster.prepare_splats`` /
+``raster.composite_tiles``; ``tests/test_big_world.py``).
 """
 
 from __future__ import annotations
@@ -43,9 +60,36 @@ from atlas_pipeline.gaussian_world import raster
 from atlas_pipeline.gaussian_world._raster_reference import composite_reference, project_reference, sort_reference
 from atlas_pipeline.gaussian_world.raster import TILE_SIZE
 
-__all__ = ["RenderResult", "render_gaussians", "render_gaussians_reference", "TILE_SIZE"]
+__all__ = ["RenderResult", "render_gaussians", "render_gaussians_reference", "TILE_SIZE", "render_peak_bytes",
+           "RENDER_BYTES_PER_GAUSSIAN", "RENDER_BYTES_PER_DRAWN", "RENDER_BYTES_PER_PIXEL",
+           "RENDER_FIXED_BYTES"]
 
 logger = logging.getLogger(__name__)
+
+# What one view costs (render_peak_bytes; checked by tests/test_big_world.py and
+# benchmarks/bench_big_world.py against measured allocations and RSS):
+RENDER_BYTES_PER_GAUSSIAN = 4  # validation temporaries (isfinite masks, quaternion norms), any Gaussian
+RENDER_BYTES_PER_DRAWN = 4 * raster.N_FEAT + 16 + 8 + 8  # feature row 40, box 16, depth 8, sort order 8
+RENDER_BYTES_PER_PAIR = 4  # one int32 per (tile, Gaussian) pair of the current batch
+RENDER_BYTES_PER_PIXEL = 3 + 4 + 4 + 4  # the result: rgb uint8, depth, alpha, median depth float32
+# Per-chunk projection outputs (65 bytes per chunk row, counted as 80), the radix sort's
+# histograms and per-thread tile buffers, with room for allocator rounding.
+RENDER_FIXED_BYTES = 80 * raster.PROJECT_CHUNK + (4 << 20)
+
+
+def render_peak_bytes(n_gaussians: int, width: int, height: int,
+                      max_tile_pairs: int | None = raster.MAX_TILE_PAIRS) -> int:
+    """Upper bound on the memory ``render_gaussians`` allocates for one ``width x height`` view of
+    ``n_gaussians`` (every Gaussian drawn, the worst case), beyond the caller's arrays (which must
+    be float32, or uint8 colours, as a ``GaussianField`` holds them; other dtypes are converted
+    first, 40 bytes per Gaussian more). With ``max_tile_pairs=None`` (one batch) the pairs of the
+    whole view are listed at once, which no formula in N bounds usefully (a Gaussian may cover
+    every tile): the bound then assumes that worst case."""
+    n = int(n_gaussians)
+    tiles = -(-int(width) // TILE_SIZE) * -(-int(height) // TILE_SIZE)
+    pairs = max(int(max_tile_pairs), n) if max_tile_pairs is not None else n * tiles
+    return (RENDER_BYTES_PER_GAUSSIAN * n + RENDER_BYTES_PER_DRAWN * n + RENDER_BYTES_PER_PAIR * pairs
+            + 32 * (tiles + 1) + RENDER_BYTES_PER_PIXEL * int(width) * int(height) + RENDER_FIXED_BYTES)
 
 
 @dataclass
@@ -92,8 +136,10 @@ def render_gaussians(
     height: int,
     background: tuple[int, int, int] = (0, 0, 0),
     near_m: float = raster.NEAR_M,
+    max_tile_pairs: int | None = raster.MAX_TILE_PAIRS,
 ) -> RenderResult:
-    """Render Gaussians into one view (numba-compiled, tiled, multi-threaded).
+    """Render Gaussians into one view (numba-compiled, tiled, multi-threaded, bounded memory:
+    ``render_peak_bytes``).
 
     Args:
         positions: ``[N, 3]`` world-frame means (metres).
@@ -106,6 +152,8 @@ def render_gaussians(
         width, height: image size in pixels.
         background: RGB shown where the Gaussians are transparent.
         near_m: Gaussians whose mean has camera ``z < near_m`` are not drawn.
+        max_tile_pairs: (tile, Gaussian) pairs listed at once; the tiles are drawn in batches of
+            at most this many pairs (None: all at once). The image does not depend on it.
 
     Returns:
         ``RenderResult`` with rgb ``[H, W, 3]`` uint8, depth_m and alpha ``[H, W]`` float32.
@@ -114,13 +162,28 @@ def render_gaussians(
         ValueError: malformed shapes, non-finite values or values out of range.
     """
     inp = raster.validate_inputs(positions, scales, rotations_xyzw, colors, opacities, T_world_cam, K, width,
-                                 height, background, near_m)
+                                 height, background, near_m, float_colors=False)
+    if max_tile_pairs is not None and int(max_tile_pairs) < 1:
+        raise ValueError(f"max_tile_pairs must be a positive integer or None, got {max_tile_pairs!r}")
     view = raster.view_from_pose(inp.T_world_cam, inp.K, inp.width, inp.height)
-    splats = raster.prepare_splats(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities,
-                                   view, inp.near_m)
-    if splats is None:
+    vis = raster.project_visible(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities,
+                                 view, inp.near_m)
+    if len(vis.depth) == 0:
         return _empty_result(inp.width, inp.height, inp.background)
-    rgb, depth_m, alpha, depth_median_m = raster.composite_tiles(splats, inp.background)
+    bg = inp.background
+    del inp  # the converted copies (if any) are not needed past the projection
+    raster.sort_visible(vis)
+    h, w = view.height, view.width
+    out = (np.empty((h, w, 3), np.uint8), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+           np.empty((h, w), np.float32))
+    counts = raster.tile_pair_counts(vis.box, w, h)  # [n_tiles]
+    batches = raster.tile_batches(counts, max_tile_pairs)
+    biggest = max(int(counts[t0:t1].sum()) for t0, t1 in batches)
+    buf = np.empty(biggest, np.int32)  # reused by every batch
+    for t0, t1 in batches:
+        tile_start, tile_ids = raster.bin_tile_batch(vis.box, counts, w, t0, t1, buf)
+        raster.composite_tile_batch(vis.feat, vis.box, tile_start, tile_ids, t0, bg, out)
+    rgb, depth_m, alpha, depth_median_m = out
     return RenderResult(rgb=rgb, depth_m=depth_m, alpha=alpha, depth_median_m=depth_median_m)
 
 

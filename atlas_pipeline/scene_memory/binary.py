@@ -24,6 +24,12 @@ ATLASGS2 (its versioned successor; any field, anisotropic included)::
     ids       count x uint64
 
 55 bytes per Gaussian (ATLASGS1: 31). :func:`read_gaussian_binary` reads either, by magic.
+
+Memory: writing copies nothing (each array goes to the file from its own buffer; ATLASGS1's one
+scale column is written in chunks); reading holds the file's bytes once, and the field's arrays
+are views of them (55 bytes per Gaussian for ATLASGS2; ATLASGS1 adds the rotations and the three
+scales it expands to, 28 more), plus checks in chunks of ``_CHECK_CHUNK`` rows and one sorted copy
+of the ids when they are not already sorted (8 bytes per Gaussian).
 """
 
 from __future__ import annotations
@@ -34,18 +40,32 @@ from pathlib import Path
 import numpy as np
 
 from atlas_pipeline.errors import BundleFormatError
-from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.gaussian_world.field import GaussianField, ids_unique
 from atlas_pipeline.io_utils import atomic_path
 
 __all__ = ["MAGIC_V1", "MAGIC_V2", "write_atlasgs1", "read_atlasgs1", "write_atlasgs2", "read_atlasgs2",
-           "write_gaussian_binary", "read_gaussian_binary", "BYTES_PER_GAUSSIAN"]
+           "write_gaussian_binary", "read_gaussian_binary", "BYTES_PER_GAUSSIAN", "HEADER_BYTES"]
 
 MAGIC_V1 = b"ATLASGS1"
 MAGIC_V2 = b"ATLASGS2"
 _BYTES_PER_GAUSSIAN_V1 = 12 + 4 + 3 + 4 + 8
 _BYTES_PER_GAUSSIAN_V2 = 12 + 12 + 16 + 3 + 4 + 8
 _HEADER_V2 = 24
+_HEADER_V1 = 16
 BYTES_PER_GAUSSIAN = {1: _BYTES_PER_GAUSSIAN_V1, 2: _BYTES_PER_GAUSSIAN_V2}
+HEADER_BYTES = {1: _HEADER_V1, 2: _HEADER_V2}
+# Rows checked (or converted for writing) at a time: float64 temporaries of a chunk stay ~8 MB.
+_CHECK_CHUNK = 1 << 18
+
+
+def _write_array(f, a: np.ndarray, dtype: str) -> None:
+    """Write ``a`` as ``dtype`` bytes: straight from its buffer when it already has that layout
+    (no copy), else converted ``_CHECK_CHUNK`` rows at a time."""
+    if a.dtype == np.dtype(dtype) and a.flags.c_contiguous:
+        f.write(memoryview(a).cast("B") if a.size else b"")
+        return
+    for i in range(0, len(a), _CHECK_CHUNK):
+        f.write(np.ascontiguousarray(a[i:i + _CHECK_CHUNK], dtype=dtype).tobytes())
 
 
 def _read_checked(path: Path, magic: bytes, header_len: int, bytes_per: int, parse_header) -> tuple[tuple, bytes, int]:
@@ -78,15 +98,19 @@ def _check_values(path: Path, pos: np.ndarray, scales: np.ndarray, rot: np.ndarr
     """The invariants of a :class:`GaussianField`, so a corrupt file is refused rather than loaded:
     finite values, scales >= 0, non-zero quaternions, opacities in [0, 1], unique ids."""
     arrays = (pos, scales, opa) if rot is None else (pos, scales, rot, opa)
-    if not all(np.isfinite(a).all() for a in arrays):
-        raise BundleFormatError(path, "NaN or infinite values")
+    for i in range(0, len(pos), _CHECK_CHUNK):  # in chunks: temporaries stay small at any N
+        c = slice(i, i + _CHECK_CHUNK)
+        if not all(np.isfinite(a[c]).all() for a in arrays):
+            raise BundleFormatError(path, "NaN or infinite values")
     if len(pos) and scales.min() < 0:
         raise BundleFormatError(path, "negative scale")
-    if rot is not None and len(pos) and np.any(np.linalg.norm(rot.astype(np.float64), axis=1) < 1e-12):
-        raise BundleFormatError(path, "zero-norm rotation")
+    if rot is not None:
+        for i in range(0, len(pos), _CHECK_CHUNK):
+            if np.any(np.linalg.norm(rot[i:i + _CHECK_CHUNK].astype(np.float64), axis=1) < 1e-12):
+                raise BundleFormatError(path, "zero-norm rotation")
     if len(pos) and (opa.min() < 0 or opa.max() > 1):
         raise BundleFormatError(path, "opacity outside [0, 1]")
-    if len(np.unique(ids)) != len(ids):
+    if not ids_unique(ids):
         raise BundleFormatError(path, "Gaussian ids are not unique")
 
 
@@ -111,18 +135,19 @@ def write_atlasgs1(field: GaussianField, path: str | Path) -> Path:
         with open(tmp, "wb") as f:
             f.write(MAGIC_V1)
             f.write(struct.pack("<Q", n))
-            f.write(field.positions.astype("<f4").tobytes())
-            f.write(field.scales[:, 0].astype("<f4").tobytes())
-            f.write(field.colors.astype("u1").tobytes())
-            f.write(field.opacities.astype("<f4").tobytes())
-            f.write(field.ids.astype("<u8").tobytes())
+            _write_array(f, field.positions, "<f4")
+            _write_array(f, field.scales[:, 0], "<f4")
+            _write_array(f, field.colors, "u1")
+            _write_array(f, field.opacities, "<f4")
+            _write_array(f, field.ids, "<u8")
     return Path(path)
 
 
 def read_atlasgs1(path: str | Path) -> GaussianField:
     """Read an ATLASGS1 file; the size must match the count exactly and values must be finite."""
     path = Path(path)
-    _, buf, n = _read_checked(path, MAGIC_V1, 16, _BYTES_PER_GAUSSIAN_V1, lambda h: ((), struct.unpack("<Q", h[8:16])[0]))
+    _, buf, n = _read_checked(path, MAGIC_V1, _HEADER_V1, _BYTES_PER_GAUSSIAN_V1,
+                              lambda h: ((), struct.unpack("<Q", h[8:16])[0]))
     take = _Columns(buf).take
     pos = take("<f4", (n, 3))
     scale = take("<f4", (n,))
@@ -142,12 +167,12 @@ def write_atlasgs2(field: GaussianField, path: str | Path) -> Path:
         with open(tmp, "wb") as f:
             f.write(MAGIC_V2)
             f.write(struct.pack("<IIQ", 2, 0, n))
-            f.write(field.positions.astype("<f4").tobytes())
-            f.write(field.scales.astype("<f4").tobytes())
-            f.write(field.rotations_xyzw.astype("<f4").tobytes())
-            f.write(field.colors.astype("u1").tobytes())
-            f.write(field.opacities.astype("<f4").tobytes())
-            f.write(field.ids.astype("<u8").tobytes())
+            _write_array(f, field.positions, "<f4")
+            _write_array(f, field.scales, "<f4")
+            _write_array(f, field.rotations_xyzw, "<f4")
+            _write_array(f, field.colors, "u1")
+            _write_array(f, field.opacities, "<f4")
+            _write_array(f, field.ids, "<u8")
     return Path(path)
 
 
@@ -176,7 +201,9 @@ def write_gaussian_binary(field: GaussianField, path: str | Path) -> Path:
 
 
 def _identity_rotations(field: GaussianField) -> bool:
-    return bool(np.all(field.rotations_xyzw[:, :3] == 0) and np.all(field.rotations_xyzw[:, 3] == 1))
+    q = field.rotations_xyzw
+    return all(bool(np.all(q[i:i + _CHECK_CHUNK, :3] == 0) and np.all(q[i:i + _CHECK_CHUNK, 3] == 1))
+               for i in range(0, len(q), _CHECK_CHUNK))
 
 
 def read_gaussian_binary(path: str | Path) -> GaussianField:

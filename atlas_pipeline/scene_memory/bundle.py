@@ -11,6 +11,15 @@
       localization.json    per-frame poses and errors (optional)
       transitions.parquet  state-action-state log (optional)
 
+Memory and disk of a world of N Gaussians (and V voxels of statistics; a mapped world has about
+one voxel per Gaussian) are stated by :func:`bundle_disk_bytes`, :func:`world_memory_bytes`,
+:func:`save_peak_bytes` and :func:`load_peak_bytes` (checked against measured RSS by
+``benchmarks/bench_big_world.py`` and ``tests/test_big_world.py``): 55 bytes per Gaussian in
+memory (``FIELD_BYTES_PER_GAUSSIAN``) and in ``gaussians.bin``, 79 in ``gaussians.ply``, 55 per
+Gaussian plus 116 per voxel in ``world.npz``; writing needs a few bytes per Gaussian beyond the
+world (every file is streamed or written in chunks), loading the arrays it returns plus about 10
+bytes per Gaussian of checks.
+
 The folder is written under a temporary name and swapped into place whole, so a reader never sees
 a bundle whose files disagree with each other. Adding a localization or transitions to a bundle
 verifies every file it lists first, then swaps in a new whole folder: a corrupt file is reported,
@@ -34,7 +43,7 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from atlas_pipeline.errors import BundleFormatError
-from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.gaussian_world.field import FIELD_BYTES_PER_GAUSSIAN, GaussianField
 from atlas_pipeline.io_utils import (
     MARKER_NAME,
     atomic_dir,
@@ -49,14 +58,20 @@ from atlas_pipeline.io_utils import (
 )
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.localization.metrics import write_tum_trajectory
-from atlas_pipeline.scene_memory.binary import read_gaussian_binary, write_gaussian_binary
-from atlas_pipeline.scene_memory.ply import read_gaussian_ply, write_gaussian_ply
+from atlas_pipeline.scene_memory.binary import (
+    BYTES_PER_GAUSSIAN,
+    HEADER_BYTES,
+    read_gaussian_binary,
+    write_gaussian_binary,
+)
+from atlas_pipeline.scene_memory.ply import PLY_BYTES_PER_GAUSSIAN, read_gaussian_ply, write_gaussian_ply
 from atlas_pipeline.transition_log.transitions import write_transitions
 
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
     "read_metadata", "copy_bundle", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
     "verify_bundle_files", "BundleMetadataSchema", "BUNDLE_KIND",
+    "VOXEL_BYTES_PER_VOXEL", "bundle_disk_bytes", "world_memory_bytes", "save_peak_bytes", "load_peak_bytes",
 ]
 
 BUNDLE_FORMAT = "atlas-gs-world-bundle"
@@ -70,6 +85,57 @@ _SHA256_HEX = r"^[0-9a-f]{64}$"
 _FILE_NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$"
 
 logger = logging.getLogger(__name__)
+
+# ---- what a world costs (see the module docstring) ---------------------------------------------
+# VoxelGaussianBuilder per voxel: id uint64, count int64, sum_xyz / sum_rgb [3] and sum_sq [6]
+# float64, n_keyframes int32.
+VOXEL_BYTES_PER_VOXEL = 8 + 8 + 24 + 24 + 48 + 4
+_PLY_HEADER_MAX_BYTES = 1024  # write_gaussian_ply's header: 24 property lines and a count
+_NPZ_OVERHEAD_BYTES = 64 * 1024  # world.npz: ~20 members' npy and zip headers, keyframe poses
+# Writing: chunk buffers of the PLY encoder (~300 bytes per row of ply._CHUNK), numpy's savez
+# buffers (16 MB), hashing reads (1 MB), with room for the allocator.
+SAVE_FIXED_BYTES = 64 << 20
+SAVE_BYTES_PER_GAUSSIAN = 4  # the isotropy mask deciding ATLASGS1 / ATLASGS2 (3 bytes)
+# Loading: checks (a comparison mask over the ids, isfinite masks, one sorted copy of unsorted
+# ids) beyond the arrays returned; per Gaussian and per voxel.
+LOAD_CHECK_BYTES = 10
+LOAD_FIXED_BYTES = 32 << 20  # chunked reads and checks, hashing reads, allocator slack
+
+
+def world_memory_bytes(n_gaussians: int, n_voxels: int = 0) -> int:
+    """Bytes a loaded ``GaussianField`` of ``n_gaussians`` (plus ``n_voxels`` of voxel statistics,
+    as ``GaussianWorld.load`` returns them) holds: ``55 N + 116 V``."""
+    return FIELD_BYTES_PER_GAUSSIAN * int(n_gaussians) + VOXEL_BYTES_PER_VOXEL * int(n_voxels)
+
+
+def bundle_disk_bytes(n_gaussians: int, n_voxels: int | None = None, isotropic: bool = False) -> dict[str, int]:
+    """Upper bounds of the bundle's Gaussian files in bytes: ``gaussians.bin`` (exact: 24 + 55 N, or
+    16 + 31 N for an isotropic field), ``gaussians.ply`` (at most 1 kB of header + 79 N) and, with
+    ``n_voxels``, ``world.npz`` (55 N + 116 V + at most 64 kB of headers and keyframes)."""
+    n = int(n_gaussians)
+    v = 1 if isotropic else 2
+    out = {"gaussians.bin": HEADER_BYTES[v] + BYTES_PER_GAUSSIAN[v] * n,
+           "gaussians.ply": _PLY_HEADER_MAX_BYTES + PLY_BYTES_PER_GAUSSIAN * n}
+    if n_voxels is not None:
+        out["world.npz"] = world_memory_bytes(n, n_voxels) + _NPZ_OVERHEAD_BYTES
+    return out
+
+
+def save_peak_bytes(n_gaussians: int) -> int:
+    """Upper bound on what ``write_world_bundle`` (PLY, binary, the ``GaussianWorld``'s npz,
+    checksums) allocates beyond the world it writes: ``4 N + 64 MB``."""
+    return SAVE_BYTES_PER_GAUSSIAN * int(n_gaussians) + SAVE_FIXED_BYTES
+
+
+def load_peak_bytes(n_gaussians: int, n_voxels: int | None = None) -> int:
+    """Upper bound on the memory of ``load_world_bundle(source='bin')`` (the field it returns,
+    ``55 N``, and its checks), plus, with ``n_voxels``, ``GaussianWorld.load`` of the same world
+    (``55 N + 116 V`` more) -- results included: ``55 N + 10 N + 32 MB`` (+ ``65 N + 126 V``)."""
+    n = int(n_gaussians)
+    total = world_memory_bytes(n) + LOAD_CHECK_BYTES * n + LOAD_FIXED_BYTES
+    if n_voxels is not None:
+        total += world_memory_bytes(n, n_voxels) + LOAD_CHECK_BYTES * max(n, int(n_voxels))
+    return total
 
 
 class FileRecord(BaseModel):
@@ -375,8 +441,10 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
     if name is None:
         raise ValueError(f"source must be 'bin' or 'ply', got {source!r}")
     if verify:
-        verify_bundle_files(directory, meta)
-    path = _verified_file(directory, meta, name) if verify else directory / name
+        verify_bundle_files(directory, meta)  # hashes every listed file once, the Gaussians included
+        if name not in meta["files"]:
+            raise BundleFormatError(directory / "metadata.json", f"no checksum recorded for {name}")
+    path = directory / name
     field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
     return WorldBundle(directory, field, meta)
 

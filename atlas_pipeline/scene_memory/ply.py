@@ -14,6 +14,11 @@ Per vertex (binary little endian, float32 unless noted)::
 
 Gaussian-splat viewers and gsplat read the 3DGS properties and ignore the extra ones. Reading
 accepts any PLY with at least the 3DGS properties (ids are assigned when absent).
+
+Both directions work in chunks of ``_CHUNK`` vertices, so a PLY of any size is written and read
+with the field plus a few MB: ``PLY_BYTES_PER_GAUSSIAN`` (79) bytes per vertex on disk; reading
+holds the field (``FIELD_BYTES_PER_GAUSSIAN``), one chunk and, for foreign files whose ids are not
+sorted, one sorted copy of the ids.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import numpy as np
 from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.field import (
     GaussianField,
+    ids_unique,
     logit_to_opacity as _decode_opacity,
     log_to_scale as _decode_scale,
     opacity_to_logit as _encode_opacity,
@@ -36,7 +42,7 @@ from atlas_pipeline.io_utils import atomic_path
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SH_C0", "write_gaussian_ply", "read_gaussian_ply"]
+__all__ = ["SH_C0", "write_gaussian_ply", "read_gaussian_ply", "PLY_BYTES_PER_GAUSSIAN"]
 
 SH_C0 = 0.28209479177387814
 
@@ -54,6 +60,12 @@ _MAX_HEADER_BYTES = 64 * 1024
 # A vertex count has at most 20 digits (uint64); longer digit strings are garbage, and int() of
 # more than 4300 digits raises ValueError in Python >= 3.11.
 _MAX_COUNT_DIGITS = 20
+# Vertices encoded or decoded at a time: a chunk's structured rows and float64 temporaries stay
+# ~20 MB, and a few thousand write calls cover millions of Gaussians.
+_CHUNK = 1 << 16
+_WRITE_DTYPE = np.dtype([(p, "<f4") for p in _FLOAT_PROPS] + [("red", "u1"), ("green", "u1"), ("blue", "u1"),
+                                                              ("id_hi", "<u4"), ("id_lo", "<u4")])
+PLY_BYTES_PER_GAUSSIAN = _WRITE_DTYPE.itemsize  # 79: what write_gaussian_ply stores per vertex
 
 
 def _normals(field: GaussianField) -> np.ndarray:
@@ -73,13 +85,10 @@ def _normals(field: GaussianField) -> np.ndarray:
     return out
 
 
-def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
-    """Write ``field`` as a binary little-endian 3DGS PLY (atomically)."""
-    path = Path(path)
+def _encode_vertices(field: GaussianField) -> np.ndarray:
+    """``[N]`` structured vertex rows (``_WRITE_DTYPE``) of ``field``."""
     n = len(field)
-    dtype = [(p, "<f4") for p in _FLOAT_PROPS] + [("red", "u1"), ("green", "u1"), ("blue", "u1"),
-                                                  ("id_hi", "<u4"), ("id_lo", "<u4")]
-    v = np.empty(n, dtype=dtype)
+    v = np.empty(n, dtype=_WRITE_DTYPE)
     v["x"], v["y"], v["z"] = field.positions.T
     v["nx"], v["ny"], v["nz"] = _normals(field).T
     dc = ((field.colors.astype(np.float64) / 255.0) - 0.5) / SH_C0
@@ -92,15 +101,25 @@ def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
     v["red"], v["green"], v["blue"] = field.colors.T
     v["id_hi"] = (field.ids >> np.uint64(32)).astype(np.uint32)
     v["id_lo"] = (field.ids & np.uint64(0xFFFFFFFF)).astype(np.uint32)
+    return v
+
+
+def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
+    """Write ``field`` as a binary little-endian 3DGS PLY (atomically), ``_CHUNK`` vertices at a
+    time (every value is encoded per vertex, so the bytes do not depend on the chunking)."""
+    path = Path(path)
+    n = len(field)
     header = ["ply", "format binary_little_endian 1.0", "comment Atlas-GS Gaussian world (3DGS layout)",
               f"element vertex {n}"]
-    for name, t in dtype:
-        header.append(f"property {'float' if t == '<f4' else 'uchar' if t == 'u1' else 'uint'} {name}")
+    for name in _WRITE_DTYPE.names:
+        t = _WRITE_DTYPE[name].str
+        header.append(f"property {'float' if t == '<f4' else 'uchar' if t == '|u1' else 'uint'} {name}")
     header.append("end_header")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(v.tobytes())
+            for i in range(0, n, _CHUNK):
+                f.write(_encode_vertices(field.subset(slice(i, i + _CHUNK))).tobytes())
     return path
 
 
@@ -186,7 +205,8 @@ def read_gaussian_ply(path: str | Path) -> GaussianField:
 
     The vertex count is checked against the file size before any array is allocated, and every
     value must be finite (also once stored as float32). ``red green blue`` are used when they are
-    ``uchar``, else colours come from ``f_dc_*``; ``id_hi id_lo`` when they are ``uint``.
+    ``uchar``, else colours come from ``f_dc_*``; ``id_hi id_lo`` when they are ``uint``. The
+    vertices are read and decoded ``_CHUNK`` at a time into the field's arrays.
     """
     path = Path(path)
     if not path.is_file():
@@ -201,39 +221,58 @@ def read_gaussian_ply(path: str | Path) -> GaussianField:
                     path, f"header declares {count} vertices ({need} bytes) but only {size - data_start} bytes follow"
                 )
             f.seek(data_start)
-            body = f.read(need)
+            return _read_vertices(path, f, count, dtype)
     except OSError as exc:
         raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
-    if len(body) != need:  # the file shrank after stat()
-        raise BundleFormatError(path, f"header declares {count} vertices ({need} bytes) but only {len(body)} bytes could be read")
-    v = np.frombuffer(body, dtype=dtype, count=count)
-    vals = _finite_float32(path, v, _REQUIRED)  # [N, 14] in _REQUIRED order
+
+
+def _read_vertices(path: Path, f, count: int, dtype: np.dtype) -> GaussianField:
+    """Decode ``count`` vertices of ``dtype`` from ``f`` (at the first vertex), ``_CHUNK`` at a time."""
     col = {p: k for k, p in enumerate(_REQUIRED)}
-    pos = vals[:, [col["x"], col["y"], col["z"]]]
-    if all(c in dtype.names and dtype[c] == np.uint8 for c in ("red", "green", "blue")):
-        colors = np.stack([v["red"], v["green"], v["blue"]], axis=1)
-    else:
-        if any(c in dtype.names for c in ("red", "green", "blue")):
-            logger.warning("%s: red/green/blue are not all uchar; colours come from f_dc_*", path)
-        dc = vals[:, [col["f_dc_0"], col["f_dc_1"], col["f_dc_2"]]].astype(np.float64)
-        colors = np.clip(np.rint((dc * SH_C0 + 0.5) * 255.0), 0, 255).astype(np.uint8)
-    with np.errstate(over="ignore"):
-        scales = _decode_scale(vals[:, [col["scale_0"], col["scale_1"], col["scale_2"]]])
-    if not np.isfinite(scales).all():
-        bad = int(np.flatnonzero(~np.isfinite(scales).all(axis=1))[0])
-        raise BundleFormatError(path, f"vertex {bad}: log scale too large (exp overflows float32)")
-    rot = vals[:, [col["rot_1"], col["rot_2"], col["rot_3"], col["rot_0"]]]
-    norms = np.linalg.norm(rot.astype(np.float64), axis=1)
-    if np.any(norms < 1e-12):
-        raise BundleFormatError(path, "a rotation quaternion has zero norm")
-    if "id_hi" in dtype.names and "id_lo" in dtype.names:
-        if not all(dtype[c].kind == "u" and dtype[c].itemsize <= 4 for c in ("id_hi", "id_lo")):
-            raise BundleFormatError(path, "properties id_hi and id_lo must be unsigned integers of at most 32 bits")
-        ids = (v["id_hi"].astype(np.uint64) << np.uint64(32)) | v["id_lo"].astype(np.uint64)
-        if len(np.unique(ids)) != len(ids):
-            raise BundleFormatError(path, "Gaussian ids are not unique")
-    else:
-        ids = np.arange(count, dtype=np.uint64)  # foreign PLY: ids by vertex order
-    with np.errstate(over="ignore"):  # exp(-logit) may overflow to inf: opacity 0, as intended
-        opacities = _decode_opacity(vals[:, col["opacity"]])
+    names = dtype.names
+    rgb_u8 = all(c in names and dtype[c] == np.uint8 for c in ("red", "green", "blue"))
+    if not rgb_u8 and any(c in names for c in ("red", "green", "blue")):
+        logger.warning("%s: red/green/blue are not all uchar; colours come from f_dc_*", path)
+    has_ids = "id_hi" in names and "id_lo" in names
+    ids_ok = not has_ids or all(dtype[c].kind == "u" and dtype[c].itemsize <= 4 for c in ("id_hi", "id_lo"))
+    pos = np.empty((count, 3), np.float32)
+    scales = np.empty((count, 3), np.float32)
+    rot = np.empty((count, 4), np.float32)
+    colors = np.empty((count, 3), np.uint8)
+    opacities = np.empty(count, np.float32)
+    ids = np.empty(count, np.uint64) if has_ids and ids_ok else np.arange(count, dtype=np.uint64)
+    buf = np.empty(min(count, _CHUNK) * dtype.itemsize, np.uint8)
+    for i in range(0, count, _CHUNK):
+        m = min(_CHUNK, count - i)
+        view = buf[: m * dtype.itemsize]
+        got = f.readinto(view)
+        if got != len(view):  # the file shrank after stat()
+            raise BundleFormatError(path, f"header declares {count} vertices ({count * dtype.itemsize} bytes) but only "
+                                          f"{i * dtype.itemsize + (got or 0)} bytes could be read")
+        v = np.frombuffer(view, dtype=dtype, count=m)
+        vals = _finite_float32(path, v, _REQUIRED)  # [m, 14] in _REQUIRED order
+        c = slice(i, i + m)
+        pos[c] = vals[:, [col["x"], col["y"], col["z"]]]
+        if rgb_u8:
+            colors[c, 0], colors[c, 1], colors[c, 2] = v["red"], v["green"], v["blue"]
+        else:
+            dc = vals[:, [col["f_dc_0"], col["f_dc_1"], col["f_dc_2"]]].astype(np.float64)
+            colors[c] = np.clip(np.rint((dc * SH_C0 + 0.5) * 255.0), 0, 255)
+        with np.errstate(over="ignore"):
+            s = _decode_scale(vals[:, [col["scale_0"], col["scale_1"], col["scale_2"]]])
+        if not np.isfinite(s).all():
+            bad = i + int(np.flatnonzero(~np.isfinite(s).all(axis=1))[0])
+            raise BundleFormatError(path, f"vertex {bad}: log scale too large (exp overflows float32)")
+        scales[c] = s
+        rot[c] = vals[:, [col["rot_1"], col["rot_2"], col["rot_3"], col["rot_0"]]]
+        if np.any(np.linalg.norm(rot[c].astype(np.float64), axis=1) < 1e-12):
+            raise BundleFormatError(path, "a rotation quaternion has zero norm")
+        if has_ids and ids_ok:
+            ids[c] = (v["id_hi"].astype(np.uint64) << np.uint64(32)) | v["id_lo"].astype(np.uint64)
+        with np.errstate(over="ignore"):  # exp(-logit) may overflow to inf: opacity 0, as intended
+            opacities[c] = _decode_opacity(vals[:, col["opacity"]])
+    if not ids_ok:
+        raise BundleFormatError(path, "properties id_hi and id_lo must be unsigned integers of at most 32 bits")
+    if has_ids and not ids_unique(ids):
+        raise BundleFormatError(path, "Gaussian ids are not unique")
     return GaussianField(pos, scales, rot, colors, opacities, ids)
