@@ -116,8 +116,7 @@ def error_panels_png(real_rgb: np.ndarray, rendered_rgb: np.ndarray, error_m: np
     panel_h = (h / FIGURE_DPI) / fig.get_figheight()
     bottom = bar_in / fig.get_figheight()
     err = np.ma.masked_where(~valid, np.nan_to_num(error_m) * cm_per_m)
-    cmap = ListedColormap(matplotlib.colormaps["inferno"](np.linspace(0, 1, 256)))
-    cmap.set_bad(ERROR_NO_DEPTH_RGB)
+    cmap = ListedColormap(matplotlib.colormaps["inferno"](np.linspace(0, 1, 256))).with_extremes(bad=ERROR_NO_DEPTH_RGB)
     im = None
     for k, (img, name) in enumerate([(real_rgb, "real"), (rendered_rgb, "rendered"), (err, "depth error")]):
         ax = fig.add_axes((k / 3, bottom, 1 / 3, panel_h))
