@@ -37,6 +37,9 @@ STAGES = ("raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localiz
 _FIT_PREFIXES = ("optimization_", "colour_refinement_")
 _FIT = {f.name for f in dataclasses.fields(MappingConfig) if f.name.startswith(_FIT_PREFIXES)}
 _DEPTH = {"min_depth_m", "max_depth_m"}
+# The map's own depth range: gaussian_world reads it (keyframe depth images out to it), keyframes
+# does not (the tracker keeps the fusion range, _DEPTH).
+_MAP_RANGE = {"max_depth_m"}
 _STARTED: dict[tuple[str, AssetKey], float] = {}  # (run, asset) -> when reuse() decided to compute
 
 
@@ -52,8 +55,9 @@ def stage_settings(cfg: PipelineConfig, stage: str, manifest: FrameManifest | No
     if stage == "keyframes" and manifest is not None and uses_ground_truth(manifest, cfg.mapping):
         return f("mapping", {"pose_source", "keyframe_translation_m", "keyframe_rotation_deg"})
     return {"raw_dataset": lambda: f("dataset"), "fused_frames": lambda: f("fusion"),
-            "keyframes": lambda: {**f("mapping", without=_FIT), **f("localization", without={"max_ate_m"})},
-            "gaussian_world": lambda: {**f("mapping", _FIT | {"voxel_size_m"}), **f("fusion", _DEPTH)},
+            "keyframes": lambda: {**f("mapping", without=_FIT | _MAP_RANGE),
+                                  **f("localization", without={"max_ate_m"})},
+            "gaussian_world": lambda: {**f("mapping", _FIT | _MAP_RANGE | {"voxel_size_m"}), **f("fusion", _DEPTH)},
             "localization_report": lambda: {**f("localization", without={"max_ate_m"}), **f("fusion", _DEPTH)},
             "transitions": lambda: f("transitions"),
             # the orbit is planned on the map's voxel grid (viz/camera_paths.py)

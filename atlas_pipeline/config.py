@@ -110,6 +110,8 @@ class DatasetConfig:
 
 @dataclass(frozen=True)
 class FusionConfig:
+    # Depth range of the fused frames and of tracking (localization); the map reaches further
+    # (mapping.max_depth_m): tracking against 8 m of noisy depth broke.
     min_depth_m: float = _setting(0.1, NON_NEGATIVE)
     max_depth_m: float = _setting(4.0, POSITIVE)
     stride: int = _setting(2, AT_LEAST_ONE)  # back-project every ``stride``-th pixel in u and v
@@ -119,6 +121,14 @@ class FusionConfig:
 class MappingConfig:
     pose_source: PoseSource = "auto"
     voxel_size_m: float = _setting(0.02, POSITIVE)
+    # Depth range of the map (from fusion.min_depth_m; >= fusion.max_depth_m: named check): walls
+    # past the tracking range still get Gaussians instead of rendering as background. 8 m: how far
+    # Kinect-class structured-light sensors (TUM's) return depth, and where the project's synthetic
+    # Kinect v1 cuts (sensors/synthetic.py SyntheticSpec.max_depth_m). Their noise grows with z^2
+    # (sigma_z ~11 cm at 8 m, Nguyen et al. 2012), so points are merged with inverse-variance
+    # weights and far depth counts less in the fit (mapping/mapper.py depth_sigma_m); the tracker
+    # never sees these points.
+    max_depth_m: float = _setting(8.0, POSITIVE)
     keyframe_translation_m: float = _setting(0.08, NON_NEGATIVE)
     keyframe_rotation_deg: float = _setting(8.0, NON_NEGATIVE)
     # Fit Gaussian colours to the keyframe images; 0 = mean colours.
@@ -416,7 +426,16 @@ def _correspondence_gates_ordered(c: LocalizationConfig, p: str) -> str | None:
     return None
 
 
+def _mapping_range_covers_tracking_range(c: PipelineConfig, p: str) -> str | None:
+    # The map holds at least what the tracker sees: its range extends the fusion range.
+    if c.mapping.max_depth_m < c.fusion.max_depth_m:
+        return (f"{p}mapping.max_depth_m must be >= {p}fusion.max_depth_m ({c.fusion.max_depth_m!r}), "
+                f"got {c.mapping.max_depth_m!r}")
+    return None
+
+
 _SECTION_CHECKS: dict[type, tuple[Callable[[Any, str], str | None], ...]] = {
+    PipelineConfig: (_mapping_range_covers_tracking_range,),
     FusionConfig: (_depth_interval_not_empty,),
     MappingConfig: (_optimization_scale_is_reciprocal,),
     LocalizationConfig: (_iterations_track_something, _pyramid_not_too_deep, _correspondence_gates_ordered),

@@ -1,6 +1,7 @@
 """How the Gaussian world looks against the real images, and what it costs on disk (issue 4).
 
     python benchmarks/bench_photometric.py                 # TUM teddy (when present) and synthetic
+    python benchmarks/bench_photometric.py --datasets teddy fr1 synthetic --sources estimated
     python benchmarks/bench_photometric.py --json out.json
     python benchmarks/bench_photometric.py --datasets teddy --unfitted   # also without the keyframe fit
     python benchmarks/bench_photometric.py --datasets teddy --sources ground_truth --set fusion.max_depth_m=8
@@ -67,13 +68,29 @@ def run(manifest, cfg) -> dict:
             "bundle_bytes": int(sum(sizes.values())), "build_seconds": t_build, "fit": world.fit}
 
 
+FR1_XYZ = ROOT.parent / "shared" / "data" / "tum_fr1_xyz_10"
+
+
+def _load(name: str):
+    """The dataset's manifest, or None when its TUM frames are not present."""
+    from bench_tracking import _load as load_teddy_or_synthetic
+
+    if name != "fr1":
+        return load_teddy_or_synthetic(name)
+    from atlas_pipeline.sensors.camera import TUM_CAMERAS
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    if not (FR1_XYZ / "rgb.txt").is_file():
+        return None
+    return load_tum_sequence(FR1_XYZ, TUM_CAMERAS["freiburg1"], "tum_fr1_xyz_10")
+
+
 def main(argv: list[str] | None = None) -> int:
-    from bench_tracking import _load
 
     from atlas_pipeline.config import load_profile
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--datasets", nargs="+", default=["teddy", "synthetic"], choices=["synthetic", "teddy"])
+    ap.add_argument("--datasets", nargs="+", default=["teddy", "synthetic"], choices=["synthetic", "teddy", "fr1"])
     ap.add_argument("--view-stride", type=int, default=1, help="evaluate every n-th held-out frame")
     ap.add_argument("--unfitted", action="store_true",
                     help="also run with mapping.optimization_epochs 0 (the voxel field with fitted colours only)")

@@ -125,7 +125,7 @@ def _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, w_rgb, w_depth,
     npix = float(w * h)
     loss, dout, k_end = opt._forward_tiles(sp.tile_start, sp.tile_ids, sp.feat, sp.order, sp.aux, sp.box, w, h,
                                            sp.tiles_x, sp.n_tiles, np.zeros(3), np.float32(img), np.float32(dep),
-                                           w_rgb / npix, w_depth / npix, w_cover / npix, n_workers)
+                                           np.ones(dep.shape, np.float32), w_rgb / npix, w_depth / npix, w_cover / npix, n_workers)
     pair = opt._backward_tiles(sp.tile_start, sp.tile_ids, slot, k_end, sp.feat, sp.order, sp.aux, sp.box, w, h,
                                sp.tiles_x, sp.n_tiles, dout, n_workers)
     g2d = np.array([pair[start[k]:start[k + 1]].astype(np.float64).sum(axis=0) for k in range(len(sp.order))])

@@ -4,6 +4,11 @@ Points are binned into voxels of size ``v``. Each voxel keeps running sums (coun
 colour, second moments), so merging a new keyframe only adds to sums: the result does not depend on
 how keyframes are batched, and a voxel's id is derived from its integer coordinates, so the same
 surface patch keeps the same id across merges, reruns and sessions.
+
+Points may carry weights (the mapper gives each its inverse depth variance, so a far, noisy reading
+moves a voxel's mean and shape less than a near one): positions and second moments are then
+weighted sums over ``weight``, the sum of the weights; colours stay plain means over ``count``
+(colour noise does not grow with depth). Unweighted points have weight 1 (``weight == count``).
 """
 
 from __future__ import annotations
@@ -69,9 +74,10 @@ class VoxelGaussianBuilder:
     """Accumulates world-frame points into voxel statistics; one Gaussian per occupied voxel.
 
     State arrays (N occupied voxels, kept sorted by id):
-        ids ``[N]`` uint64, count ``[N]`` int64, sum_xyz ``[N, 3]`` float64,
-        sum_rgb ``[N, 3]`` float64, sum_sq ``[N, 6]`` float64 (xx xy xz yy yz zz, for covariances),
-        n_keyframes ``[N]`` int32 (keyframes that observed the voxel).
+        ids ``[N]`` uint64, count ``[N]`` int64 (points), sum_xyz ``[N, 3]`` float64 (weighted),
+        sum_rgb ``[N, 3]`` float64 (unweighted), sum_sq ``[N, 6]`` float64 (weighted; xx xy xz yy yz
+        zz, for covariances), n_keyframes ``[N]`` int32 (keyframes that observed the voxel),
+        weight ``[N]`` float64 (sum of the point weights; ``count`` when no weights were given).
     """
 
     voxel_size_m: float
@@ -81,16 +87,22 @@ class VoxelGaussianBuilder:
     sum_rgb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     sum_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
     n_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    weight: np.ndarray | None = None  # None: every point had weight 1 (weight = count)
     # Bookkeeping for incremental consumers (the tracker's surfel map), not state: bumped by every
     # merge of statistics, with the sorted ids that merge touched.
     version: int = field(default=0, compare=False, repr=False)
     last_touched_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64), compare=False, repr=False)
 
+    def __post_init__(self) -> None:
+        if self.weight is None:
+            self.weight = self.count.astype(np.float64)
+
     def __len__(self) -> int:
         return len(self.ids)
 
-    def integrate(self, points_world: np.ndarray, colors: np.ndarray) -> int:
-        """Merge one keyframe's points ``[M, 3]`` and colours ``[M, 3]``; returns new voxel count."""
+    def integrate(self, points_world: np.ndarray, colors: np.ndarray, weights: np.ndarray | None = None) -> int:
+        """Merge one keyframe's points ``[M, 3]`` and colours ``[M, 3]``, with optional positive
+        ``weights [M]`` for positions and shapes (None: 1 each); returns the new voxel count."""
         if len(points_world) == 0:
             return 0
         p = np.asarray(points_world, dtype=np.float64)
@@ -103,10 +115,17 @@ class VoxelGaussianBuilder:
             return np.bincount(inv, weights=w, minlength=nk)
 
         cnt = np.bincount(inv, minlength=nk).astype(np.int64)
-        sxyz = np.stack([bsum(p[:, k]) for k in range(3)], axis=1)
+        if weights is None:
+            wsum, pw = cnt.astype(np.float64), p
+        else:
+            w = np.asarray(weights, dtype=np.float64)
+            if w.shape != (len(p),) or not (np.isfinite(w).all() and (w > 0).all()):
+                raise ValueError("integrate: weights must be [M] finite and > 0, one per point")
+            wsum, pw = bsum(w), p * w[:, None]
+        sxyz = np.stack([bsum(pw[:, k]) for k in range(3)], axis=1)
         srgb = np.stack([bsum(c[:, k]) for k in range(3)], axis=1)
-        ssq = np.stack([bsum(p[:, a] * p[:, b]) for a, b in _MOMENT_PAIRS], axis=1)
-        return self._add(uk, cnt, sxyz, srgb, ssq, np.ones(nk, np.int32))
+        ssq = np.stack([bsum(pw[:, a] * p[:, b]) for a, b in _MOMENT_PAIRS], axis=1)
+        return self._add(uk, cnt, sxyz, srgb, ssq, np.ones(nk, np.int32), wsum)
 
     def merge(self, other: "VoxelGaussianBuilder", T_self_other: np.ndarray) -> int:
         """Add ``other``'s statistics, moved by ``T_self_other [4, 4]`` (other's frame to this
@@ -120,7 +139,7 @@ class VoxelGaussianBuilder:
             return 0
         T = np.asarray(T_self_other, np.float64)
         R, t = T[:3, :3], T[:3, 3]
-        n = other.count.astype(np.float64)
+        n = other.weight  # the weighted sums move with the sum of their weights
         s_old = other.sum_xyz
         s_new = s_old @ R.T + n[:, None] * t
         Q = _moments_to_matrices(other.sum_sq)  # [M, 3, 3] sum of p p^T
@@ -135,13 +154,14 @@ class VoxelGaussianBuilder:
             return np.bincount(inv, weights=w, minlength=nk)
 
         ssq6 = np.stack([Q_new[:, a, b] for a, b in _MOMENT_PAIRS], axis=1)
-        return self._add(uk, bsum(n).astype(np.int64), np.stack([bsum(s_new[:, k]) for k in range(3)], axis=1),
+        return self._add(uk, bsum(other.count.astype(np.float64)).astype(np.int64),
+                         np.stack([bsum(s_new[:, k]) for k in range(3)], axis=1),
                          np.stack([bsum(other.sum_rgb[:, k]) for k in range(3)], axis=1),
                          np.stack([bsum(ssq6[:, k]) for k in range(6)], axis=1),
-                         bsum(other.n_keyframes.astype(np.float64)).astype(np.int32))
+                         bsum(other.n_keyframes.astype(np.float64)).astype(np.int32), bsum(n))
 
     def _add(self, uk: np.ndarray, cnt: np.ndarray, sxyz: np.ndarray, srgb: np.ndarray, ssq: np.ndarray,
-             nkf: np.ndarray) -> int:
+             nkf: np.ndarray, wsum: np.ndarray) -> int:
         """Merge per-voxel sums for the sorted unique ids ``uk [M]`` into the state; returns new voxels."""
         # Merge sorted key sets: existing voxels accumulate, new ones are inserted in id order.
         all_ids, inv2 = np.unique(np.concatenate([self.ids, uk]), return_inverse=True)
@@ -159,6 +179,7 @@ class VoxelGaussianBuilder:
         self.sum_rgb = merged(self.sum_rgb, srgb)
         self.sum_sq = merged(self.sum_sq, ssq)
         self.n_keyframes = merged(self.n_keyframes, nkf)
+        self.weight = merged(self.weight, wsum)
         self.ids = all_ids
         self.version += 1
         self.last_touched_ids = uk
@@ -186,12 +207,13 @@ class VoxelGaussianBuilder:
         keep = self.count >= min_points
         n = int(keep.sum())
         cnt = self.count[keep].astype(np.float64)
-        pos = self.sum_xyz[keep] / cnt[:, None]
+        wsum = self.weight[keep]  # positions and shapes are weighted means (== cnt without weights)
+        pos = self.sum_xyz[keep] / wsum[:, None]
         rgb = np.clip(np.rint(self.sum_rgb[keep] / cnt[:, None]), 0, 255)
         v = self.voxel_size_m
         if n == 0:
             return GaussianField.empty()
-        sq = self.sum_sq[keep] / cnt[:, None]
+        sq = self.sum_sq[keep] / wsum[:, None]
         cov = np.empty((n, 3, 3))
         for a, b, c in ((0, 0, 0), (0, 1, 1), (0, 2, 2), (1, 1, 3), (1, 2, 4), (2, 2, 5)):
             cov[:, a, b] = cov[:, b, a] = sq[:, c] - pos[:, a] * pos[:, b]
@@ -202,7 +224,7 @@ class VoxelGaussianBuilder:
         scales = np.sqrt(w[:, ::-1] * 3.0)
         # Sparse or line-like voxels: a disk in the plane of the voxel neighbourhood.
         _, nb_normal, support = neighbourhood_surfels(
-            np.ascontiguousarray(self.ids[keep]), unpack_voxel_ids(self.ids[keep]), cnt,
+            np.ascontiguousarray(self.ids[keep]), unpack_voxel_ids(self.ids[keep]), np.ascontiguousarray(wsum),
             np.ascontiguousarray(self.sum_xyz[keep]), np.ascontiguousarray(self.sum_sq[keep]), _OFFSET, _BITS)
         weak = (cnt < _MIN_POINTS_OWN_SHAPE) | (scales[:, 1] < _MIN_SCALE * v)
         if weak.any():
@@ -238,6 +260,13 @@ _WORLD_MEMBERS = {
     "voxel_n_keyframes": ("iu", 1), "keyframe_indices": ("iu", 1), "T_world_cam_keyframes": ("f", 3),
     "history": ("iu", 1),
 }
+# The mapping statistics (optional: worlds saved before mapping had its own depth range lack them).
+_MAP_PREFIX = "map_voxel_"
+_MAP_MEMBERS = {
+    "map_voxel_ids": (np.uint64, 1), "map_voxel_count": ("iu", 1), "map_voxel_weight": ("f", 1),
+    "map_voxel_sum_xyz": ("f", 2), "map_voxel_sum_rgb": ("f", 2), "map_voxel_sum_sq": ("f", 2),
+    "map_voxel_n_keyframes": ("iu", 1),
+}
 
 
 @dataclass
@@ -246,7 +275,12 @@ class GaussianWorld:
 
     Attributes:
         field: the Gaussians.
-        builder: the voxel statistics, kept so a later session can keep merging into this world.
+        builder: the voxel statistics of the tracking map (points within the tracking depth range,
+            ``fusion``, unweighted): localization tracks against their surfels, and a later session
+            keeps merging into them.
+        mapping_builder: the voxel statistics the field was made from (points within the mapping
+            depth range, ``mapping.max_depth_m``, weighted by inverse depth variance), or None when
+            they are ``builder`` itself (a world saved before mapping had its own range).
         keyframe_indices: ``[K]`` frames merged, in merge order.
         T_world_cam_keyframes: ``[K, 4, 4]`` the poses they were merged with.
         pose_source: ``ground_truth`` or ``estimated``.
@@ -264,10 +298,16 @@ class GaussianWorld:
     pose_source: str
     history: np.ndarray
     fit: dict = field(default_factory=dict)
+    mapping_builder: VoxelGaussianBuilder | None = None
 
     @property
     def map_id(self) -> str:
         return self.field.content_hash()[:16]
+
+    @property
+    def field_builder(self) -> VoxelGaussianBuilder:
+        """The statistics the field is made from: ``mapping_builder``, else ``builder``."""
+        return self.builder if self.mapping_builder is None else self.mapping_builder
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
@@ -282,7 +322,7 @@ class GaussianWorld:
                 voxel_ids=b.ids, voxel_count=b.count, voxel_sum_xyz=b.sum_xyz,
                 voxel_sum_rgb=b.sum_rgb, voxel_sum_sq=b.sum_sq, voxel_n_keyframes=b.n_keyframes,
                 keyframe_indices=self.keyframe_indices, T_world_cam_keyframes=self.T_world_cam_keyframes,
-                history=self.history,
+                history=self.history, **self._mapping_members(),
             )
         meta = write_json_atomic(directory / "world.json", {
             "map_id": self.map_id, "n_gaussians": len(self.field), "voxel_size_m": b.voxel_size_m,
@@ -291,6 +331,14 @@ class GaussianWorld:
             "fit": {k: v for k, v in self.fit.items() if k != "seconds"},
         })
         return [path, meta]
+
+    def _mapping_members(self) -> dict[str, np.ndarray]:
+        m = self.mapping_builder
+        if m is None:
+            return {}
+        return {"map_voxel_ids": m.ids, "map_voxel_count": m.count, "map_voxel_weight": m.weight,
+                "map_voxel_sum_xyz": m.sum_xyz, "map_voxel_sum_rgb": m.sum_rgb, "map_voxel_sum_sq": m.sum_sq,
+                "map_voxel_n_keyframes": m.n_keyframes}
 
     @classmethod
     def load(cls, directory: Path) -> "GaussianWorld":
@@ -308,6 +356,12 @@ class GaussianWorld:
             raise ArtifactError(f"{meta_path}: pose_source must be one of {list(_POSE_SOURCES)} and fit an object, "
                                 f"got {str(pose_source)[:40]!r} and {type(fit).__name__}")
         z = load_npz_checked(path, _WORLD_MEMBERS, error_type=ArtifactError)
+        import zipfile
+
+        with zipfile.ZipFile(path) as zf:  # already checked as an archive by load_npz_checked
+            has_map = any(name.startswith(_MAP_PREFIX) for name in zf.namelist())
+        if has_map:
+            z.update(load_npz_checked(path, _MAP_MEMBERS, error_type=ArtifactError))
 
         def bad(msg: str) -> ArtifactError:
             return ArtifactError(f"{path}: {msg}")
@@ -317,16 +371,28 @@ class GaussianWorld:
                 "opacities": (n,), "ids": (n,), "voxel_count": (m,), "voxel_sum_xyz": (m, 3),
                 "voxel_sum_rgb": (m, 3), "voxel_sum_sq": (m, 6), "voxel_n_keyframes": (m,),
                 "T_world_cam_keyframes": (k, 4, 4)}
+        if has_map:
+            mm = len(z["map_voxel_ids"])
+            want.update({"map_voxel_count": (mm,), "map_voxel_weight": (mm,), "map_voxel_sum_xyz": (mm, 3),
+                         "map_voxel_sum_rgb": (mm, 3), "map_voxel_sum_sq": (mm, 6), "map_voxel_n_keyframes": (mm,)})
         for name, shape in want.items():
             if z[name].shape != shape:
                 raise bad(f"{name} has shape {list(z[name].shape)}, expected {list(shape)}")
-        for name in ("positions", "scales", "rotations_xyzw", "opacities", "voxel_sum_xyz", "voxel_sum_rgb",
-                     "voxel_sum_sq", "T_world_cam_keyframes"):
+        finite = ["positions", "scales", "rotations_xyzw", "opacities", "voxel_sum_xyz", "voxel_sum_rgb",
+                  "voxel_sum_sq", "T_world_cam_keyframes"]
+        for name in finite + (["map_voxel_weight", "map_voxel_sum_xyz", "map_voxel_sum_rgb", "map_voxel_sum_sq"]
+                              if has_map else []):
             if not np.isfinite(z[name]).all():
                 raise bad(f"{name} has NaN or infinite values")
-        if m and not (np.diff(z["voxel_ids"].astype(np.uint64)) > 0).all():
-            raise bad("voxel_ids must be strictly increasing (the merge relies on sorted ids)")
-        if len(np.unique(z["ids"])) != n:
+        for name in ("voxel_ids", "map_voxel_ids") if has_map else ("voxel_ids",):
+            # compared, not subtracted: a uint64 difference wraps, so a decreasing pair would pass
+            if len(z[name]) and not (z[name][1:] > z[name][:-1]).all():
+                raise bad(f"{name} must be strictly increasing (the merge relies on sorted ids)")
+        if has_map and len(z["map_voxel_weight"]) and not (z["map_voxel_weight"] > 0).all():
+            raise bad("map_voxel_weight must be > 0 (sums of positive point weights)")
+        from atlas_pipeline.gaussian_world.field import ids_unique  # np.unique: ~1.5 s per million ids
+
+        if not ids_unique(z["ids"]):
             raise bad("Gaussian ids are not unique")
         if (z["scales"] < 0).any() or (z["opacities"] < 0).any() or (z["opacities"] > 1).any():
             raise bad("scales must be >= 0 and opacities in [0, 1]")
@@ -336,12 +402,20 @@ class GaussianWorld:
             a = z[name]
             if a.size and (a.min() < 0 or int(a.max()) > np.iinfo(dtype).max):
                 raise bad(f"{name} must be in [0, {np.iinfo(dtype).max}]")
-            return a.astype(dtype)
+            return a.astype(dtype, copy=False)
+
+        def f64(name: str) -> np.ndarray:  # no copy when the archive already holds native float64
+            return np.asarray(z[name], dtype=np.float64)
 
         fld = GaussianField(z["positions"], z["scales"], z["rotations_xyzw"], z["colors"], z["opacities"], z["ids"])
         builder = VoxelGaussianBuilder(
-            float(voxel_size_m), z["voxel_ids"].astype(np.uint64), counts("voxel_count", np.int64),
-            z["voxel_sum_xyz"].astype(np.float64), z["voxel_sum_rgb"].astype(np.float64),
-            z["voxel_sum_sq"].astype(np.float64), counts("voxel_n_keyframes", np.int32))
-        return cls(fld, builder, counts("keyframe_indices", np.int64), z["T_world_cam_keyframes"].astype(np.float64),
-                   pose_source, counts("history", np.int64), dict(fit))
+            float(voxel_size_m), np.asarray(z["voxel_ids"], np.uint64), counts("voxel_count", np.int64),
+            f64("voxel_sum_xyz"), f64("voxel_sum_rgb"), f64("voxel_sum_sq"), counts("voxel_n_keyframes", np.int32))
+        mapping = None
+        if has_map:
+            mapping = VoxelGaussianBuilder(
+                float(voxel_size_m), np.asarray(z["map_voxel_ids"], np.uint64), counts("map_voxel_count", np.int64),
+                f64("map_voxel_sum_xyz"), f64("map_voxel_sum_rgb"), f64("map_voxel_sum_sq"),
+                counts("map_voxel_n_keyframes", np.int32), f64("map_voxel_weight"))
+        return cls(fld, builder, counts("keyframe_indices", np.int64), f64("T_world_cam_keyframes"),
+                   pose_source, counts("history", np.int64), dict(fit), mapping)

@@ -6,10 +6,12 @@ views) and its blend ignores occlusion order. This module fits every Gaussian's 
 rotation, opacity and colour to the keyframe images and depths by gradient descent, as Kerbl et al.
 (2023) and the RGB-D Gaussian SLAM systems (SplaTAM, MonoGS) do on a GPU:
 
-    loss = w_rgb * mean |render_rgb - image| + w_depth * mean |render_depth - depth_m|
+    loss = w_rgb * mean |render_rgb - image| + w_depth * mean w_p |render_depth - depth_m|
 
 plus ``w_cover * mean_{depth > 0} T_final`` (a measured surface is opaque), the depth term over
-pixels with a reading that the render covers (accumulated alpha >= 0.5), with
+pixels with a reading that the render covers (accumulated alpha >= 0.5; pixels without a reading
+add nothing), ``w_p`` in [0, 1] a per-pixel weight (default 1; the mapper passes the inverse of the
+sensor's depth noise, so far, noisy readings pull less), with
 ``render_depth = sum_i w_i z_i(p) / sum_i w_i`` and ``z_i(p)`` the depth at pixel ``p`` of the
 plane through Gaussian ``i`` normal to its shortest axis. Both choices remove a bias that would
 push the map away from the cameras: an unnormalised sum reads a half-transparent surface as nearer,
@@ -358,11 +360,12 @@ def _backward_row(Tv, Qv, G0, G1, G2, GD, S, acc, ux, dy, qy, by, nha, op, cr, c
 
 @njit(cache=True)
 def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, box, width, height, tiles_x, n_tiles,
-                    bg, image, depth_obs, w_rgb, w_depth, w_cover, dout, k_end, tile_loss):
+                    bg, image, depth_obs, depth_w, w_rgb, w_depth, w_cover, dout, k_end, tile_loss):
     """Tiles ``worker, worker + n_workers, ...``: composite front to back exactly as
     ``raster._composite_worker`` does (16-lane float32 rows, same alpha tests, same termination), the
     depth of each Gaussian at each pixel from its slope; then per pixel the L1 loss against
-    ``image [H, W, 3]`` and ``depth_obs [H, W]`` (float32, 0 = no reading) into ``tile_loss[t]``
+    ``image [H, W, 3]`` and ``depth_obs [H, W]`` (float32, 0 = no reading; its L1 term weighted by
+    ``depth_w [H, W]`` float32 per pixel) into ``tile_loss[t]``
     (float64), the per-pixel rows ``dout [_N_DOUT, H, W]`` and ``k_end[t]``, the end of the tile's
     list where every pixel had terminated (the backward pass stops there too).
 
@@ -436,8 +439,9 @@ def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, b
                 if obs > 0.0 and acc >= DEPTH_MIN_ALPHA:  # alpha-normalised depth, mostly opaque pixels
                     dn = d / acc
                     rd = dn - obs
-                    loss += w_depth * abs(rd)
-                    gdp = w_depth * np.sign(rd) / acc
+                    wd = w_depth * np.float64(depth_w[py, px])
+                    loss += wd * abs(rd)
+                    gdp = wd * np.sign(rd) / acc
                 gcov = 0.0
                 if obs > 0.0 and w_cover > 0.0:  # a sensor reading: a surface, opaque
                     loss += w_cover * tf
@@ -452,7 +456,7 @@ def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, b
 
 @njit(cache=True, parallel=True)
 def _forward_tiles(tile_start, tile_ids, feat, order, aux, box, width, height, tiles_x, n_tiles, bg, image,
-                   depth_obs, w_rgb, w_depth, w_cover, n_workers):
+                   depth_obs, depth_w, w_rgb, w_depth, w_cover, n_workers):
     """All tiles: ``(loss, dout [_N_DOUT, H, W] float32, k_end [n_tiles] int64)``. Worker ``w`` takes
     tiles ``w, w + n_workers, ...``; every result is per tile, so the split does not change a bit."""
     dout = np.zeros((_N_DOUT, height, width), dtype=np.float32)
@@ -460,7 +464,7 @@ def _forward_tiles(tile_start, tile_ids, feat, order, aux, box, width, height, t
     tile_loss = np.zeros(n_tiles)
     for w in prange(n_workers):
         _forward_worker(w, n_workers, tile_start, tile_ids, feat, order, aux, box, width, height, tiles_x, n_tiles,
-                        bg, image, depth_obs, w_rgb, w_depth, w_cover, dout, k_end, tile_loss)
+                        bg, image, depth_obs, depth_w, w_rgb, w_depth, w_cover, dout, k_end, tile_loss)
     loss = 0.0
     for t in range(n_tiles):  # fixed order
         loss += tile_loss[t]
@@ -801,10 +805,11 @@ def _n_workers(n_tiles: int) -> int:
 
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,
                     w_cover: float, bg: np.ndarray, near_m: float, gparam: np.ndarray, vs_sum: np.ndarray,
-                    vs_cnt: np.ndarray, clock: _StageClock) -> float:
-    """Loss of one view (``image [h, w, 3]``, ``depth [h, w]`` float32 at the view's size) and the
-    gradient of every parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does
-    not draw). The state arrays are float32."""
+                    vs_cnt: np.ndarray, clock: _StageClock, depth_w: np.ndarray | None = None) -> float:
+    """Loss of one view (``image [h, w, 3]``, ``depth [h, w]`` float32 at the view's size, its
+    per-pixel depth-term weights ``depth_w [h, w]`` float32, None = 1) and the gradient of every
+    parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does not draw). The state
+    arrays are float32."""
     width, height = view.width, view.height
     npix = float(width * height)
     sp = raster.prepare_splats(pos, scl, quat, col, opa, view, near_m, keep_aux=True)
@@ -814,8 +819,11 @@ def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, d
     tile_slot, gauss_start = raster.pair_slots(sp.box, sp.tile_start, sp.tiles_x)
     clock.lap("projection")
     nw = _n_workers(sp.n_tiles)
+    if depth_w is None:
+        depth_w = np.ones(depth.shape, np.float32)
     loss, dout, k_end = _forward_tiles(sp.tile_start, sp.tile_ids, sp.feat, sp.order, sp.aux, sp.box, width, height,
-                                       sp.tiles_x, sp.n_tiles, bg.astype(np.float64), image, depth, w_rgb / npix,
+                                       sp.tiles_x, sp.n_tiles, bg.astype(np.float64), image, depth,
+                                       np.ascontiguousarray(depth_w, np.float32), w_rgb / npix,
                                        w_depth / npix, w_cover / npix, nw)
     clock.lap("forward")
     pair_grad = _backward_tiles(sp.tile_start, sp.tile_ids, tile_slot, k_end, sp.feat, sp.order, sp.aux, sp.box,
@@ -832,14 +840,15 @@ def render_loss_and_gradients(positions: np.ndarray, scales: np.ndarray, quat_xy
                               colors01: np.ndarray, opacities: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray,
                               image01: np.ndarray, depth_m: np.ndarray, w_rgb: float = 1.0, w_depth: float = 0.0,
                               background01: tuple[float, float, float] = (0.0, 0.0, 0.0), near_m: float = 0.05,
-                              w_cover: float = 0.0):
+                              w_cover: float = 0.0, depth_weight_map: np.ndarray | None = None):
     """L1 loss of one rendered view and its gradient w.r.t. every parameter (the fit's own kernels).
 
     Args:
         positions ``[N, 3]``, scales ``[N, 3]`` (m), quat_xyzw ``[N, 4]``, colors01 ``[N, 3]`` in
         [0, 1], opacities ``[N]``: the Gaussians (any float dtype; the fit's state is float32).
         image01 ``[H, W, 3]`` in [0, 1]; depth_m ``[H, W]``, 0 where there is no reading. The loss
-        is a mean over pixels.
+        is a mean over pixels. depth_weight_map ``[H, W]``: per-pixel weight of the depth term
+        (None: 1 everywhere).
 
     Returns:
         ``(loss, grads)`` with grads a dict of float64 ``position [N, 3]``, ``log_scale [N, 3]``,
@@ -854,7 +863,7 @@ def render_loss_and_gradients(positions: np.ndarray, scales: np.ndarray, quat_xy
     loss = _view_gradients(*f32, view, np.ascontiguousarray(image01, np.float32),
                            np.ascontiguousarray(depth_m, np.float32), w_rgb, w_depth, w_cover,
                            np.asarray(background01, np.float64), near_m, gparam, np.zeros(n), np.zeros(n, np.int32),
-                           _StageClock())
+                           _StageClock(), depth_weight_map)
     g = gparam.T.astype(np.float64)
     return loss, {"position": g[:, _P_POS:_P_POS + 3].copy(), "log_scale": g[:, _P_LOG_SCALE:_P_LOG_SCALE + 3].copy(),
                   "rotation": g[:, _P_ROT:_P_ROT + 3].copy(), "logit": g[:, _P_LOGIT].copy(),
@@ -917,14 +926,21 @@ def _reciprocal_factor(scale: float, name: str) -> int:
 
 
 class _Level:
-    """The keyframes at one image scale (float32 images in [0, 1], depths, intrinsics)."""
+    """The keyframes at one image scale (float32 images in [0, 1], depths, depth-term weights,
+    intrinsics)."""
 
-    def __init__(self, name: str, f: int, images, depths_m, K: np.ndarray) -> None:
+    def __init__(self, name: str, f: int, images, depths_m, K: np.ndarray, depth_weights=None) -> None:
         self.name, self.f, self.scale = name, f, 1.0 / f
         self.images = [np.ascontiguousarray(_downsample(np.asarray(im, np.float64) / 255.0, f), np.float32)
                        for im in images]
         self.depths = [np.ascontiguousarray(_downsample_depth(np.asarray(d, np.float64), f), np.float32)
                        for d in depths_m]
+        if depth_weights is None:
+            self.depth_w = [np.ones(d.shape, np.float32) for d in self.depths]
+        else:  # the mean weight of the readings each block's depth averages (same validity rule)
+            self.depth_w = [np.ascontiguousarray(
+                _downsample_depth(np.where(np.asarray(d) > 0, np.asarray(w, np.float64), 0.0), f), np.float32)
+                for d, w in zip(depths_m, depth_weights)]
         self.K = raster.scale_intrinsics(K, 1.0 / f)
         self.height, self.width = self.images[0].shape[:2]
 
@@ -1042,9 +1058,12 @@ def _densify_and_prune(st: _FitState, s: OptimizationSettings, n_start: int,
 
 def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depths_m: Sequence[np.ndarray],
                        poses: Sequence[np.ndarray], K: np.ndarray, settings: OptimizationSettings = OptimizationSettings(),
-                       log: Callable[[str], None] | None = None) -> OptimizationResult:
+                       log: Callable[[str], None] | None = None,
+                       depth_weights: Sequence[np.ndarray] | None = None) -> OptimizationResult:
     """Fit ``field`` to keyframe ``images`` (``[H, W, 3]`` uint8) and ``depths_m`` (``[H, W]``,
     0 = no reading) seen from ``poses`` (``[4, 4]`` camera-to-world each, intrinsics ``K``).
+    ``depth_weights`` (``[H, W]`` each, >= 0; None = 1): per-pixel weights of the depth term
+    (the mapper's: inverse depth noise, so far readings pull less).
 
     Returns a new (canonical) field (the starting Gaussians keep their ids; densification adds
     Gaussians with ``CHILD_ID_BIT`` ids; pruning, and at the end every Gaussian whose opacity fell
@@ -1054,6 +1073,10 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     s = settings
     if not (len(images) == len(depths_m) == len(poses)):
         raise ValueError("optimize_gaussians: one depth image and one pose per image")
+    if depth_weights is not None and (len(depth_weights) != len(images) or any(
+            np.shape(w) != np.shape(d) or not (np.isfinite(w).all() and (np.asarray(w) >= 0).all())
+            for w, d in zip(depth_weights, depths_m))):
+        raise ValueError("optimize_gaussians: depth_weights must be one finite, non-negative [H, W] map per depth")
     t0, c0 = time.perf_counter(), time.process_time()
     if s.epochs < 1 or not images or len(field) == 0:
         return OptimizationResult(field, np.zeros(0), 0, 0.0)
@@ -1077,8 +1100,8 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     coarse = coarse and images[0].shape[1] / fc >= MIN_COARSE_WIDTH_PX
     coarse_passes = (max(0, min(s.coarse_max_steps // n_views, int(n_cap // n_views * COARSE_MAX_PASS_FRACTION)))
                      if coarse else 0)
-    levels = ([_Level("coarse", fc, images, depths_m, K)] if coarse_passes else []) + [
-        _Level("fine", f, images, depths_m, K)]
+    levels = ([_Level("coarse", fc, images, depths_m, K, depth_weights)] if coarse_passes else []) + [
+        _Level("fine", f, images, depths_m, K, depth_weights)]
 
     st = _FitState(field, s)
     n_start = len(st)
@@ -1111,7 +1134,7 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             gparam = np.zeros((_N_PARAM, len(st)), np.float32)
             loss = _view_gradients(st.pos, st.scl, st.quat, st.col, st.opa, view, lv.images[v], lv.depths[v], 1.0,
                                    s.depth_weight, s.coverage_weight, bg, raster.NEAR_M, gparam, st.vs_sum,
-                                   st.vs_cnt, clock)
+                                   st.vs_cnt, clock, lv.depth_w[v])
             t = step + 1
             _adam_step(gparam, st.m1, st.m2, lr0 * decay, b1, b2, 1.0 - b1 ** t, 1.0 - b2 ** t, eps, lo, hi,
                        st.pos, st.log_s, st.quat, st.logit, st.col, st.scl, st.opa)

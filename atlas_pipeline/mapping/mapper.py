@@ -2,7 +2,15 @@
 
 Also the pipeline's mapping stages (:func:`select_keyframes_stage`, :func:`build_gaussian_world`:
 voxel Gaussians, then fitted to the keyframe images) and the policy of extending a saved world
-(:func:`extend_saved_world`)."""
+(:func:`extend_saved_world`).
+
+Two depth ranges: the tracker sees depth within the fusion range (``fusion.max_depth_m``, 4 m), and
+the world keeps those points, unweighted, as its tracking map (``GaussianWorld.builder``); the
+Gaussians are made from every keyframe point within the longer mapping range
+(``mapping.max_depth_m``, 8 m: walls past 4 m are mapped instead of rendering as background),
+each weighted by its inverse depth variance (:func:`depth_weight`), so a far, noisy reading moves a
+voxel less than a near one, and the fit's depth term trusts far pixels less
+(:func:`depth_loss_weight`)."""
 
 from __future__ import annotations
 
@@ -27,21 +35,87 @@ logger = logging.getLogger(__name__)
 LogFn = Callable[[str], None]
 
 __all__ = ["build_world", "extend_world", "extend_world_by_tracking", "select_keyframes_stage",
-           "build_gaussian_world", "extend_saved_world"]
+           "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight"]
+
+# Axial depth noise of a Kinect v1-class structured-light camera (TUM RGB-D's sensor): Nguyen,
+# Izadi & Lovell, "Modeling Kinect Sensor Noise for Improved 3D Reconstruction and Tracking",
+# 3DIMPVT 2012: sigma_z = a + b (z - z0)^2 metres (1.9 mm at 1 m, 1.4 cm at 3 m, 11 cm at 8 m;
+# Khoshelham & Elberink 2012 measured the same z^2 growth, ~4 cm at 5 m). The same constants as
+# the project's synthetic Kinect (sensors/synthetic.py KINECT_V1_SENSOR; a test keeps them equal).
+DEPTH_NOISE_A_M = 0.0012
+DEPTH_NOISE_B_PER_M = 0.0019
+DEPTH_NOISE_Z0_M = 0.4
+
+
+def depth_sigma_m(depth_m: np.ndarray) -> np.ndarray:
+    """Axial noise std (metres) of a depth reading ``depth_m`` (any shape), the sensor model above."""
+    z = np.asarray(depth_m, np.float64)
+    return DEPTH_NOISE_A_M + DEPTH_NOISE_B_PER_M * (z - DEPTH_NOISE_Z0_M) ** 2
+
+
+def depth_weight(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Inverse-variance weight in (0, 1] of points at ``depth_m`` (any shape) for the voxel merge:
+    ``v^2 / (sigma_z^2 + v^2)``. A point's position error is the sensor's (``depth_sigma_m``) plus
+    the map's own (one Gaussian stands for a whole voxel ``v``), so noise well below a voxel changes
+    little (at 2 cm voxels: over 0.9 to 2 m, 0.67 at 3 m) and far points count as 1 / sigma_z^2 (0.03 at 8 m)."""
+    var = depth_sigma_m(depth_m) ** 2 + voxel_size_m ** 2
+    return voxel_size_m ** 2 / var
+
+
+def depth_loss_weight(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Per-pixel weight in (0, 1] of the fit's depth L1 term (``[H, W]`` float32, 0 where there is
+    no reading): ``v / sqrt(sigma_z^2 + v^2)``, the scale of a Laplace residual of that std (an L1
+    term is a Laplace likelihood; :func:`depth_weight` is the squared one, for means)."""
+    d = np.asarray(depth_m)
+    w = np.sqrt(depth_weight(d, voxel_size_m))
+    return np.where(d > 0, w, 0.0).astype(np.float32)
+
+
+def _mapping_points(fused: FusedFrames, k: int, cfg: MappingConfig, manifest: FrameManifest | None):
+    """Camera-frame points ``[M, 3]`` and colours ``[M, 3]`` of keyframe ``k`` within the mapping
+    range: back-projected from its depth image out to ``cfg.max_depth_m`` when the sequence's
+    ``manifest`` is given, else the fused points (the tracking range)."""
+    if manifest is None or cfg.max_depth_m <= fused.max_depth_m:
+        pts, cols = fused.frame(k)
+        if cfg.max_depth_m < fused.max_depth_m:
+            keep = pts[:, 2] < cfg.max_depth_m
+            pts, cols = pts[keep], cols[keep]
+        return pts, cols
+    from atlas_pipeline.perception.rgbd import backproject
+
+    depth = manifest.read_depth_m(k, allow_empty=True)
+    return backproject(depth, manifest.read_rgb(k), manifest.camera, fused.stride, fused.min_depth_m, cfg.max_depth_m)
+
+
+def _integrate_mapping(builder: VoxelGaussianBuilder, pts_cam: np.ndarray, cols: np.ndarray, T_world_cam: np.ndarray,
+                       voxel_size_m: float) -> None:
+    """Merge camera-frame points ``[M, 3]`` at ``T_world_cam [4, 4]`` with inverse-variance weights."""
+    pw = pts_cam.astype(np.float64) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    builder.integrate(pw, cols, depth_weight(pts_cam[:, 2], voxel_size_m))
 
 
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
-                 cfg: MappingConfig, log: Callable[[str], None] | None = None) -> GaussianWorld:
+                 cfg: MappingConfig, log: Callable[[str], None] | None = None,
+                 manifest: FrameManifest | None = None) -> GaussianWorld:
     """Merge ``keyframes`` into ``world`` (a new world when None), one keyframe at a time.
 
     Each keyframe's camera-frame points are moved to the world with its mapping pose and added to
-    the voxel statistics; ids of voxels seen before are kept.
+    the voxel statistics; ids of voxels seen before are kept. The tracking map takes the fused
+    points (the fusion range, unweighted); the Gaussians' statistics take the keyframe's points
+    within the mapping range (``cfg.max_depth_m``, read from its depth image in ``manifest``;
+    without one, the fused points), weighted by inverse depth variance (:func:`depth_weight`).
     """
+    import copy
+
     if world is not None and abs(world.builder.voxel_size_m - cfg.voxel_size_m) > 1e-12:
         raise ValueError(
             f"cannot extend a world built with {world.builder.voxel_size_m} m voxels using {cfg.voxel_size_m} m"
         )
     builder = VoxelGaussianBuilder(cfg.voxel_size_m) if world is None else world.builder
+    if world is None:
+        mapping = VoxelGaussianBuilder(cfg.voxel_size_m)
+    else:  # a world saved before mapping had its own range: its tracking statistics seed the map's
+        mapping = world.mapping_builder if world.mapping_builder is not None else copy.deepcopy(world.builder)
     history = [] if world is None else list(world.history)
     progress = Progress("merging keyframes", len(keyframes.indices), log, unit="keyframes")
     for k in keyframes.indices:
@@ -49,25 +123,28 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         T = keyframes.T_world_cam[k]
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         builder.integrate(pw, cols)
-        history.append(len(builder))
+        _integrate_mapping(mapping, *_mapping_points(fused, int(k), cfg, manifest), T, cfg.voxel_size_m)
+        history.append(len(mapping))
         progress.update()
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
     prev_T = np.zeros((0, 4, 4)) if world is None else world.T_world_cam_keyframes
     return GaussianWorld(
-        field=builder.to_field(),
+        field=mapping.to_field(),
         builder=builder,
         keyframe_indices=np.concatenate([prev_idx, keyframes.indices]).astype(np.int64),
         T_world_cam_keyframes=np.concatenate([prev_T, keyframes.T_world_cam[keyframes.indices]]),
         pose_source=keyframes.pose_source,
         history=np.asarray(history, dtype=np.int64),
+        mapping_builder=mapping,
     )
 
 
 def build_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: MappingConfig,
-                log: Callable[[str], None] | None = None) -> GaussianWorld:
-    """A new world from the keyframes of one sequence."""
-    world = extend_world(None, fused, keyframes, cfg, log)
-    logger.info("built world: %d Gaussians from %d keyframes", len(world.field), len(keyframes.indices))
+                log: Callable[[str], None] | None = None, manifest: FrameManifest | None = None) -> GaussianWorld:
+    """A new world from the keyframes of one sequence (``manifest``: map out to ``cfg.max_depth_m``)."""
+    world = extend_world(None, fused, keyframes, cfg, log, manifest)
+    logger.info("built world: %d Gaussians from %d keyframes (tracking map: %d voxels within %.1f m)",
+                len(world.field), len(keyframes.indices), len(world.builder), fused.max_depth_m)
     return world
 
 
@@ -90,6 +167,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
         raise ValueError(f"cannot extend a world built with {world.builder.voxel_size_m} m voxels "
                          f"using {mapping.voxel_size_m} m")
     builder = copy.deepcopy(world.builder)
+    mapping_builder = copy.deepcopy(world.field_builder)
     st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=builder,
                          keyframe_translation_m=mapping.keyframe_translation_m,
                          keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
@@ -105,15 +183,21 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
         est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]))
         poses[i] = est.T_world_cam
         status.append(est.status)
-        if est.keyframe:
-            history.append(len(builder))
         progress.update(extra=est.status)
     if status.count(STATUS_LOST) == n:
         raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
                                           "everywhere): is it a world of the same place?")
     idx = np.asarray(st.keyframe_indices, np.int64)
+    # The tracker merged its keyframes' tracking-range points; the map takes them out to its own range.
+    from atlas_pipeline.perception.rgbd import backproject
+
+    for i in idx:
+        pts, cols = backproject(manifest.read_depth_m(int(i), allow_empty=True), manifest.read_rgb(int(i)),
+                                manifest.camera, fusion_stride, depth_range_m[0], max(mapping.max_depth_m, depth_range_m[1]))
+        _integrate_mapping(mapping_builder, pts, cols, poses[i], mapping.voxel_size_m)
+        history.append(len(mapping_builder))
     extended = GaussianWorld(
-        field=builder.to_field(), builder=builder,
+        field=mapping_builder.to_field(), builder=builder, mapping_builder=mapping_builder,
         keyframe_indices=np.concatenate([world.keyframe_indices, idx]).astype(np.int64),
         T_world_cam_keyframes=np.concatenate([world.T_world_cam_keyframes, poses[idx]]) if len(idx) else world.T_world_cam_keyframes,
         pose_source="estimated", history=np.asarray(history, np.int64),
@@ -134,7 +218,7 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     """Merge the keyframes into a world; with the sequence's ``manifest``, then fit it to the
     keyframe images: colours first (``mapping.colour_refinement_iterations``, cheap), then every
     Gaussian parameter against colour and depth (``mapping.optimization_epochs``)."""
-    world = build_world(fused, keyframes, cfg.mapping, log)
+    world = build_world(fused, keyframes, cfg.mapping, log, manifest)
     mc = cfg.mapping
     fit_colours = mc.colour_refinement_iterations > 0
     optimize = mc.optimization_epochs > 0
@@ -150,13 +234,15 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     if optimize:
         from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
 
-        lo, hi = cfg.fusion.min_depth_m, cfg.fusion.max_depth_m
-        depths = []
-        for i in idx:  # the depth the map was built from: the fusion range only
+        lo, hi = cfg.fusion.min_depth_m, max(mc.max_depth_m, cfg.fusion.max_depth_m)
+        depths, weights = [], []
+        for i in idx:  # the depth the map was built from: the mapping range, far pixels trusted less
             d = manifest.read_depth_m(i, allow_empty=True)
-            depths.append(np.where((d >= lo) & (d <= hi), d, 0.0))
+            d = np.where((d >= lo) & (d <= hi), d, 0.0)
+            depths.append(d)
+            weights.append(depth_loss_weight(d, mc.voxel_size_m))
         res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
-                                 OptimizationSettings.from_mapping(mc), log)
+                                 OptimizationSettings.from_mapping(mc), log, depth_weights=weights)
         world.field = res.field
         world.fit = res.record  # no timing: the record is content
     return world
@@ -183,7 +269,7 @@ def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: F
     if cfg.mapping.pose_source == "ground_truth":
         # Ground-truth poses of the new sequence are taken to share the parent's frame.
         keyframes = select_keyframes_stage(manifest, fused, cfg, log)
-        world = extend_world(previous, fused, keyframes, cfg.mapping, log)
+        world = extend_world(previous, fused, keyframes, cfg.mapping, log, manifest)
     else:
         # A second session: relocalize in the saved world, then track and map into it.
         world, _, _ = extend_world_by_tracking(

@@ -1,0 +1,290 @@
+"""Mapping has its own, longer depth range than tracking (issue 13, item 2).
+
+The small synthetic room is 6 x 5 m and the camera circles 0.8 m from its walls, so the far walls
+lie 4-5 m away: past the tracking (fusion) range of 4 m, within the mapping range of 8 m.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from atlas_pipeline.config import load_profile
+from atlas_pipeline.errors import ConfigError
+from atlas_pipeline.gaussian_world.builder import GaussianWorld, VoxelGaussianBuilder
+from atlas_pipeline.mapping import mapper
+from atlas_pipeline.perception.rgbd import fuse
+
+TRACKING_MAX_M = 4.0  # the default fusion.max_depth_m
+
+
+def _cfg(map_max_m: float, **more):
+    over = {"mapping.pose_source": "ground_truth", "mapping.max_depth_m": map_max_m,
+            "mapping.optimization_epochs": 0, "mapping.colour_refinement_iterations": 0, **more}
+    return load_profile("default").with_overrides(over)
+
+
+def _world(manifest, cfg):
+    fused = fuse(manifest, cfg)
+    kf = mapper.select_keyframes_stage(manifest, fused, cfg)
+    return mapper.build_gaussian_world(fused, kf, cfg, manifest=manifest)
+
+
+@pytest.fixture(scope="module")
+def worlds(small_manifest):
+    """The room mapped to the tracking range (4 m) and to the default mapping range (8 m), no fit."""
+    return {r: _world(small_manifest, _cfg(r)) for r in (TRACKING_MAX_M, 8.0)}
+
+
+def _farthest_seen_m(world: GaussianWorld, pts: np.ndarray) -> np.ndarray:
+    """``[N]`` the nearest depth at which any keyframe had ``pts [N, 3]`` in front of it."""
+    best = np.full(len(pts), np.inf)
+    for T in world.T_world_cam_keyframes:
+        z = (pts - T[:3, 3]) @ T[:3, 2]  # depth along the camera's optical axis
+        best = np.minimum(best, np.where(z > 0, z, np.inf))
+    return best
+
+
+def test_far_walls_get_gaussians_on_the_walls(worlds):
+    from atlas_pipeline.sensors.synthetic import build_scene
+
+    near, far = worlds[TRACKING_MAX_M], worlds[8.0]
+    assert len(far.field) > len(near.field)
+    depth = _farthest_seen_m(far, far.field.positions)
+    beyond = far.field.positions[depth > TRACKING_MAX_M + 0.05]
+    # a fair share of the map lies where no keyframe saw it within the tracking range
+    assert len(beyond) > 0.05 * len(far.field), (len(beyond), len(far.field))
+    # and it lies on the room's surfaces (noise-free synthetic depth: within a voxel or two)
+    clearance = build_scene(0).clearance_m(beyond)
+    assert np.median(np.abs(clearance)) < 0.02 and np.quantile(np.abs(clearance), 0.9) < 0.05
+    # the tracking-range world has nothing there
+    assert (_farthest_seen_m(near, near.field.positions) < TRACKING_MAX_M + 0.05).all()
+
+
+def test_held_out_views_cover_more_and_score_higher(small_manifest, worlds):
+    """Held-out frames rendered from ground truth: more pixels drawn and a higher full-frame PSNR
+    with the longer mapping range (the masked PSNR counts pixels within the tracking range only)."""
+    from atlas_pipeline.gaussian_world.evaluation import evaluate_views
+    from atlas_pipeline.gaussian_world.render import render_gaussians
+
+    cam = small_manifest.camera
+    held = np.setdiff1d(np.arange(small_manifest.n_frames), worlds[8.0].keyframe_indices)
+    assert len(held) >= 2
+    T = small_manifest.T_world_cam_gt
+    res, drawn = {}, {}
+    for r, w in worlds.items():
+        res[r] = evaluate_views(w.field, small_manifest, T, held, "ground_truth", w.map_id, (0.1, TRACKING_MAX_M))
+        drawn[r] = np.mean([render_gaussians(w.field.positions, w.field.scales, w.field.rotations_xyzw,
+                                             w.field.colors, w.field.opacities, T[i], cam.K, cam.width,
+                                             cam.height).alpha.mean() for i in held])
+    assert drawn[8.0] > drawn[TRACKING_MAX_M] + 0.03, drawn
+    psnr = {r: float(np.nanmean(res[r].psnr_db)) for r in res}
+    assert psnr[8.0] > psnr[TRACKING_MAX_M] + 0.5, psnr
+
+
+def test_tracking_map_keeps_the_fusion_range(worlds):
+    """The tracking map (the world's voxel statistics localization tracks against) is the same,
+    bit for bit, whatever the mapping range; only the Gaussians' own statistics reach further."""
+    a, b = worlds[TRACKING_MAX_M].builder, worlds[8.0].builder
+    for name in ("ids", "count", "sum_xyz", "sum_rgb", "sum_sq", "n_keyframes", "weight"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert len(worlds[8.0].mapping_builder) > len(b)
+
+
+def test_tracker_depth_range_is_the_fusion_range(small_manifest, worlds, monkeypatch):
+    """SLAM (estimated poses) and localization hand the tracker the fusion range, never the mapping one."""
+    from atlas_pipeline.localization import localizer, sequence
+    from atlas_pipeline.mapping.keyframes import slam_poses
+
+    seen = []
+    init = sequence.SequenceTracker.__init__
+
+    def spy(self, camera, cfg, depth_range_m, *args, **kwargs):
+        seen.append(tuple(float(v) for v in depth_range_m))
+        init(self, camera, cfg, depth_range_m, *args, **kwargs)
+
+    monkeypatch.setattr(sequence.SequenceTracker, "__init__", spy)
+    cfg = _cfg(8.0, **{"mapping.loop_closure": False})
+    fused = fuse(small_manifest, cfg)
+    slam_poses(small_manifest, cfg.mapping, cfg.localization, (fused.min_depth_m, fused.max_depth_m), fused.stride,
+               frames=[(small_manifest.read_rgb(i), small_manifest.read_depth_m(i)) for i in range(4)])
+    captured = []
+    real = localizer.localize_sequence
+
+    def spy_localize(*args, **kwargs):
+        captured.append(kwargs["depth_range_m"])
+        raise RuntimeError("stop here")  # the range is what this test is about
+
+    monkeypatch.setattr(localizer, "localize_sequence", spy_localize)
+    with pytest.raises(RuntimeError, match="stop here"):
+        localizer.localize(small_manifest, worlds[8.0], cfg)
+    assert real is not spy_localize
+    assert seen and all(r == (0.1, TRACKING_MAX_M) for r in seen), seen
+    assert captured == [(0.1, TRACKING_MAX_M)]
+    assert fused.max_depth_m == TRACKING_MAX_M and cfg.mapping.max_depth_m == 8.0
+
+
+def test_a_far_noisy_point_moves_a_voxel_less_than_a_near_one():
+    """Inverse-variance merging: the same 1 cm outlier added to a voxel of near points shifts its
+    mean a lot less when it was measured at 7 m than at 1 m (unweighted, both shift it equally)."""
+    v = 0.02
+    rng = np.random.default_rng(0)
+    base = 0.01 + 0.002 * rng.standard_normal((20, 3))  # a voxel's worth of points, near its centre
+    base_w = mapper.depth_weight(np.full(len(base), 1.0), v)
+    outlier = np.array([[0.019, 0.019, 0.019]])
+
+    def mean_after(outlier_depth_m: float | None) -> np.ndarray:
+        b = VoxelGaussianBuilder(v)
+        b.integrate(base, np.zeros((len(base), 3)), base_w)
+        if outlier_depth_m is not None:
+            b.integrate(outlier, np.zeros((1, 3)), mapper.depth_weight(np.array([outlier_depth_m]), v))
+        return b.to_field().positions[0]
+
+    m0 = mean_after(None)
+    shift_near = np.linalg.norm(mean_after(1.0) - m0)
+    shift_far = np.linalg.norm(mean_after(7.0) - m0)
+    assert shift_far < 0.25 * shift_near, (shift_near, shift_far)
+    # the weights follow the sensor model: ~1 while the noise is below a voxel, 1/sigma^2 beyond
+    w = mapper.depth_weight(np.array([0.5, 1.0, 2.0, 4.0, 8.0]), v)
+    assert (np.diff(w) < 0).all() and w[0] > 0.99 and w[1] > 0.99 and w[-1] < 0.05
+
+
+def test_weighted_builder_matches_unweighted_when_weights_are_equal():
+    """Equal weights change nothing (the weighted sums divide by their weight), and a weighted
+    builder moved by ``merge`` matches integrating its points at the new pose."""
+    from atlas_pipeline.geometry import rotmat_to_quat_xyzw  # noqa: F401 (imported by to_field)
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.2, 0.2, (500, 3))
+    pts[:, 2] *= 0.05  # a thin slab: real shapes
+    cols = rng.integers(0, 256, (500, 3))
+    a, b = VoxelGaussianBuilder(0.02), VoxelGaussianBuilder(0.02)
+    a.integrate(pts, cols)
+    b.integrate(pts, cols, np.full(len(pts), 0.3))
+    fa, fb = a.to_field(), b.to_field()
+    np.testing.assert_allclose(fa.positions, fb.positions, atol=1e-12)
+    np.testing.assert_allclose(fa.scales, fb.scales, rtol=1e-5, atol=1e-7)
+    assert np.array_equal(fa.colors, fb.colors)
+    w = rng.uniform(0.01, 1.0, len(pts))
+    c, d = VoxelGaussianBuilder(0.02), VoxelGaussianBuilder(0.02)
+    c.integrate(pts, cols, w)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, -2.0, 0.5]  # a translation by whole voxels keeps every voxel whole
+    d.merge(c, T)
+    moved = VoxelGaussianBuilder(0.02)
+    moved.integrate(pts + T[:3, 3], cols, w)
+    np.testing.assert_allclose(d.to_field().positions, moved.to_field().positions, atol=1e-9)
+    with pytest.raises(ValueError, match="weights"):
+        c.integrate(pts, cols, np.zeros(len(pts)))
+
+
+def test_sensor_model_is_the_synthetic_kinects():
+    """The noise model the mapper weights with is the one the synthetic Kinect v1 writes depth with."""
+    from atlas_pipeline.sensors.synthetic import KINECT_V1_SENSOR
+
+    assert mapper.DEPTH_NOISE_A_M == KINECT_V1_SENSOR["depth_noise_a_m"]
+    assert mapper.DEPTH_NOISE_B_PER_M == KINECT_V1_SENSOR["depth_noise_b_per_m"]
+    np.testing.assert_allclose(mapper.depth_sigma_m(np.array([1.0, 3.0])), [0.001884, 0.0140444], rtol=1e-4)
+    w = mapper.depth_loss_weight(np.array([[0.0, 1.0, 8.0]]), 0.02)
+    assert w[0, 0] == 0.0 and w[0, 1] > 0.99 and 0.1 < w[0, 2] < 0.25
+
+
+def test_depth_loss_weight_scales_the_depth_term_only():
+    """The fit's per-pixel depth weights scale the depth L1 term pixel by pixel; pixels without a
+    reading add nothing however they are weighted."""
+    from atlas_pipeline.gaussian_world.optimize import render_loss_and_gradients
+
+    rng = np.random.default_rng(2)
+    n = 40
+    pos = np.c_[rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(1.5, 2.5, n)]
+    scl = np.full((n, 3), 0.08)
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    col = rng.uniform(0, 1, (n, 3))
+    op = np.full(n, 0.9)
+    K = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
+    img = rng.uniform(0, 1, (24, 32, 3))
+    dep = np.where(rng.uniform(size=(24, 32)) < 0.7, 2.2, 0.0)
+
+    def loss(w_depth, wmap=None):
+        return render_loss_and_gradients(pos, scl, q, col, op, np.eye(4), K, img, dep, 1.0, w_depth,
+                                         depth_weight_map=wmap)[0]
+
+    base, full = loss(0.0), loss(1.0)
+    assert full > base
+    half = loss(1.0, np.full(dep.shape, 0.5, np.float32))
+    assert half - base == pytest.approx(0.5 * (full - base), rel=1e-4)
+    # weight where there is no reading: no effect
+    junk = np.where(dep > 0, 1.0, 7.0).astype(np.float32)
+    assert loss(1.0, junk) == pytest.approx(full, rel=1e-6)
+
+
+def test_mapping_range_must_cover_the_tracking_range():
+    with pytest.raises(ConfigError, match="mapping.max_depth_m must be >= fusion.max_depth_m"):
+        load_profile("default").with_overrides({"mapping.max_depth_m": 3.0})
+    assert load_profile("default").mapping.max_depth_m == 8.0
+    assert load_profile("demo").mapping.max_depth_m == 8.0
+
+
+def test_world_roundtrip_keeps_the_mapping_statistics(tmp_path, worlds):
+    w = worlds[8.0]
+    w.save(tmp_path / "w")
+    back = GaussianWorld.load(tmp_path / "w")
+    for name in ("ids", "count", "weight", "sum_xyz", "sum_sq", "sum_rgb", "n_keyframes"):
+        assert np.array_equal(getattr(back.mapping_builder, name), getattr(w.mapping_builder, name)), name
+        assert np.array_equal(getattr(back.builder, name), getattr(w.builder, name)), name
+    # a world saved before mapping had its own range: no mapping statistics, the tracking ones serve
+    old = GaussianWorld(w.field, w.builder, w.keyframe_indices, w.T_world_cam_keyframes, w.pose_source, w.history)
+    old.save(tmp_path / "old")
+    back_old = GaussianWorld.load(tmp_path / "old")
+    assert back_old.mapping_builder is None and back_old.field_builder is back_old.builder
+
+
+def test_extending_a_world_extends_its_map_too(small_manifest):
+    cfg = _cfg(8.0)
+    fused = fuse(small_manifest, cfg)
+    kf = mapper.select_keyframes_stage(small_manifest, fused, cfg)
+    half = len(kf.indices) // 2
+    from dataclasses import replace
+
+    first = mapper.build_world(fused, replace(kf, indices=kf.indices[:half]), cfg.mapping, manifest=small_manifest)
+    n_map, n_track = len(first.mapping_builder), len(first.builder)
+    both = mapper.extend_world(first, fused, replace(kf, indices=kf.indices[half:]), cfg.mapping,
+                               manifest=small_manifest)
+    whole = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
+    assert len(both.mapping_builder) > n_map and len(both.builder) > n_track
+    assert np.array_equal(both.mapping_builder.ids, whole.mapping_builder.ids)
+    np.testing.assert_allclose(both.mapping_builder.sum_xyz, whole.mapping_builder.sum_xyz, rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_fitted_world_scores_higher_full_frame(small_manifest):
+    """With the keyframe fit on, the longer mapping range still gives the held-out views a higher
+    full-frame PSNR, and the fit's densification reaches the far Gaussians (its depth weights are
+    < 1 there, never 0)."""
+    from atlas_pipeline.gaussian_world.evaluation import evaluate_views
+
+    fit = {"mapping.optimization_epochs": 6, "mapping.optimization_max_steps": 36,
+           "mapping.colour_refinement_iterations": 1}
+    held = None
+    psnr = {}
+    for r in (TRACKING_MAX_M, 8.0):
+        w = _world(small_manifest, _cfg(r, **fit))
+        if held is None:
+            held = np.setdiff1d(np.arange(small_manifest.n_frames), w.keyframe_indices)
+        rep = evaluate_views(w.field, small_manifest, small_manifest.T_world_cam_gt, held, "ground_truth", w.map_id,
+                             (0.1, TRACKING_MAX_M))
+        psnr[r] = float(np.nanmean(rep.psnr_db))
+        assert w.fit["steps"] > 0
+    assert psnr[8.0] > psnr[TRACKING_MAX_M] + 0.3, psnr
+
+
+def test_mapping_range_reruns_the_world_only():
+    """``mapping.max_depth_m`` is a setting of gaussian_world (which reads it), not of keyframes or
+    fused_frames (the tracker and the fused points keep the fusion range)."""
+    from assets.versioning import stage_settings
+
+    a, b = load_profile("default"), load_profile("default").with_overrides({"mapping.max_depth_m": 6.0})
+    changed = [s for s in ("fused_frames", "keyframes", "gaussian_world", "localization_report", "render_evaluation")
+               if stage_settings(a, s) != stage_settings(b, s)]
+    assert changed == ["gaussian_world"]
+    assert stage_settings(b, "gaussian_world")["mapping.max_depth_m"] == 6.0
