@@ -138,6 +138,10 @@ class MappingConfig:
     optimization_epochs: int = _setting(30, NON_NEGATIVE)
     # Cap on its steps (one keyframe each), whatever the keyframe count.
     optimization_max_steps: int = _setting(300, AT_LEAST_ONE)
+    # ...but at least this many per keyframe: longer sequences get proportionally more steps (and
+    # a proportionally longer schedule), so the fit's cost is linear in keyframes and its quality
+    # does not fall with length; 0 = the fixed cap.
+    optimization_min_steps_per_keyframe: int = _setting(10, NON_NEGATIVE)
     optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
     optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
     # Its schedule (gaussian_world/optimize.py; measured by benchmarks/bench_fit.py). First passes at

@@ -96,7 +96,7 @@ def test_early_stop_fires_on_a_plateau(small_manifest, small_world):
 
 def test_step_cap_is_reported_with_the_partial_pass(small_manifest, small_world):
     imgs, deps, poses, K = _targets(small_world, small_manifest, [0, 4, 8])
-    res = optimize_gaussians(small_world, imgs, deps, poses, K, OptimizationSettings(epochs=10, max_steps=7, **OFF),
+    res = optimize_gaussians(small_world, imgs, deps, poses, K, OptimizationSettings(epochs=10, max_steps=7, min_steps_per_view=0, **OFF),
                              **QUIET)
     assert res.record["stop_reason"] == STOP_STEP_CAP and res.record["steps"] == 7
     assert res.record["epochs"] == 3  # two whole passes and one begun
@@ -280,3 +280,36 @@ def test_legacy_schedule_runs_every_step_at_the_fit_scale(small_manifest, small_
     assert np.array_equal(res.step_scale, [0.5] * 6) and res.record["coarse"] is None
     assert res.record["stop_reason"] == STOP_EPOCHS and res.record["n_cloned"] == res.record["n_split"] == 0
     assert np.isin(res.field.ids, small_world.ids).all()
+
+
+def test_long_sequences_get_proportionally_more_steps():
+    """Issue 14: the step budget grows with the keyframes past max_steps / min_steps_per_view, and
+    the schedule's step counts with it; below that nothing changes."""
+    from atlas_pipeline.gaussian_world.optimize import stretch_schedule
+
+    s = OptimizationSettings(max_steps=300, min_steps_per_view=10, coarse_max_steps=160, densify_interval=50,
+                             densify_until_step=160)
+    assert stretch_schedule(s, 30) is s and stretch_schedule(s, 4) is s
+    long = stretch_schedule(s, 120)  # 4x the keyframes the cap covers
+    assert (long.max_steps, long.coarse_max_steps, long.densify_interval, long.densify_until_step) == (1200, 640, 200, 640)
+    assert stretch_schedule(OptimizationSettings(max_steps=300, min_steps_per_view=0), 1000).max_steps == 300
+    assert stretch_schedule(OptimizationSettings(max_steps=None, min_steps_per_view=10), 1000).max_steps is None
+
+
+def test_fit_inputs_read_on_demand_give_the_same_world(small_manifest, monkeypatch):
+    """Above the memory budget the keyframes are re-read at each use instead of held: same world."""
+    import atlas_pipeline.mapping.mapper as mapper
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.perception.rgbd import fuse
+
+    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 2})
+    fused = fuse(small_manifest, cfg)
+    kf = mapper.select_keyframes_stage(small_manifest, fused, cfg)
+    held = mapper.build_gaussian_world(fused, kf, cfg, manifest=small_manifest)
+    reads = []
+    real = small_manifest.read_rgb
+    monkeypatch.setattr(small_manifest, "read_rgb", lambda i: reads.append(i) or real(i))
+    monkeypatch.setattr(mapper, "FIT_INPUT_MEMORY_BUDGET_BYTES", 0)
+    streamed = mapper.build_gaussian_world(fused, kf, cfg, manifest=small_manifest)
+    assert streamed.field.equals(held.field) and streamed.fit == held.fit
+    assert len(reads) > 2 * len(kf.indices)  # read again at each use, not held

@@ -337,5 +337,5 @@ def test_step_cap_bounds_the_work(small_manifest, small_world):
     targets = _views(small_world, small_manifest, train)
     res = optimize_gaussians(small_world, [t[0] for t in targets], [t[1] for t in targets],
                              [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
-                             OptimizationSettings(epochs=10, max_steps=7, scale=0.5), log=lambda _: None)
+                             OptimizationSettings(epochs=10, max_steps=7, min_steps_per_view=0, scale=0.5), log=lambda _: None)
     assert len(res.loss) == 7  # two full passes and one view of a third

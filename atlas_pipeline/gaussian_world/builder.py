@@ -21,7 +21,12 @@ import numpy as np
 from atlas_pipeline.errors import ArtifactError
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
-from atlas_pipeline.safe_arrays import is_finite_number, load_json_object_checked, load_npz_checked
+from atlas_pipeline.safe_arrays import (
+    is_finite_number,
+    load_json_object_checked,
+    load_npz_checked,
+    save_npz_deterministic,
+)
 
 __all__ = ["pack_voxel_ids", "unpack_voxel_ids", "VoxelGaussianBuilder", "GaussianWorld"]
 
@@ -314,7 +319,7 @@ class GaussianWorld:
         path = directory / "world.npz"
         b = self.builder
         with atomic_path(path) as tmp:
-            np.savez(
+            save_npz_deterministic(
                 tmp,
                 positions=self.field.positions, scales=self.field.scales,
                 rotations_xyzw=self.field.rotations_xyzw, colors=self.field.colors,

@@ -73,6 +73,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import dataclasses
 from dataclasses import dataclass, field as dataclass_field
 from typing import Callable, Sequence
 
@@ -132,6 +133,11 @@ class OptimizationSettings:
         epochs: cap on the passes over the keyframes (one Adam step per keyframe per pass); 0 = off.
         max_steps: cap on the steps in all (None: no cap), so a long sequence with many keyframes
             costs a bounded time (each step renders one keyframe forward and backward).
+        min_steps_per_view: with ``max_steps``, at least this many steps per keyframe: beyond
+            ``max_steps / min_steps_per_view`` keyframes the cap, ``coarse_max_steps``,
+            ``densify_interval`` and ``densify_until_step`` all grow by the same factor, so the
+            fit's cost is linear in the keyframes and each keyframe gets the same share of it
+            (a fixed cap gave a 520-keyframe sequence one step per keyframe). 0: a fixed cap.
         scale: image scale of the fit (0.5 = half size: 4x cheaper, enough for 2 cm Gaussians).
         lr_position_m, lr_log_scale, lr_rotation_rad, lr_opacity_logit, lr_color: Adam step sizes
             (colours in [0, 1]).
@@ -181,6 +187,7 @@ class OptimizationSettings:
 
     epochs: int = 30
     max_steps: int | None = 300
+    min_steps_per_view: int = 10
     scale: float = 0.5
     lr_position_m: float = 5e-4
     lr_log_scale: float = 2e-2
@@ -209,13 +216,15 @@ class OptimizationSettings:
     def legacy(cls, **overrides) -> "OptimizationSettings":
         """The first schedule: up to 30 passes and 600 steps, every one at half size, no early stop,
         no densification or pruning (``overrides`` replace any field)."""
-        return cls(**{"epochs": 30, "max_steps": 600, "scale": 0.5, "coarse_factor": 1, "coarse_max_steps": 0,
+        return cls(**{"epochs": 30, "max_steps": 600, "min_steps_per_view": 0, "scale": 0.5, "coarse_factor": 1,
+                      "coarse_max_steps": 0,
                       "plateau_patience": 0, "densify_interval": 0, **overrides})
 
     @classmethod
     def from_mapping(cls, mc) -> "OptimizationSettings":
         """The settings of a ``config.MappingConfig``."""
-        return cls(epochs=mc.optimization_epochs, max_steps=mc.optimization_max_steps, scale=mc.optimization_scale,
+        return cls(epochs=mc.optimization_epochs, max_steps=mc.optimization_max_steps,
+                   min_steps_per_view=mc.optimization_min_steps_per_keyframe, scale=mc.optimization_scale,
                    depth_weight=mc.optimization_depth_weight, coarse_factor=mc.optimization_coarse_factor,
                    coarse_max_steps=mc.optimization_coarse_max_steps, coarse_lr_scale=mc.optimization_coarse_lr_scale,
                    plateau_patience=mc.optimization_plateau_patience, plateau_rel_tol=mc.optimization_plateau_rel_tol,
@@ -223,6 +232,19 @@ class OptimizationSettings:
                    densify_until_step=mc.optimization_densify_until_step,
                    densify_grad_threshold=mc.optimization_densify_grad_threshold,
                    prune_opacity=mc.optimization_prune_opacity)
+
+
+def stretch_schedule(s: OptimizationSettings, n_views: int) -> OptimizationSettings:
+    """``s`` with its step counts grown for ``n_views`` keyframes (``min_steps_per_view``): the
+    cap, the coarse level's cap and the densification interval and end, all by the same factor
+    ``min_steps_per_view * n_views / max_steps`` when that exceeds 1; else ``s`` unchanged."""
+    if s.max_steps is None or s.min_steps_per_view <= 0 or s.min_steps_per_view * n_views <= s.max_steps:
+        return s
+    k = s.min_steps_per_view * n_views / s.max_steps
+    return dataclasses.replace(s, max_steps=s.min_steps_per_view * n_views,
+                               coarse_max_steps=int(round(s.coarse_max_steps * k)),
+                               densify_interval=int(round(s.densify_interval * k)),
+                               densify_until_step=int(round(s.densify_until_step * k)))
 
 
 @dataclass
@@ -1093,6 +1115,7 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
         if np.shape(T) != (4, 4) or not np.isfinite(T).all():
             raise ValueError(f"optimize_gaussians: view {k}: pose must be a finite 4x4 matrix")
     n_views = len(images)
+    s = stretch_schedule(s, n_views)
     n_cap = s.epochs * n_views if s.max_steps is None else min(s.epochs * n_views, s.max_steps)
     if n_cap < 1:
         return OptimizationResult(field, np.zeros(0), 0, 0.0)

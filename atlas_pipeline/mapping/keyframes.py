@@ -15,7 +15,7 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.progress import Progress
-from atlas_pipeline.safe_arrays import load_json_object_checked, load_npz_checked
+from atlas_pipeline.safe_arrays import load_json_object_checked, load_npz_checked, save_npz_deterministic
 from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
@@ -196,7 +196,7 @@ class KeyframeSet:
         directory.mkdir(parents=True, exist_ok=True)
         path = directory / "keyframes.npz"
         with atomic_path(path) as tmp:
-            np.savez(tmp, T_world_cam=self.T_world_cam, valid=self.valid, indices=self.indices)
+            save_npz_deterministic(tmp, T_world_cam=self.T_world_cam, valid=self.valid, indices=self.indices)
         meta = write_json_atomic(directory / "keyframes.json", {
             "pose_source": self.pose_source, "n_frames": int(len(self.valid)),
             "n_keyframes": int(len(self.indices)), "indices": [int(i) for i in self.indices],

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -213,6 +214,35 @@ def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: Pip
     return build_keyframes(manifest, fused, cfg.mapping, cfg.localization, log)
 
 
+# Full-resolution fit inputs per pixel: RGB uint8 (3 B), depth and its loss weight (float32 each).
+FIT_INPUT_BYTES_PER_PIXEL = 3 + 4 + 4
+# Above this the keyframes' images and depths are read from disk at each use (a few reads each per
+# fit) rather than held: ~150 keyframes at 640x480.
+FIT_INPUT_MEMORY_BUDGET_BYTES = 512 << 20
+
+
+class _OnDemand(Sequence):
+    """A read-only sequence of ``n`` arrays produced by ``read(k)`` at each access (nothing kept)."""
+
+    def __init__(self, n: int, read: Callable[[int], np.ndarray]):
+        self.n, self.read = n, read
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self.read(i) for i in range(*k.indices(self.n))]
+        if not -self.n <= k < self.n:
+            raise IndexError(k)
+        return self.read(k % self.n)
+
+
+def _keyframe_reads(n: int, read: Callable[[int], np.ndarray], in_memory: bool) -> Sequence:
+    """``[read(0), ..., read(n - 1)]`` held in memory, or read on demand."""
+    return [read(k) for k in range(n)] if in_memory else _OnDemand(n, read)
+
+
 def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
                          log: LogFn | None = None, manifest: FrameManifest | None = None) -> GaussianWorld:
     """Merge the keyframes into a world; with the sequence's ``manifest``, then fit it to the
@@ -225,7 +255,11 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     if manifest is None or not len(world.field) or not (fit_colours or optimize):
         return world
     idx = [int(i) for i in world.keyframe_indices]
-    images = [manifest.read_rgb(i) for i in idx]
+    cam = manifest.camera
+    # In memory while small; a long sequence's keyframes are read again at each use instead, so the
+    # fit holds its downsampled working copies, not every raw frame (issue 14).
+    in_memory = len(idx) * cam.width * cam.height * FIT_INPUT_BYTES_PER_PIXEL <= FIT_INPUT_MEMORY_BUDGET_BYTES
+    images = _keyframe_reads(len(idx), lambda k: manifest.read_rgb(idx[k]), in_memory)
     if fit_colours:
         from atlas_pipeline.gaussian_world.refine import refine_colours
 
@@ -235,12 +269,14 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
         from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
 
         lo, hi = cfg.fusion.min_depth_m, max(mc.max_depth_m, cfg.fusion.max_depth_m)
-        depths, weights = [], []
-        for i in idx:  # the depth the map was built from: the mapping range, far pixels trusted less
-            d = manifest.read_depth_m(i, allow_empty=True)
-            d = np.where((d >= lo) & (d <= hi), d, 0.0)
-            depths.append(d)
-            weights.append(depth_loss_weight(d, mc.voxel_size_m))
+
+        def depth(k: int) -> np.ndarray:  # the depth the map was built from: the mapping range
+            d = manifest.read_depth_m(idx[k], allow_empty=True)
+            return np.where((d >= lo) & (d <= hi), d, 0.0)
+
+        depths = _keyframe_reads(len(idx), depth, in_memory)
+        # far pixels trusted less
+        weights = _keyframe_reads(len(idx), lambda k: depth_loss_weight(depths[k], mc.voxel_size_m), in_memory)
         res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
                                  OptimizationSettings.from_mapping(mc), log, depth_weights=weights)
         world.field = res.field
