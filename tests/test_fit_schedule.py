@@ -313,3 +313,24 @@ def test_fit_inputs_read_on_demand_give_the_same_world(small_manifest, monkeypat
     streamed = mapper.build_gaussian_world(fused, kf, cfg, manifest=small_manifest)
     assert streamed.field.equals(held.field) and streamed.fit == held.fit
     assert len(reads) > 2 * len(kf.indices)  # read again at each use, not held
+
+
+def test_levels_made_per_view_give_the_same_fit(small_manifest, small_world, monkeypatch):
+    """Above LEVEL_MEMORY_BUDGET_BYTES each view's working copy is made when its step needs it:
+    bit-identical fit, nothing held."""
+    imgs, deps, poses, K = _targets(_jitter(small_world, 4), small_manifest, [0, 4, 8])
+    s = OptimizationSettings(epochs=4, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=3,
+                             plateau_patience=0, densify_interval=5, densify_until_step=10)
+    held = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
+    monkeypatch.setattr(opt, "LEVEL_MEMORY_BUDGET_BYTES", 0)
+    made = []
+    real = opt._OnDemandViews.__init__
+
+    def spy(self, n, make):
+        made.append(n)
+        real(self, n, make)
+
+    monkeypatch.setattr(opt._OnDemandViews, "__init__", spy)
+    lazy = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
+    assert made  # the on-demand path ran
+    assert lazy.field.equals(held.field) and np.array_equal(lazy.loss, held.loss) and lazy.record == held.record

@@ -947,22 +947,60 @@ def _reciprocal_factor(scale: float, name: str) -> int:
     return f
 
 
+# Working copies of one level (float32 image, depth and depth weight per keyframe) are held while
+# they fit in this; above it (hundreds of keyframes) each view's copy is made when its step needs
+# it (one image decode and box filter per step, ~10 % of a step at 320x240), so the fit's memory
+# does not grow with the sequence.
+LEVEL_MEMORY_BUDGET_BYTES = 384 << 20
+_LEVEL_BYTES_PER_PIXEL = (3 + 1 + 1) * 4  # float32 RGB, depth, depth weight
+
+
+class _OnDemandViews:
+    """``views[k]`` computed by ``make(k)`` at each access, the last one kept (a step reads the
+    image, the depth and the weight of one view in turn)."""
+
+    def __init__(self, n: int, make) -> None:
+        self.n, self.make, self._last = n, make, (None, None)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        if self._last[0] != k:
+            self._last = (k, self.make(k))
+        return self._last[1]
+
+
 class _Level:
     """The keyframes at one image scale (float32 images in [0, 1], depths, depth-term weights,
-    intrinsics)."""
+    intrinsics): held, or made per view on access when they would exceed
+    ``LEVEL_MEMORY_BUDGET_BYTES``."""
 
     def __init__(self, name: str, f: int, images, depths_m, K: np.ndarray, depth_weights=None) -> None:
         self.name, self.f, self.scale = name, f, 1.0 / f
-        self.images = [np.ascontiguousarray(_downsample(np.asarray(im, np.float64) / 255.0, f), np.float32)
-                       for im in images]
-        self.depths = [np.ascontiguousarray(_downsample_depth(np.asarray(d, np.float64), f), np.float32)
-                       for d in depths_m]
-        if depth_weights is None:
-            self.depth_w = [np.ones(d.shape, np.float32) for d in self.depths]
-        else:  # the mean weight of the readings each block's depth averages (same validity rule)
-            self.depth_w = [np.ascontiguousarray(
-                _downsample_depth(np.where(np.asarray(d) > 0, np.asarray(w, np.float64), 0.0), f), np.float32)
-                for d, w in zip(depths_m, depth_weights)]
+        h0, w0 = np.shape(images[0])[:2]
+        n = len(images)
+
+        def image(k):
+            return np.ascontiguousarray(_downsample(np.asarray(images[k], np.float64) / 255.0, f), np.float32)
+
+        def depth(k):
+            return np.ascontiguousarray(_downsample_depth(np.asarray(depths_m[k], np.float64), f), np.float32)
+
+        def weight(k):
+            if depth_weights is None:
+                return np.ones(depth(k).shape, np.float32)
+            d = np.asarray(depths_m[k])  # the mean weight of the readings each block averages (same validity rule)
+            return np.ascontiguousarray(
+                _downsample_depth(np.where(d > 0, np.asarray(depth_weights[k], np.float64), 0.0), f), np.float32)
+
+        if n * (h0 // f) * (w0 // f) * _LEVEL_BYTES_PER_PIXEL <= LEVEL_MEMORY_BUDGET_BYTES:
+            self.images = [image(k) for k in range(n)]
+            self.depths = [depth(k) for k in range(n)]
+            self.depth_w = [weight(k) for k in range(n)]
+        else:
+            self.images, self.depths, self.depth_w = (_OnDemandViews(n, image), _OnDemandViews(n, depth),
+                                                      _OnDemandViews(n, weight))
         self.K = raster.scale_intrinsics(K, 1.0 / f)
         self.height, self.width = self.images[0].shape[:2]
 
