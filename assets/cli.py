@@ -556,6 +556,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from assets.staleness import stale_assets, stale_selection
 
     defs, instance, partitions, atlas, overrides = _dagster_setup(args)
+    asked = getattr(args, "concurrency", None)
+    if asked is not None and asked < 1:
+        raise ConfigError(f"--concurrency must be at least 1, got {asked}")
+    concurrency = min(asked or default_concurrency(), len(partitions))
+    if concurrency > 1:  # --all: several partitions at a time, each run in its own process
+        return _run_concurrently(args, partitions, concurrency)
     # Dagster's records in the CLI's format (quiet by default); the run log in the UI is unchanged
     job = defs.resolve_job_def("atlas_gs_all").with_logger_defs(_run_logger_defs())
     run_config, tags = run_request(atlas.profile, overrides)
@@ -578,8 +584,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 continue
             selection = stale_selection(stale)
         try:
-            result = job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False,
-                                            asset_selection=selection, run_config=run_config, tags=tags)
+            result = _execute_partition(args, job, defs, instance, p, selection, run_config, tags)
         finally:
             defs.resources["artifact_io"].unlock_partition(p)
         summary = {"partition": p, "success": result.success, "run_id": result.run_id, **ran(result)}
@@ -610,6 +615,107 @@ def cmd_run(args: argparse.Namespace) -> int:
                         f"{d.asset_key.to_user_string()}:{d.check_name}: {d.description or ''}".strip())
         _out(json.dumps(summary, indent=2) if _json_output(args) else _run_words(summary))
     return 1 if failed else 0
+
+
+# ---- run: partitions in parallel, steps on another executor (README "Parallel and distributed runs")
+
+MAX_DEFAULT_CONCURRENCY = 4  # default --concurrency: the cores, at most this (each run holds a sequence)
+NUMBA_THREADS_ENV = "NUMBA_NUM_THREADS"
+
+
+def default_concurrency() -> int:
+    return max(1, min(os.cpu_count() or 1, MAX_DEFAULT_CONCURRENCY))
+
+
+def _execute_partition(args: argparse.Namespace, job, defs, instance, p: str, selection, run_config, tags):
+    """One partition's run on the chosen executor (``--executor``, else ``$ATLAS_EXECUTOR``): in this
+    process (the default), or with steps in other processes (multiprocess, Dask) through Dagster's
+    ``execute_job`` on a job each step process rebuilds; then this process holds the partition lock
+    for the whole run and is the process the run is tagged with."""
+    from assets.definitions import executor_name
+    from assets.resources import resolve_profile
+    from assets.runs import launcher_tags
+
+    chosen = executor_name(getattr(args, "executor", None))
+    tags = {**tags, **launcher_tags()}
+    if chosen == "in_process":
+        return job.execute_in_process(partition_key=p, instance=instance, raise_on_error=False,
+                                      asset_selection=selection, run_config=run_config, tags=tags)
+    from dagster import build_reconstructable_job, execute_job
+
+    store = defs.resources["artifact_io"]
+    store.hold_partition(p, f"atlas-gs run (pid {os.getpid()}, executor {chosen})")
+    recon = build_reconstructable_job("assets.definitions", "atlas_gs_all_job", reconstructable_kwargs={
+        "artifacts_dir": store.root, "profile": resolve_profile(args.profile), "executor": chosen,
+        "dask_scheduler": getattr(args, "dask_scheduler", None)})
+    return execute_job(recon, instance, run_config=run_config, tags={**tags, "dagster/partition": p},
+                       asset_selection=selection)
+
+
+class _Captured:
+    """A worker's stdout: kept to be printed by the parent in partition order; a terminal when the
+    parent's is (so the output format is the parent's)."""
+
+    def __init__(self, tty: bool):
+        import io
+
+        self._buf, self._tty = io.StringIO(), tty
+
+    def write(self, text: str) -> int:
+        return self._buf.write(text)
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return self._tty
+
+    def getvalue(self) -> str:
+        return self._buf.getvalue()
+
+
+def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
+    """``atlas-gs run`` of one partition in a pool process: (exit code, its stdout)."""
+    import contextlib
+
+    out = _Captured(tty)
+    with _CliOutput(args.verbose), contextlib.redirect_stdout(out):
+        try:
+            code = int(cmd_run(args) or 0)
+        except AtlasError as exc:
+            logger.error("%s", exc)
+            code = EXIT_ERROR
+    return code, out.getvalue()
+
+
+def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurrency: int) -> int:
+    """Up to ``concurrency`` partitions at a time, each an ordinary Dagster run (recorded in
+    ``$DAGSTER_HOME``) in a worker process of a bounded pool; results printed in partition order.
+    Each worker's numba gets its share of the cores (unless ``$NUMBA_NUM_THREADS`` is set), so
+    parallel runs do not oversubscribe them."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    logger.info("running %d partitions, %d at a time", len(partitions), concurrency)
+    tty = sys.stdout.isatty()
+    jobs = [argparse.Namespace(**{**vars(args), "all": False, "dataset": p, "concurrency": 1}) for p in partitions]
+    saved = os.environ.get(NUMBA_THREADS_ENV)
+    if saved is None:  # the workers inherit the environment they start with
+        os.environ[NUMBA_THREADS_ENV] = str(max(1, (os.cpu_count() or 1) // concurrency))
+    worst = 0
+    try:
+        with ProcessPoolExecutor(max_workers=concurrency, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_run_in_worker, a, tty) for a in jobs]
+            for f in futures:
+                code, text = f.result()
+                if text:
+                    sys.stdout.write(text)
+                    sys.stdout.flush()
+                worst = max(worst, code)
+    finally:
+        if saved is None:
+            os.environ.pop(NUMBA_THREADS_ENV, None)
+    return worst
 
 
 def _json_output(args: argparse.Namespace) -> bool:
@@ -896,6 +1002,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="materialize only the stale or missing assets (nothing when all are current)")
     r.add_argument("--json", action="store_true",
                    help="print the result as JSON (the default when stdout is not a terminal)")
+    r.add_argument("--concurrency", type=int, default=None, metavar="N",
+                   help=f"with --all: partitions run at a time, each in its own process (default: the cores, "
+                        f"at most {MAX_DEFAULT_CONCURRENCY}; 1: one after another)")
+    r.add_argument("--executor", default=None, choices=["in_process", "multiprocess", "dask"],
+                   help="where a run's steps execute (default: $ATLAS_EXECUTOR, else in_process)")
+    r.add_argument("--dask-scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="with --executor dask: the scheduler of a running cluster (default: "
+                        "$ATLAS_DASK_SCHEDULER, else a local cluster started for the run)")
     r.set_defaults(func=cmd_run)
 
     st = sub.add_parser("status", help="which assets of a partition are stale or missing, and why")

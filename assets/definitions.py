@@ -19,6 +19,7 @@ Loading this module reads the profile and the registry and writes nothing. The p
 
 
 import logging
+import os
 from pathlib import Path
 from typing import Any, Optional
 
@@ -36,8 +37,11 @@ from dagster import (
     SensorEvaluationContext,
     SensorResult,
     SkipReason,
+    ExecutorDefinition,
+    JobDefinition,
     define_asset_job,
     in_process_executor,
+    multiprocess_executor,
     job,
     op,
     sensor,
@@ -50,6 +54,7 @@ from assets.pipeline_assets import build_pipeline_assets, dataset_version
 from assets.resources import atlas_config, dataset_entry
 from assets.runs import reap_dead_runs
 from assets.versioning import DATA_VERSION_TAG, DATASET_FILES, data_version, record
+from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.sensors.registry import (
     camera_from_intrinsics,
     dataset_on_disk,
@@ -183,28 +188,83 @@ def register_dataset():
     register_dataset_op()
 
 
+# ---- executors: where a run's steps execute -----------------------------------------------------
+
+EXECUTOR_ENV = "ATLAS_EXECUTOR"  # in_process (default), multiprocess or dask
+DASK_SCHEDULER_ENV = "ATLAS_DASK_SCHEDULER"  # tcp://HOST:PORT of a running dask.distributed scheduler
+EXECUTORS = ("in_process", "multiprocess", "dask")
+# Without a scheduler address the Dask executor starts a local cluster for the run: one worker
+# process per core, one thread each (Dagster steps are not thread-safe; numba uses the cores).
+DASK_LOCAL_THREADS_PER_WORKER = 1
+
+
+def executor_name(name: str | None = None) -> str:
+    """``name``, else ``$ATLAS_EXECUTOR``, else ``in_process``; checked."""
+    chosen = (name or os.environ.get(EXECUTOR_ENV) or "in_process").strip().lower().replace("-", "_")
+    if chosen not in EXECUTORS:
+        raise ConfigError(f"executor '{chosen}' (--executor or ${EXECUTOR_ENV}) is not one of {', '.join(EXECUTORS)}")
+    return chosen
+
+
+def select_executor(name: str | None = None, dask_scheduler: str | None = None) -> ExecutorDefinition:
+    """The Dagster executor of the ``atlas_gs_all`` job (see :func:`executor_name`).
+
+    ``in_process``: every step in the run's process (the default: one process per run, the partition
+    lock held by it). ``multiprocess``: one process per step. ``dask``: each step a task on a
+    dask.distributed cluster (``dagster-dask``), the scheduler at ``dask_scheduler`` or
+    ``$ATLAS_DASK_SCHEDULER``, else a local cluster started for the run. Both of the last need a
+    persistent instance (``$DAGSTER_HOME``) and artifacts on storage every worker sees.
+    """
+    chosen = executor_name(name)
+    if chosen == "in_process":
+        return in_process_executor
+    if chosen == "multiprocess":
+        return multiprocess_executor
+    try:  # dagster-dask's executor, submitting around two upstream faults (assets/dask_executor.py)
+        from assets.dask_executor import atlas_dask_executor
+    except ImportError as exc:
+        raise ConfigError("executor 'dask' needs dagster-dask: pip install 'atlas-gs[distributed]'") from exc
+    address = dask_scheduler or os.environ.get(DASK_SCHEDULER_ENV)
+    cluster = ({"existing": {"address": address}} if address else
+               {"local": {"threads_per_worker": DASK_LOCAL_THREADS_PER_WORKER}})
+    return atlas_dask_executor.configured({"cluster": cluster}, name="dask")
+
+
+def atlas_gs_all_job(artifacts_dir: str | None = None, profile: str | None = None, executor: str | None = None,
+                     dask_scheduler: str | None = None) -> JobDefinition:
+    """The ``atlas_gs_all`` job, rebuilt by name in every process that runs a step (Dagster's
+    ``build_reconstructable_job``: the multiprocess and Dask executors need a job they can rebuild)."""
+    return build_definitions(artifacts_dir, profile=profile, executor=executor,
+                             dask_scheduler=dask_scheduler).resolve_job_def("atlas_gs_all")
+
+
 def build_definitions(artifacts_dir: str | Path | None = None, profile: str | None = None,
                       partition_names: list[str] | None = None,
-                      overrides: dict[str, Any] | None = None) -> Definitions:
+                      overrides: dict[str, Any] | None = None, executor: str | None = None,
+                      dask_scheduler: str | None = None) -> Definitions:
     """The definitions for one profile: ``profile`` if given, else ``$ATLAS_PROFILE``, else ``default``;
-    ``overrides`` (dotted keys) change the run defaults the launchpad shows. Writes nothing."""
+    ``overrides`` (dotted keys) change the run defaults the launchpad shows; ``executor`` /
+    ``dask_scheduler``: see :func:`select_executor`. Writes nothing."""
     root = str(artifacts_dir if artifacts_dir is not None else artifacts_root())
+    chosen = executor_name(executor)
+    run_executor = select_executor(chosen, dask_scheduler)
     everything = define_asset_job(
         "atlas_gs_all", selection=AssetSelection.all(include_sources=True),
         description="Observe the dataset's files, then materialize every Atlas-GS asset of one dataset partition "
                     "and run its checks (assets whose inputs, settings and code are unchanged are reused).",
-        executor_def=in_process_executor,
+        executor_def=run_executor,
     )
     atlas = atlas_config(profile, overrides)
     return Definitions(
         assets=build_pipeline_assets(dataset_partitions(partition_names), atlas.load()),
         jobs=[everything, register_dataset],
         sensors=[dataset_registry_sensor],
-        # One process per run: the partition lock (ArtifactIOManager.lock_partition) is held by the
-        # run's process, and the numba kernels use the cores themselves.
-        executor=in_process_executor,
+        # By default one process per run: the partition lock (ArtifactIOManager.lock_partition) is
+        # held by the run's process, and the numba kernels use the cores themselves.
+        executor=run_executor,
         resources={
-            "artifact_io": ArtifactIOManager(root=root),
+            # Steps in other processes: the process launching the run holds the partition lock.
+            "artifact_io": ArtifactIOManager(root=root, step_locks=chosen == "in_process"),
             "atlas": atlas,
         },
     )

@@ -6,6 +6,11 @@ An artifact type is a library class with ``save(directory) -> list[Path]`` and a
 failed or interrupted run leaves the previous artifact whole. It also records ``_artifact.json``
 (type, files, sha256 of each, one content hash over all of them) beside the files.
 
+The root is a local or mounted (network) folder, or an object-store URL (``s3://bucket/prefix``,
+``gs://...``): there every version is uploaded under a content-addressed prefix and published by one
+atomic PUT of a small pointer object (:mod:`assets.storage` explains the layout and the guarantees);
+files are staged and hashed locally either way, so data versions are the same on both.
+
 Assets hand it a :class:`StagedArtifact` (written to the temporary folder by :meth:`ArtifactIOManager.stage`,
 so its content hash, the data version, was known when the output was yielded; only the swap is
 left) or :class:`Reused` (current on disk: nothing is written). Inputs are loaded by
@@ -25,6 +30,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from dagster import ConfigurableIOManager, InputContext, MetadataValue, OutputContext
 
+from assets.storage import is_remote, local_scratch, object_store, root_key
 from atlas_pipeline.config import project_root
 from atlas_pipeline.errors import ArtifactError, AtlasError, WriteError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
@@ -86,14 +92,20 @@ ARTIFACT_TYPES: dict[str, Any] = {
 
 
 def artifacts_root() -> Path:
-    """``$ATLAS_ARTIFACTS_DIR`` or ``<project>/artifacts``."""
+    """``$ATLAS_ARTIFACTS_DIR`` or ``<project>/artifacts``; an object-store URL (``s3://...``) is
+    returned as a universal-pathlib path of it."""
     env = os.environ.get("ATLAS_ARTIFACTS_DIR")
+    if env and is_remote(env):
+        return object_store(env).root
     return Path(env).resolve() if env else project_root() / "artifacts"
 
 
 def artifact_dir(root: str | Path, asset: str, partition: str) -> Path:
-    """``<root>/<asset>/<partition>``; the partition name is validated before it becomes a path."""
+    """``<root>/<asset>/<partition>``; the partition name is validated before it becomes a path
+    (for an object-store root: the partition's prefix, holding its pointer and versions)."""
     validate_dataset_name(partition)
+    if is_remote(root):
+        return object_store(str(root)).prefix(asset, partition)
     return Path(root) / asset / partition
 
 
@@ -168,9 +180,24 @@ def _content_hash(record_files: dict[str, dict[str, Any]]) -> str:
 
 
 class ArtifactIOManager(ConfigurableIOManager):
-    """Writes typed pipeline artifacts under ``root`` in open formats (Parquet, npz, JSON, PLY, MP4)."""
+    """Writes typed pipeline artifacts under ``root`` in open formats (Parquet, npz, JSON, PLY, MP4).
+
+    ``root``: a folder, or an object-store URL (:mod:`assets.storage`). ``step_locks``: each step
+    takes the partition's lock in its own process (the in-process executor: the run's process holds
+    it for the whole run). With an executor that runs steps in other, long-lived processes (Dask
+    workers), the process launching the run holds it instead (:meth:`hold_partition`) and steps
+    take none: a worker would otherwise keep it after the run, or refuse its sibling steps.
+    """
 
     root: str
+    step_locks: bool = True
+
+    @property
+    def remote(self) -> bool:
+        return is_remote(self.root)
+
+    def _store(self):
+        return object_store(self.root)
 
     def _dir(self, context: OutputContext | InputContext) -> Path:
         asset = context.asset_key.path[-1]
@@ -182,6 +209,8 @@ class ArtifactIOManager(ConfigurableIOManager):
 
     def intact(self, asset: str, partition: str) -> bool:
         """Whether the artifact's files are all there with the bytes its record lists."""
+        if self.remote:
+            return self._store().intact(asset, validate_dataset_name(partition))
         directory = self.directory(asset, partition)
         recover_dir(directory)
         try:
@@ -191,6 +220,9 @@ class ArtifactIOManager(ConfigurableIOManager):
 
     def load_artifact(self, asset: str, partition: str) -> Any:
         """The typed artifact of ``asset``/``partition`` (what ``load_input`` gives an asset)."""
+        if self.remote:  # a verified local copy of the current version
+            local, record = self._store().fetch(asset, validate_dataset_name(partition))
+            return _load_typed(local, record)
         directory = self.directory(asset, partition)
         recover_dir(directory)
         return _load_typed(directory, read_artifact_record(directory))
@@ -204,7 +236,7 @@ class ArtifactIOManager(ConfigurableIOManager):
         if handler is None:
             raise TypeError(f"ArtifactIOManager cannot store a {type_name}; known: {sorted(ARTIFACT_TYPES)}")
         target = self.directory(asset, partition)
-        tmp = stage_dir(target)
+        tmp = stage_dir(self._local_target(asset, partition))
         try:
             files = handler.save(obj, tmp) if handler is ParquetTable else obj.save(tmp)
             record_files = _file_records(list(files))
@@ -227,41 +259,70 @@ class ArtifactIOManager(ConfigurableIOManager):
             raise
         return StagedArtifact(tmp, target, record, obj)
 
+    def _local_target(self, asset: str, partition: str) -> Path:
+        """Where the artifact is staged: beside its folder, or (object-store root) in this machine's
+        scratch folder, from where it is uploaded."""
+        if self.remote:
+            return local_scratch() / "staging" / root_key(self.root) / asset / validate_dataset_name(partition)
+        return self.directory(asset, partition)
+
     def staging_folder(self, asset: str, partition: str) -> Path:
         """An empty scratch folder beside the artifact's target (same file system, so its files
         move into the artifact by rename); left-overs of dead runs are removed by the next run."""
-        return stage_dir(self.directory(asset, partition))
+        return stage_dir(self._local_target(asset, partition))
 
     def prepare(self, asset: str, partition: str) -> None:
         """Before computing: repair interrupted swaps, refuse a target that is not ours, and make
         sure the folder is writable with room for the new version (fails in milliseconds, not
         after the work)."""
+        if self.remote:
+            self._store().check_prefix(asset, validate_dataset_name(partition))
+            check_writable(self._local_target(asset, partition).parent)  # the local staging
+            return
         target = self.directory(asset, partition)
         check_output_dir(target, ARTIFACT_KIND, what=f"artifact folder of {asset}")  # repairs swaps first
         previous = sum(p.stat().st_size for p in target.iterdir() if p.is_file()) if target.is_dir() else 0
         check_writable(target.parent, max(MIN_FREE_BYTES, FREE_SPACE_FACTOR * previous))
+
+    def _lock(self, partition: str) -> ProcessLock:
+        # An object store has no file locks: a remote root's locks live on this machine (runs on
+        # other machines are kept apart by the run queue's per-partition limit, README).
+        base = local_scratch() / "locks" / root_key(self.root) if self.remote else Path(self.root) / LOCKS_DIR
+        return ProcessLock(base / f"{validate_dataset_name(partition)}.lock")
 
     def lock_partition(self, partition: str, run_id: str) -> bool:
         """Hold this partition for the current process (and so its run); True when newly taken.
 
         Raises PartitionBusyError when another live process holds it: two runs of one partition
         would otherwise interleave and the loser would report success for output that is gone.
+        Without ``step_locks`` (the launcher holds the lock) this takes nothing and returns False.
         """
-        lock = ProcessLock(Path(self.root) / LOCKS_DIR / f"{validate_dataset_name(partition)}.lock")
+        if not self.step_locks:
+            return False
+        return self.hold_partition(partition, f"Dagster run {run_id}", run_id=run_id)
+
+    def hold_partition(self, partition: str, what: str, **info: Any) -> bool:
+        """Take the partition's lock for this process, described as ``what``; see :meth:`lock_partition`."""
         try:
-            return lock.acquire({"what": f"Dagster run {run_id}", "run_id": run_id, "partition": partition})
+            return self._lock(partition).acquire({"what": what, "partition": partition, **info})
         except LockedError as exc:
             raise PartitionBusyError(
                 f"partition '{partition}' is being materialized by another run ({exc}); this run stops before "
                 "computing or writing anything: wait for that run to finish, then run again") from None
 
     def unlock_partition(self, partition: str) -> None:
-        ProcessLock(Path(self.root) / LOCKS_DIR / f"{validate_dataset_name(partition)}.lock").release()
+        self._lock(partition).release()
 
     def commit(self, staged: StagedArtifact) -> Path:
         """Swap a staged folder into place (crash-consistent: see :func:`atlas_pipeline.io_utils.commit_dir`).
         A recompute that wrote the same bytes as the artifact in place leaves that one untouched
-        (same files, same modification times)."""
+        (same files, same modification times). Object store: upload, then one pointer PUT."""
+        if self.remote:
+            try:
+                self._store().publish(staged.staging, staged.record)
+            finally:
+                discard_dir(staged.staging)
+            return staged.target
         check_output_dir(staged.target, ARTIFACT_KIND, what="artifact folder")
         try:
             same = read_artifact_record(staged.target).get("content_hash") == staged.record["content_hash"]
@@ -282,7 +343,7 @@ class ArtifactIOManager(ConfigurableIOManager):
         if not isinstance(obj, StagedArtifact):
             partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
             obj = self.stage(context.asset_key.path[-1], partition, obj, run_id=context.run_id)
-        if obj.target.resolve() != target.resolve():
+        if (str(obj.target) != str(target)) if self.remote else (obj.target.resolve() != target.resolve()):
             raise ArtifactError(f"staged artifact for {obj.target} handed to the output of {target}")
         self.commit(obj)
         context.add_output_metadata({"path": MetadataValue.path(str(target)),

@@ -6,13 +6,18 @@ A run killed with SIGKILL (or by a machine reboot) never reports its end, so the
 (:func:`tag_run_process`); :func:`reap_dead_runs` marks runs whose tagged process is gone as failed.
 It runs when ``atlas-gs`` opens the instance and on every tick of the registry sensor under
 ``dagster dev``.
+
+With an executor whose steps run in long-lived worker processes (Dask), a worker is not the run's
+process: the process launching the run tags it (:func:`launcher_tags`) and workers tag nothing.
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import socket
+import sys
 
 from dagster import DagsterInstance, DagsterRunStatus, RunsFilter
 
@@ -36,15 +41,48 @@ def _start_ticks(pid: int) -> str | None:
         return None
 
 
-def tag_run_process(instance: DagsterInstance, run_id: str) -> None:
-    """Record on the run which process executes it (once per run and process)."""
-    if run_id in _tagged:
-        return
-    pid = os.getpid()
+def in_dask_worker() -> bool:
+    """Whether this code runs as a task of a dask.distributed worker (imports nothing new)."""
+    distributed = sys.modules.get("distributed")
+    if distributed is None:
+        return False
+    try:
+        distributed.get_worker()
+    except ValueError:
+        return False
+    return True
+
+
+def launcher_tags(pid: int | None = None) -> dict[str, str]:
+    """Tags naming this process (or ``pid``) as the one a run depends on (set at launch by
+    ``atlas-gs run`` when the steps run elsewhere): the run is marked failed if it dies first."""
+    pid = os.getpid() if pid is None else pid
     tags = {PID_TAG: str(pid), HOST_TAG: socket.gethostname()}
     ticks = _start_ticks(pid)
     if ticks:
         tags[PID_START_TAG] = ticks
+    return tags
+
+
+def tag_run_process(instance: DagsterInstance, run_id: str) -> None:
+    """Record on the run which process executes it (once per run and process). A Dask worker
+    tags nothing: it outlives the run and is not the run's process (see :func:`launcher_tags`)."""
+    if run_id in _tagged:
+        return
+    if in_dask_worker():
+        _tagged.add(run_id)
+        return
+    try:
+        run = instance.get_run_by_id(run_id)
+    except Exception as exc:  # bookkeeping only
+        logger.debug("cannot read run %s: %s", run_id, exc)
+        run = None
+    if run is not None and PID_TAG in run.tags:  # tagged at launch, or by an earlier step's process
+        _tagged.add(run_id)
+        return
+    # A step in a child process (the multiprocess executor) depends on its parent, which outlives it.
+    parent = multiprocessing.parent_process()
+    tags = launcher_tags(parent.pid if parent is not None else None)
     try:
         instance.add_run_tags(run_id, tags)
         _tagged.add(run_id)

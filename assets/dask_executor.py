@@ -1,0 +1,102 @@
+"""Dagster's Dask executor (``dagster-dask``) for the ``atlas_gs_all`` job, with two upstream faults
+worked around. Every step still runs as dagster-dask's own task function
+(:func:`dagster_dask.executor.query_on_dask_worker`) on a ``dask.distributed`` cluster; only the
+submission differs from :class:`dagster_dask.DaskExecutor`:
+
+* dask looks inside every tuple argument of a task (``distributed.utils_comm.unpack_remotedata``;
+  ``dask._task_spec.parse_input`` from 2024.12) and rebuilds named tuples field by field. A run of
+  a partitioned job carries ``DagsterRun.partitions_subset``, a Dagster ``@record`` that forbids
+  iteration, so dagster-dask 0.29.27 fails every partitioned run at submission ("Iteration is not
+  allowed on `@record` KeyRangesPartitionsSubset"). The task's arguments travel here in one opaque
+  object (:class:`_Sealed`), pickled as a whole by dask's own plumbing.
+* dagster-dask names a task ``<job>.<step>``, so two runs of one job on one cluster (two
+  partitions) share task keys and the second is given the first one's results (dagster-io/dagster
+  issue 21418). The key here also holds the run id.
+
+Remove this module once dagster-dask handles both (then use ``dagster_dask.dask_executor``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dagster import (
+    DagsterInvariantViolationError,
+    Field,
+    Permissive,
+    Selector,
+    StringSource,
+    executor,
+    multiple_process_executor_requirements,
+)
+from dagster_dask.executor import DaskExecutor, get_dask_resource_requirements, query_on_dask_worker
+
+
+class _Sealed:
+    """A task's arguments as one object dask does not look into."""
+
+    __slots__ = ("args",)
+
+    def __init__(self, *args: Any):
+        self.args = args
+
+    def __getstate__(self):
+        return self.args
+
+    def __setstate__(self, state):
+        self.args = state
+
+
+def _execute_step(dependencies: list[Any], sealed: _Sealed):
+    """On a worker: dagster-dask's step function (``dependencies`` only orders the tasks)."""
+    return query_on_dask_worker(dependencies, *sealed.args)
+
+
+class AtlasDaskExecutor(DaskExecutor):
+    """:class:`dagster_dask.DaskExecutor` for an existing scheduler or a local cluster (the two
+    cluster kinds this project configures), submitting as the module docstring says."""
+
+    def execute(self, plan_context, execution_plan):
+        import dask.distributed
+
+        if not plan_context.instance.is_persistent:
+            raise DagsterInvariantViolationError("Dask execution requires a persistent DagsterInstance ($DAGSTER_HOME)")
+        run = plan_context.dagster_run
+        job_name = plan_context.job_name
+        if self.cluster_type == "existing":
+            cluster, own = self.cluster_configuration["address"], None
+        elif self.cluster_type == "local":
+            own = cluster = dask.distributed.LocalCluster(**self.build_dict(job_name))
+        else:
+            raise DagsterInvariantViolationError(f"cluster type {self.cluster_type!r}: only 'existing' and 'local' here")
+        instance_ref = plan_context.instance.get_ref()
+        try:
+            with dask.distributed.Client(cluster) as client:
+                futures: dict[str, Any] = {}
+                for level in execution_plan.get_steps_to_execute_by_level():
+                    for step in level:
+                        deps = [futures[k] for inp in step.step_inputs for k in inp.dependency_keys]
+                        sealed = _Sealed(plan_context.reconstructable_job, run, plan_context.run_config, [step.key],
+                                         instance_ref, execution_plan.known_state)
+                        futures[step.key] = client.submit(
+                            _execute_step, deps, sealed, key=f"{job_name}.{step.key}.{run.run_id}", pure=False,
+                            resources=get_dask_resource_requirements(step.tags))
+                for _future, events in dask.distributed.as_completed(list(futures.values()), with_results=True):
+                    yield from events
+        finally:
+            if own is not None:
+                own.close()
+
+
+@executor(
+    name="dask",
+    requirements=multiple_process_executor_requirements(),
+    config_schema={"cluster": Field(Selector({
+        "existing": Field({"address": StringSource}, description="Connect to an existing scheduler."),
+        "local": Field(Permissive(), is_required=False, description="distributed.LocalCluster parameters."),
+    }))},
+)
+def atlas_dask_executor(init_context):
+    """Each step a task on a dask.distributed cluster (see :mod:`assets.dask_executor`)."""
+    ((cluster_type, cluster_configuration),) = init_context.executor_config["cluster"].items()
+    return AtlasDaskExecutor(cluster_type, cluster_configuration)

@@ -1,0 +1,148 @@
+"""Many recordings at once: N small synthetic partitions through the whole graph, serial vs in
+parallel (``atlas-gs run --all --concurrency 2``: a pool of worker processes, one Dagster run per
+partition) vs on a local Dask cluster (a scheduler and two worker processes on 127.0.0.1; the runs
+launched two at a time, their steps executed by the workers).
+
+Every mode starts from an empty artifacts folder and Dagster instance, in a project folder whose
+registry holds only the N partitions (so ``--all`` means them); the datasets are generated before
+timing. Each mode is one ``atlas-gs run`` process, timed by wall clock. The Dask mode also checks
+that its artifacts are byte-identical to the serial run's (run ids and times in the bundle's
+lineage aside).
+
+    python benchmarks/bench_parallel.py                 # 4 partitions, a table
+    python benchmarks/bench_parallel.py --partitions 2 --json
+
+Exit status 1 when the parallel run takes more than 0.65x the serial time, or a run fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SPEC = {"n_frames": 12, "width": 160, "height": 120, "fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5}
+TARGET_RATIO = 0.65  # parallel wall time at most this fraction of serial (issue 14, 2 cores)
+RUN_SPECIFIC = ("run_id", "created_at", "created_utc")
+
+
+def make_project(base: Path, names: list[str], frames: int) -> Path:
+    import yaml
+
+    (base / "configs").mkdir(parents=True)
+    for p in (ROOT / "configs").glob("*.yaml"):
+        if not p.name.startswith("datasets"):
+            shutil.copy(p, base / "configs" / p.name)
+    entries = {n: {"kind": "synthetic", **SPEC, "n_frames": frames, "seed": i} for i, n in enumerate(names)}
+    (base / "configs" / "datasets.yaml").write_text(yaml.safe_dump({"datasets": entries}))
+    return base
+
+
+def run_all(env: dict[str, str], tag: str, work: Path, extra: list[str]) -> tuple[float, list[dict]]:
+    env = {**env, "ATLAS_ARTIFACTS_DIR": str(work / f"artifacts-{tag}"), "DAGSTER_HOME": str(work / f"home-{tag}")}
+    Path(env["DAGSTER_HOME"]).mkdir()
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "assets.cli", "run", "--all", "--json", *extra], env=env, cwd=ROOT,
+                         capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    dec, docs, i, text = json.JSONDecoder(), [], 0, out.stdout
+    while i < len(text):
+        if text[i].isspace():
+            i += 1
+            continue
+        doc, i = dec.raw_decode(text, i)
+        docs.append(doc)
+    if out.returncode != 0 or not docs:
+        sys.stderr.write(out.stderr[-4000:])
+    return wall, docs
+
+
+def digest(art: Path, partition: str) -> dict:
+    out = {}
+    for rec_path in sorted(art.glob(f"*/{partition}/_artifact.json")):
+        rec = json.loads(rec_path.read_text())
+        files = {n: f["sha256"] for n, f in rec["files"].items()}
+        if rec_path.parent.parent.name == "world_bundle":
+            def strip(v):
+                if isinstance(v, dict):
+                    return {k: strip(x) for k, x in v.items() if k not in RUN_SPECIFIC}
+                return [strip(x) for x in v] if isinstance(v, list) else v
+            files["metadata.json"] = strip(json.loads((rec_path.parent / "metadata.json").read_text()))
+        out[rec_path.parent.parent.name] = files
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--partitions", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=SPEC["n_frames"])
+    ap.add_argument("--concurrency", type=int, default=2)
+    ap.add_argument("--dask-workers", type=int, default=2)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+
+    names = [f"bench-{i}" for i in range(args.partitions)]
+    with tempfile.TemporaryDirectory(prefix="atlas-bench-parallel-") as tmp:
+        work = Path(tmp)
+        env = {**os.environ, "ATLAS_PROJECT_ROOT": str(make_project(work / "project", names, args.frames)),
+               "ATLAS_LOCAL_REGISTRY": str(work / "no-local-registry.yaml"), "ATLAS_DATA_DIR": str(work / "data")}
+        os.environ.update({k: env[k] for k in ("ATLAS_PROJECT_ROOT", "ATLAS_LOCAL_REGISTRY", "ATLAS_DATA_DIR")})
+        from atlas_pipeline.sensors.registry import ensure_dataset_files, load_registry
+
+        for entry in load_registry().values():  # generated before timing
+            ensure_dataset_files(entry)
+
+        rows = []
+        wall, docs = run_all(env, "serial", work, ["--concurrency", "1"])
+        rows.append(("serial", wall, docs))
+        wall, docs = run_all(env, "parallel", work, ["--concurrency", str(args.concurrency)])
+        rows.append((f"parallel (concurrency {args.concurrency})", wall, docs))
+
+        from distributed import LocalCluster
+
+        # Each worker's numba gets its share of the cores, as the parallel pool's workers do.
+        os.environ.setdefault("NUMBA_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // args.dask_workers)))
+        t0 = time.perf_counter()
+        cluster = LocalCluster(n_workers=args.dask_workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               scheduler_port=0, dashboard_address=None)
+        cluster_s = time.perf_counter() - t0
+        try:
+            wall, docs = run_all(env, "dask", work, ["--concurrency", str(args.concurrency), "--executor", "dask",
+                                                     "--dask-scheduler", cluster.scheduler_address])
+        finally:
+            cluster.close()
+        rows.append((f"dask ({args.dask_workers} workers, {args.concurrency} runs at a time)", wall, docs))
+
+        identical = all(digest(work / "artifacts-dask", n) == digest(work / "artifacts-serial", n)
+                        and digest(work / "artifacts-dask", n) for n in names)
+
+    serial = rows[0][1]
+    result = {"partitions": args.partitions, "frames": args.frames, "cores": os.cpu_count(),
+              "dask_cluster_start_s": round(cluster_s, 2), "dask_identical_to_serial": identical,
+              "modes": [{"mode": m, "wall_s": round(w, 2), "ratio_to_serial": round(w / serial, 3),
+                         "succeeded": sum(bool(d.get("success")) for d in docs)} for m, w, docs in rows]}
+    ok = (all(r["succeeded"] == args.partitions for r in result["modes"])
+          and result["modes"][1]["ratio_to_serial"] <= TARGET_RATIO)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"{args.partitions} synthetic partitions x {args.frames} frames, {os.cpu_count()} cores\n")
+        print(f"| {'mode':<40s} | wall s | x serial | ok |")
+        print(f"|{'-' * 42}|--------|----------|----|")
+        for r in result["modes"]:
+            print(f"| {r['mode']:<40s} | {r['wall_s']:6.1f} | {r['ratio_to_serial']:8.2f} | "
+                  f"{r['succeeded']}/{args.partitions} |")
+        print(f"\nDask cluster start (not in the time): {cluster_s:.1f} s; Dask artifacts byte-identical to the "
+              f"serial run's: {identical}; target parallel <= {TARGET_RATIO}x serial: {'met' if ok else 'MISSED'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

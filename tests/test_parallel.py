@@ -1,0 +1,80 @@
+"""``atlas-gs run --all`` runs partitions in parallel (a bounded pool of worker processes, each an
+ordinary Dagster run in the shared sqlite instance)."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from assets.cli import main
+from tests.conftest import SMALL_SYNTH
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def project_with_datasets(root: Path, names: list[str]) -> Path:
+    """A project folder whose registry holds only ``names`` (small synthetic sequences, one seed
+    each), so that ``--all`` means exactly them; the profiles are the checkout's."""
+    (root / "configs").mkdir(parents=True)
+    for p in CONFIGS.glob("*.yaml"):
+        if not p.name.startswith("datasets"):
+            shutil.copy(p, root / "configs" / p.name)
+    entries = {n: {"kind": "synthetic", **SMALL_SYNTH, "seed": i} for i, n in enumerate(names)}
+    (root / "configs" / "datasets.yaml").write_text(yaml.safe_dump({"datasets": entries}))
+    return root
+
+
+def _json_docs(text: str) -> list[dict]:
+    dec, docs, i = json.JSONDecoder(), [], 0
+    while i < len(text):
+        if text[i].isspace():
+            i += 1
+            continue
+        doc, i = dec.raw_decode(text, i)
+        docs.append(doc)
+    return docs
+
+
+def test_concurrency_below_one_is_refused(isolated):
+    assert main(["run", "--all", "--concurrency", "0"]) == 2
+
+
+@pytest.mark.slow
+def test_run_all_runs_partitions_in_parallel_processes(isolated, monkeypatch, capsys):
+    from dagster import DagsterInstance
+
+    names = ["par-a", "par-b"]
+    monkeypatch.setenv("ATLAS_PROJECT_ROOT", str(project_with_datasets(isolated / "project", names)))
+    monkeypatch.setenv("ATLAS_LOCAL_REGISTRY", str(isolated / "none.yaml"))
+    assert main(["run", "--all", "--concurrency", "2", "--json"]) == 0
+    docs = _json_docs(capsys.readouterr().out)
+    assert [d["partition"] for d in docs] == names  # printed in partition order
+    assert all(d["success"] and len(d["recomputed"]) == 9 for d in docs), docs
+
+    instance = DagsterInstance.get()
+    runs = [instance.get_run_by_id(d["run_id"]) for d in docs]
+    pids = {r.tags["atlas/pid"] for r in runs}
+    assert len(pids) == 2  # each partition in its own worker process
+    stats = [instance.get_run_stats(r.run_id) for r in runs]
+    a, b = stats
+    assert a.start_time < b.end_time and b.start_time < a.end_time  # they overlapped in time
+
+    # Both partitions are current now: a second --all reuses everything.
+    assert main(["run", "--all", "--concurrency", "2", "--json"]) == 0
+    again = _json_docs(capsys.readouterr().out)
+    assert all(d["success"] and d["recomputed"] == [] for d in again), again
+
+
+def test_the_instance_config_example_queues_runs_two_at_a_time_one_per_partition(tmp_path, monkeypatch):
+    from dagster import DagsterInstance
+
+    shutil.copy(CONFIGS / "instance" / "dagster.yaml", tmp_path / "dagster.yaml")
+    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path))
+    with DagsterInstance.get() as instance:
+        queue = instance.run_coordinator.get_run_queue_config()
+    assert type(instance.run_coordinator).__name__ == "QueuedRunCoordinator"
+    assert queue.max_concurrent_runs == 2
+    assert queue.tag_concurrency_limits == [
+        {"key": "dagster/partition", "value": {"applyLimitPerUniqueValue": True}, "limit": 1}]
