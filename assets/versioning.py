@@ -39,7 +39,7 @@ _FIT = {f.name for f in dataclasses.fields(MappingConfig) if f.name.startswith(_
 _DEPTH = {"min_depth_m", "max_depth_m"}
 # The map's own depth range: gaussian_world reads it (keyframe depth images out to it), keyframes
 # does not (the tracker keeps the fusion range, _DEPTH).
-_MAP_RANGE = {"max_depth_m"}
+_MAP_RANGE = {"max_depth_m", "noise_adaptive_cells"}
 _STARTED: dict[tuple[str, AssetKey], float] = {}  # (run, asset) -> when reuse() decided to compute
 
 

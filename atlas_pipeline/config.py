@@ -129,10 +129,14 @@ class MappingConfig:
     # weights and far depth counts less in the fit (mapping/mapper.py depth_sigma_m); the tracker
     # never sees these points.
     max_depth_m: float = _setting(8.0, POSITIVE)
+    # Merge points into cells as wide as their depth noise (powers of two of voxel_size_m, up to 8):
+    # far walls become a few wide Gaussians, not a cloud of small noisy ones (mapping/mapper.py).
+    noise_adaptive_cells: bool = True
     keyframe_translation_m: float = _setting(0.08, NON_NEGATIVE)
     keyframe_rotation_deg: float = _setting(8.0, NON_NEGATIVE)
-    # Fit Gaussian colours to the keyframe images; 0 = mean colours.
-    colour_refinement_iterations: int = _setting(3, NON_NEGATIVE)
+    # Colour-only fit before the full one; 0 = none (the full fit fits colours too: 3 cost ~35
+    # CPU-s on synthetic for 0.03 dB, benchmarks/bench_photometric.py).
+    colour_refinement_iterations: int = _setting(0, NON_NEGATIVE)
     colour_refinement_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit
     # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off.
     optimization_epochs: int = _setting(30, NON_NEGATIVE)

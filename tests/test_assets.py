@@ -77,7 +77,10 @@ def test_full_graph_materializes_on_synthetic(isolated):
     ev = json.loads((art / "render_evaluation" / "synth-small" / "photometric.json").read_text())
     held = set(range(12)) - set(meta["keyframes"]["indices"])
     assert ev["summary"]["n_views"] >= 1 and {v["frame"] for v in ev["views"]} <= held
-    assert ev["summary"]["mean_psnr_masked_db"] > 15 and ev["summary"]["mean_depth_l1_m"] < 0.05
+    # Sanity bounds for a 4-keyframe 160x120 world. Depth L1 (pixels within the 4 m tracking range)
+    # was 4-5 cm before the map reached 8 m and is ~6 cm since: Gaussians past 4 m, seen through
+    # the edges of nearer ones, pull the alpha-blended depth back (README, "Mapping range").
+    assert ev["summary"]["mean_psnr_masked_db"] > 15 and ev["summary"]["mean_depth_l1_m"] < 0.08
     assert (art / "render_evaluation" / "synth-small" / "preview.png").stat().st_size > 0
     checks = {e.asset_check_evaluation_data.check_name: e.asset_check_evaluation_data.passed
               for e in result.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"}

@@ -288,3 +288,31 @@ def test_mapping_range_reruns_the_world_only():
                if stage_settings(a, s) != stage_settings(b, s)]
     assert changed == ["gaussian_world"]
     assert stage_settings(b, "gaussian_world")["mapping.max_depth_m"] == 6.0
+
+
+def test_noise_cells_grow_with_depth_noise():
+    from atlas_pipeline.mapping.mapper import MAX_NOISE_CELL_VOXELS, depth_sigma_m, noise_cell_voxels
+
+    z = np.array([0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 20.0])
+    cells = noise_cell_voxels(z, 0.02)
+    assert list(cells) == sorted(cells) and cells[0] == cells[1] == cells[2] == 1 and cells[-1] == MAX_NOISE_CELL_VOXELS
+    sigma = depth_sigma_m(z)
+    ok = sigma / 0.02 <= MAX_NOISE_CELL_VOXELS
+    # the smallest power of two covering the noise: no smaller cell would
+    assert (cells[ok] * 0.02 >= sigma[ok] - 1e-12).all() and ((cells[ok] // 2) * 0.02 < np.maximum(sigma[ok], 0.02)).all()
+
+
+def test_a_noise_cell_is_one_wide_gaussian_under_its_first_voxels_id():
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder, pack_voxel_ids
+
+    v = 0.02
+    rng = np.random.default_rng(0)
+    # points spread over the 4x4x4-voxel cell whose first voxel is (-4, 0, 4) (below zero on x: floor)
+    pts = rng.uniform([-0.08, 0.0, 0.08], [-0.0001, 0.08, 0.16], (400, 3))
+    cells = VoxelGaussianBuilder(v)
+    cells.integrate(pts, np.full((400, 3), 128), cell_voxels=np.full(400, 4))
+    fine = VoxelGaussianBuilder(v)
+    fine.integrate(pts, np.full((400, 3), 128))
+    assert len(cells) == 1 and cells.ids[0] == pack_voxel_ids(np.array([[-4, 0, 4]]))[0] and len(fine) > 30
+    g = cells.to_field()
+    assert np.allclose(g.positions[0], pts.mean(axis=0)) and g.scales[0].min() > 1.5 * v  # as wide as the cell (fine voxels stop at 0.75 v)

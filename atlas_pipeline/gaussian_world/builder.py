@@ -66,7 +66,10 @@ def _moments_to_matrices(sum_sq: np.ndarray) -> np.ndarray:
 
 _MIN_POINTS_OWN_SHAPE = 5  # fewer points than this: the voxel's own covariance is too noisy
 _MIN_SCALE = 0.05  # voxels: thickness floor along the normal (1 mm at 2 cm voxels)
-_MAX_SCALE = 0.75  # voxels: no Gaussian spreads much past its voxel
+_MAX_SCALE = 0.75  # voxels: no Gaussian spreads much past its voxel (or its merge cell)
+# Widest merge cell (integrate's cell_voxels), in voxels a side: 16 cm at 2 cm voxels, the Kinect
+# model's depth noise near 8 m (mapping/mapper.py noise_cell_voxels).
+MAX_CELL_VOXELS = 8
 
 
 def _opacity_from_support(count: np.ndarray) -> np.ndarray:
@@ -105,14 +108,26 @@ class VoxelGaussianBuilder:
     def __len__(self) -> int:
         return len(self.ids)
 
-    def integrate(self, points_world: np.ndarray, colors: np.ndarray, weights: np.ndarray | None = None) -> int:
+    def integrate(self, points_world: np.ndarray, colors: np.ndarray, weights: np.ndarray | None = None,
+                  cell_voxels: np.ndarray | None = None) -> int:
         """Merge one keyframe's points ``[M, 3]`` and colours ``[M, 3]``, with optional positive
-        ``weights [M]`` for positions and shapes (None: 1 each); returns the new voxel count."""
+        ``weights [M]`` for positions and shapes (None: 1 each); returns the new voxel count.
+
+        ``cell_voxels [M]`` (powers of two up to ``MAX_CELL_VOXELS``, None: 1 each) merges a point into the cell of that many
+        voxels a side that holds it, kept under the id of the cell's first voxel: noisy far points
+        make one wider Gaussian per cell instead of a cloud of small ones (ids stay voxel ids).
+        """
         if len(points_world) == 0:
             return 0
         p = np.asarray(points_world, dtype=np.float64)
         c = np.asarray(colors, dtype=np.float64)
-        keys = pack_voxel_ids(np.floor(p / self.voxel_size_m).astype(np.int64))
+        ijk = np.floor(p / self.voxel_size_m).astype(np.int64)
+        if cell_voxels is not None:
+            cell = np.asarray(cell_voxels, np.int64).reshape(-1, 1)
+            if cell.shape != (len(p), 1) or (cell < 1).any() or (cell > MAX_CELL_VOXELS).any() or (cell & (cell - 1)).any():
+                raise ValueError(f"integrate: cell_voxels must be [M] powers of two in [1, {MAX_CELL_VOXELS}]")
+            ijk = np.floor_divide(ijk, cell) * cell  # the cell's first voxel (floor: also below zero)
+        keys = pack_voxel_ids(ijk)
         uk, inv = np.unique(keys, return_inverse=True)
         nk = len(uk)
 
@@ -248,7 +263,9 @@ class VoxelGaussianBuilder:
             big = np.take_along_axis(col, np.abs(col).argmax(axis=1)[:, None], axis=1)
             R[:, :, k] *= np.where(big < 0, -1.0, 1.0)
         R[:, :, 1] = np.cross(R[:, :, 2], R[:, :, 0])
-        scales = np.clip(scales, _MIN_SCALE * v, _MAX_SCALE * v)
+        # A voxel's points lie inside it (or inside its merge cell), which bounds their spread; the
+        # clamp is for degenerate moments, as wide as the widest cell.
+        scales = np.clip(scales, _MIN_SCALE * v, _MAX_SCALE * v * MAX_CELL_VOXELS)
         # Canonical values survive the PLY's log/logit encoding bit for bit.
         return canonicalize(GaussianField(
             positions=pos, scales=scales.astype(np.float32), rotations_xyzw=rotmat_to_quat_xyzw(R).astype(np.float32),

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from atlas_pipeline.config import MappingConfig
-from atlas_pipeline.gaussian_world.builder import GaussianWorld, VoxelGaussianBuilder
+from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.progress import Progress
@@ -88,11 +88,28 @@ def _mapping_points(fused: FusedFrames, k: int, cfg: MappingConfig, manifest: Fr
     return backproject(depth, manifest.read_rgb(k), manifest.camera, fused.stride, fused.min_depth_m, cfg.max_depth_m)
 
 
+# Largest merge cell for noisy far points (noise_cell_voxels), as the builder allows.
+MAX_NOISE_CELL_VOXELS = MAX_CELL_VOXELS
+
+
+def noise_cell_voxels(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Merge cell per point, in voxels a side ``[M]``: the smallest power of two at least
+    ``sigma_z / voxel_size_m`` (1 while the noise is under a voxel; 2 from about 3.6 m and 8 near
+    8 m at 2 cm voxels, with the Kinect model), so a map's Gaussians are no finer than the depth
+    that made them."""
+    ratio = np.maximum(depth_sigma_m(depth_m) / voxel_size_m, 1.0)
+    k = np.ceil(np.log2(ratio) - 1e-9).astype(np.int64)  # exact powers of two stay
+    return np.minimum(np.left_shift(1, np.maximum(k, 0)), MAX_NOISE_CELL_VOXELS)
+
+
 def _integrate_mapping(builder: VoxelGaussianBuilder, pts_cam: np.ndarray, cols: np.ndarray, T_world_cam: np.ndarray,
-                       voxel_size_m: float) -> None:
-    """Merge camera-frame points ``[M, 3]`` at ``T_world_cam [4, 4]`` with inverse-variance weights."""
+                       voxel_size_m: float, noise_cells: bool = True) -> None:
+    """Merge camera-frame points ``[M, 3]`` at ``T_world_cam [4, 4]`` with inverse-variance weights
+    (and, with ``noise_cells``, into cells as wide as the depth noise: :func:`noise_cell_voxels`)."""
     pw = pts_cam.astype(np.float64) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-    builder.integrate(pw, cols, depth_weight(pts_cam[:, 2], voxel_size_m))
+    z = pts_cam[:, 2]
+    builder.integrate(pw, cols, depth_weight(z, voxel_size_m),
+                      noise_cell_voxels(z, voxel_size_m) if noise_cells else None)
 
 
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
@@ -124,7 +141,8 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         T = keyframes.T_world_cam[k]
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         builder.integrate(pw, cols)
-        _integrate_mapping(mapping, *_mapping_points(fused, int(k), cfg, manifest), T, cfg.voxel_size_m)
+        _integrate_mapping(mapping, *_mapping_points(fused, int(k), cfg, manifest), T, cfg.voxel_size_m,
+                           cfg.noise_adaptive_cells)
         history.append(len(mapping))
         progress.update()
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
@@ -195,7 +213,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     for i in idx:
         pts, cols = backproject(manifest.read_depth_m(int(i), allow_empty=True), manifest.read_rgb(int(i)),
                                 manifest.camera, fusion_stride, depth_range_m[0], max(mapping.max_depth_m, depth_range_m[1]))
-        _integrate_mapping(mapping_builder, pts, cols, poses[i], mapping.voxel_size_m)
+        _integrate_mapping(mapping_builder, pts, cols, poses[i], mapping.voxel_size_m, mapping.noise_adaptive_cells)
         history.append(len(mapping_builder))
     extended = GaussianWorld(
         field=mapping_builder.to_field(), builder=builder, mapping_builder=mapping_builder,
