@@ -176,7 +176,9 @@ def test_bundle_lineage_and_lineage_command(persistent, capsys):
     assert set(lin["upstream"]) == set(UPSTREAM) | {"localization_report", "transitions"}
     dvs = _data_versions(instance, list(lin["upstream"]))
     assert {a: u["data_version"] for a, u in lin["upstream"].items()} == dvs
-    assert lin["code_versions"]["world_bundle"] and lin["code_versions"]["fused_frames"] == "1"
+    fused_def = build_definitions(root / "artifacts").resolve_assets_def(AssetKey("fused_frames"))
+    assert lin["code_versions"]["world_bundle"]
+    assert lin["code_versions"]["fused_frames"] == fused_def.get_asset_spec(AssetKey("fused_frames")).code_version == "2"
     assert lin["parent"] is None
     assert main(["lineage", PART]) == 0
     text = capsys.readouterr().out
