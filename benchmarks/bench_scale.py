@@ -10,6 +10,7 @@ an earlier stage may still be resident, so a stage's peak is an upper bound on i
 
     python benchmarks/bench_scale.py                       # N = 100 500 2000
     python benchmarks/bench_scale.py --frames 60 240 --json scale.json
+    python benchmarks/bench_scale.py --graph --frames 1200   # atlas-gs run through Dagster: every asset
 
 The table gives, per N: seconds and peak RSS (MB) per stage, the whole run's peak, seconds per
 frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged),
@@ -119,16 +120,69 @@ def generate(n_frames: int, data_dir: str) -> None:
     generate_synthetic_dataset(Path(data_dir) / f"synthetic-{n_frames}", SyntheticSpec(**params))
 
 
+def whole_graph(n_frames: int, data_dir: str) -> dict:
+    """``atlas-gs run synthetic-N`` through Dagster (every asset: videos, bundle and checks included)
+    in fresh artifacts and Dagster folders: wall and CPU seconds and the peak RSS of the run's
+    process (the in-process executor runs every step in it)."""
+    import resource
+    import yaml
+
+    sys.path.insert(0, str(ROOT))
+    from atlas_pipeline.sensors.registry import load_registry
+
+    name = f"synthetic-{n_frames}"
+    with tempfile.TemporaryDirectory(prefix="atlas-bench-graph-") as tmp:
+        t = Path(tmp)
+        (t / "dagster_home").mkdir()
+        reg = t / "datasets.local.yaml"
+        reg.write_text(yaml.safe_dump({"datasets": {name: {"kind": "synthetic",
+                                                          **{**load_registry()["synthetic"].params,
+                                                             "n_frames": n_frames}}}}))
+        env = {**os.environ, "ATLAS_DATA_DIR": data_dir, "ATLAS_ARTIFACTS_DIR": str(t / "artifacts"),
+               "ATLAS_LOCAL_REGISTRY": str(reg), "DAGSTER_HOME": str(t / "dagster_home")}
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "assets.cli", "run", name], cwd=ROOT, env=env,
+                              capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        if proc.returncode != 0:
+            raise SystemExit(f"atlas-gs run {name} failed:\n{proc.stderr[-3000:]}")
+        ev = json.loads((t / "artifacts" / "render_evaluation" / name / "photometric.json").read_text())["summary"]
+        return {"n_frames": n_frames, "wall_s": round(wall, 1),
+                "cpu_s": round(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime, 1),
+                # ru_maxrss of children: the largest child, here the run's one process (kB on Linux)
+                "peak_rss_mb": round(after.ru_maxrss / 1024), "psnr_db": ev.get("mean_psnr_db"),
+                "psnr_masked_db": ev.get("mean_psnr_masked_db")}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", nargs="+", type=int, default=list(DEFAULT_FRAMES))
     ap.add_argument("--profile", default="default")
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument("--graph", action="store_true",
+                    help="instead: atlas-gs run through Dagster (every asset) per N: wall, CPU, peak RSS")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
         print(json.dumps(child(args.child, args.data, args.profile)))
+        return 0
+
+    if args.graph:
+        with tempfile.TemporaryDirectory(prefix="atlas-bench-scale-") as data:
+            out = []
+            for n in args.frames:
+                generate(n, data)
+                out.append(whole_graph(n, data))
+        print(f"atlas-gs run synthetic-N (every asset, Dagster in-process); load average {os.getloadavg()[0]:.2f}")
+        print(f"{'frames':>7} {'wall s':>8} {'CPU s':>8} {'s/frame':>8} {'peak MB':>8} {'PSNR':>6} {'masked':>7}")
+        for r in out:
+            print(f"{r['n_frames']:>7} {r['wall_s']:>8} {r['cpu_s']:>8} {r['wall_s'] / r['n_frames']:>8.3f} "
+                  f"{r['peak_rss_mb']:>8} {r['psnr_db']:>6.2f} {r['psnr_masked_db']:>7.2f}")
+        if args.json:
+            Path(args.json).write_text(json.dumps(out, indent=2))
         return 0
 
     rows = []
