@@ -324,13 +324,13 @@ def test_levels_made_per_view_give_the_same_fit(small_manifest, small_world, mon
     held = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     monkeypatch.setattr(opt, "LEVEL_MEMORY_BUDGET_BYTES", 0)
     made = []
-    real = opt._OnDemandViews.__init__
+    real = opt.OnDemandViews.__init__
 
     def spy(self, n, make):
         made.append(n)
         real(self, n, make)
 
-    monkeypatch.setattr(opt._OnDemandViews, "__init__", spy)
+    monkeypatch.setattr(opt.OnDemandViews, "__init__", spy)
     lazy = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     assert made  # the on-demand path ran
     assert lazy.field.equals(held.field) and np.array_equal(lazy.loss, held.loss) and lazy.record == held.record

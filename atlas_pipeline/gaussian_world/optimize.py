@@ -70,12 +70,13 @@ Only keyframes are used; held-out frames still measure generalisation.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
-import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field as dataclass_field
-from typing import Callable, Sequence
+from typing import Callable
 
 import numba
 import numpy as np
@@ -955,17 +956,23 @@ LEVEL_MEMORY_BUDGET_BYTES = 384 << 20
 _LEVEL_BYTES_PER_PIXEL = (3 + 1 + 1) * 4  # float32 RGB, depth, depth weight
 
 
-class _OnDemandViews:
-    """``views[k]`` computed by ``make(k)`` at each access, the last one kept (a step reads the
-    image, the depth and the weight of one view in turn)."""
+class OnDemandViews(Sequence):
+    """A read-only sequence of ``n`` arrays made by ``make(k)`` at each access, the last one kept
+    (a fit step reads one view's image, depth and weight in turn; nothing else is held). Used for
+    the keyframes of long sequences: the fit's levels here, its inputs in ``mapping/mapper.py``."""
 
-    def __init__(self, n: int, make) -> None:
+    def __init__(self, n: int, make: Callable[[int], np.ndarray]) -> None:
         self.n, self.make, self._last = n, make, (None, None)
 
     def __len__(self) -> int:
         return self.n
 
-    def __getitem__(self, k: int) -> np.ndarray:
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(self.n))]
+        if not -self.n <= k < self.n:
+            raise IndexError(k)
+        k %= self.n
         if self._last[0] != k:
             self._last = (k, self.make(k))
         return self._last[1]
@@ -989,7 +996,7 @@ class _Level:
 
         def weight(k):
             if depth_weights is None:
-                return np.ones(depth(k).shape, np.float32)
+                return np.ones(((h0 // f), (w0 // f)), np.float32)  # the shape _downsample_depth gives
             d = np.asarray(depths_m[k])  # the mean weight of the readings each block averages (same validity rule)
             return np.ascontiguousarray(
                 _downsample_depth(np.where(d > 0, np.asarray(depth_weights[k], np.float64), 0.0), f), np.float32)
@@ -999,8 +1006,8 @@ class _Level:
             self.depths = [depth(k) for k in range(n)]
             self.depth_w = [weight(k) for k in range(n)]
         else:
-            self.images, self.depths, self.depth_w = (_OnDemandViews(n, image), _OnDemandViews(n, depth),
-                                                      _OnDemandViews(n, weight))
+            self.images, self.depths, self.depth_w = (OnDemandViews(n, image), OnDemandViews(n, depth),
+                                                      OnDemandViews(n, weight))
         self.K = raster.scale_intrinsics(K, 1.0 / f)
         self.height, self.width = self.images[0].shape[:2]
 

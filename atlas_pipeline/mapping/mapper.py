@@ -239,26 +239,11 @@ FIT_INPUT_BYTES_PER_PIXEL = 3 + 4 + 4
 FIT_INPUT_MEMORY_BUDGET_BYTES = 512 << 20
 
 
-class _OnDemand(Sequence):
-    """A read-only sequence of ``n`` arrays produced by ``read(k)`` at each access (nothing kept)."""
-
-    def __init__(self, n: int, read: Callable[[int], np.ndarray]):
-        self.n, self.read = n, read
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, k):
-        if isinstance(k, slice):
-            return [self.read(i) for i in range(*k.indices(self.n))]
-        if not -self.n <= k < self.n:
-            raise IndexError(k)
-        return self.read(k % self.n)
-
-
 def _keyframe_reads(n: int, read: Callable[[int], np.ndarray], in_memory: bool) -> Sequence:
     """``[read(0), ..., read(n - 1)]`` held in memory, or read on demand."""
-    return [read(k) for k in range(n)] if in_memory else _OnDemand(n, read)
+    from atlas_pipeline.gaussian_world.optimize import OnDemandViews
+
+    return [read(k) for k in range(n)] if in_memory else OnDemandViews(n, read)
 
 
 def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
