@@ -52,3 +52,17 @@ def small_manifest(small_synthetic):
     from atlas_pipeline.sensors.tum import load_tum_sequence
 
     return load_tum_sequence(small_synthetic, SyntheticSpec(**SMALL_SYNTH).camera(), "synth-small")
+
+
+@pytest.fixture(scope="session")
+def small_world(small_manifest):
+    """The small synthetic world's voxel Gaussians before any fit (the keyframe-fit tests' start;
+    tests/test_tracking.py has its own ``small_world``)."""
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
+
+    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 0,
+                                                  "mapping.colour_refinement_iterations": 0})
+    fused = fuse(small_manifest, cfg)
+    return build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg).field

@@ -21,18 +21,6 @@ QUIET = {"log": lambda _: None}
 OFF = {"coarse_max_steps": 0, "plateau_patience": 0, "densify_interval": 0}  # every extra off
 
 
-@pytest.fixture(scope="module")
-def small_world(small_manifest):
-    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
-    from atlas_pipeline.perception.rgbd import fuse
-    from atlas_pipeline.config import load_profile
-
-    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 0,
-                                                  "mapping.colour_refinement_iterations": 0})
-    fused = fuse(small_manifest, cfg)
-    return build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg).field
-
-
 def _targets(field: GaussianField, manifest, idx):
     cam = manifest.camera
     out = []

@@ -233,18 +233,6 @@ def _views(field, manifest, idx):
     return out
 
 
-@pytest.fixture(scope="module")
-def small_world(small_manifest):
-    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
-    from atlas_pipeline.perception.rgbd import fuse
-    from atlas_pipeline.config import load_profile
-
-    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 0,
-                                                  "mapping.colour_refinement_iterations": 0})
-    fused = fuse(small_manifest, cfg)
-    return build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg).field
-
-
 def _perturbed(f: GaussianField, seed: int) -> GaussianField:
     rng = np.random.default_rng(seed)
     return GaussianField(f.positions + rng.normal(0, 0.01, f.positions.shape), f.scales * 1.6, f.rotations_xyzw,
