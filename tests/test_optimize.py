@@ -115,7 +115,7 @@ def _flat_scene(seed: int, n: int = 60):
     return pos, scl, q, col, op, T, img, dep
 
 
-def _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, w_rgb, w_depth, w_cover, n_workers=3):
+def _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, w_rgb, w_depth, w_cover, n_workers=3, limit=None):
     """The fit's compiled forward and tile backward on one view: ``(splats, loss, g2d [M, 10], slopes)``
     with ``g2d`` each sorted Gaussian's pair slots summed."""
     h, w = img.shape[:2]
@@ -125,7 +125,9 @@ def _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, w_rgb, w_depth,
     npix = float(w * h)
     loss, dout, k_end = opt._forward_tiles(sp.tile_start, sp.tile_ids, sp.feat, sp.order, sp.aux, sp.box, w, h,
                                            sp.tiles_x, sp.n_tiles, np.zeros(3), np.float32(img), np.float32(dep),
-                                           np.ones(dep.shape, np.float32), w_rgb / npix, w_depth / npix, w_cover / npix, n_workers)
+                                           np.ones(dep.shape, np.float32),
+                                           np.full(dep.shape, np.inf, np.float32) if limit is None else np.float32(limit),
+                                           w_rgb / npix, w_depth / npix, w_cover / npix, n_workers)
     pair = opt._backward_tiles(sp.tile_start, sp.tile_ids, slot, k_end, sp.feat, sp.order, sp.aux, sp.box, w, h,
                                sp.tiles_x, sp.n_tiles, dout, n_workers)
     g2d = np.array([pair[start[k]:start[k + 1]].astype(np.float64).sum(axis=0) for k in range(len(sp.order))])
@@ -151,6 +153,33 @@ def test_tile_kernels_match_the_numpy_reference(seed):
     assert (scale > 0).all()
     err = np.abs(g2d - ref) / scale
     assert np.quantile(err, 0.99) < 1e-5 and err.max() < 1e-3  # measured: under 1e-6
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_coverage_band_counts_only_the_measured_surface(seed):
+    """With a depth limit per pixel (the reading plus a band), the coverage term is the transmittance
+    through the Gaussians whose plane depth is within it: the compiled kernels against the float64
+    reference; with every limit before the Gaussians, the term is the whole coverage weight and moves
+    nothing."""
+    pos, scl, q, col, op, T, img, dep = _flat_scene(seed)
+    seen = dep > 0
+    limit = np.where(seen, np.float32(dep) + np.float32(0.02), np.float32(0.0))
+    sp, loss, g2d, slopes = _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, 0.0, 0.0, 2.0, limit=limit)
+    npix = float(img.shape[0] * img.shape[1])
+    feat = sp.feat.astype(np.float64)
+    ref_loss, ref = fit_gradients_reference(feat, slopes, sp.box, img, dep, 0.0, 0.0, 2.0 / npix,
+                                            depth_limit=limit.astype(np.float64))
+    full_loss, _ = fit_gradients_reference(feat, slopes, sp.box, img, dep, 0.0, 0.0, 2.0 / npix)
+    assert loss == pytest.approx(ref_loss, rel=1e-5)
+    assert ref_loss > full_loss  # fewer Gaussians count: more transmittance left
+    scale = np.abs(ref).max(axis=0)
+    live = scale > 0
+    err = np.abs(g2d[:, live] - ref[:, live]) / scale[live]
+    assert np.quantile(err, 0.99) < 1e-5 and err.max() < 1e-3
+    # limits before every Gaussian: nothing stands for the surfaces, full transmittance, no gradient
+    _, loss0, g0, _ = _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, 0.0, 0.0, 2.0,
+                                                limit=np.zeros(dep.shape, np.float32))
+    assert loss0 == pytest.approx(2.0 * seen.sum() / npix) and np.all(g0 == 0.0)
 
 
 def test_projection_keeps_what_the_backward_pass_needs():

@@ -181,12 +181,15 @@ def fit_gradients_reference(
     w_depth: float,
     w_cover: float,
     background: np.ndarray = np.zeros(3),  # [3] in [0, 1]
+    depth_limit: np.ndarray | None = None,  # [H, W] metres; None = no limit
 ) -> tuple[float, np.ndarray]:
     """Reference of the keyframe fit's forward and image-space backward pass
     (``optimize._forward_tiles`` / ``_backward_tiles`` / the slot sums): ``(loss, g2d [M, 10])``.
 
     ``loss = sum_p w_rgb |f(p) - image(p)|_1 + w_depth |D(p) / acc(p) - depth(p)|`` (over pixels with
-    a reading and ``acc >= DEPTH_MIN_ALPHA``) ``+ w_cover T_final(p)`` (pixels with a reading), with
+    a reading and ``acc >= DEPTH_MIN_ALPHA``) ``+ w_cover T_s(p)`` (pixels with a reading; ``T_s`` the
+    product of ``1 - alpha`` over the Gaussians whose depth at ``p`` is at most ``depth_limit(p)``,
+    ``T_final`` without a limit), with
     ``f`` and ``D`` composited as ``composite_reference`` does and each Gaussian's depth at a pixel
     ``z + s_u dx + s_v dy``. ``g2d`` rows are ``d loss / d (u, v, conic a, b, c, opacity, r, g, b, z)``
     from the textbook form: a second front-to-back pass with prefix sums ``P`` of colour and depth,
@@ -210,7 +213,9 @@ def fit_gradients_reference(
         zp = feat[g, FEAT_Z] + slopes[g, 0] * dx + slopes[g, 1] * dy
         return ys, xs, dx, dy, gauss, raw, np.where(ok, alpha, 0.0), ok, zp
 
+    lim = np.full((height, width), np.inf) if depth_limit is None else np.asarray(depth_limit, np.float64)
     Tr = np.ones((height, width))
+    Ts = np.ones((height, width))
     C = np.zeros((height, width, 3))
     D = np.zeros((height, width))
     for g in range(m):
@@ -219,6 +224,7 @@ def fit_gradients_reference(
         C[ys, xs] += w[..., None] * feat[g, [FEAT_RED, FEAT_GREEN, FEAT_BLUE]]
         D[ys, xs] += w * zp
         Tr[ys, xs] *= 1.0 - a
+        Ts[ys, xs] *= np.where(zp <= lim[ys, xs], 1.0 - a, 1.0)
     f = C + Tr[..., None] * bg
     res = f - image
     loss = w_rgb * np.abs(res).sum()
@@ -229,8 +235,8 @@ def fit_gradients_reference(
     dn = np.where(use_d, D / np.where(use_d, acc, 1.0), 0.0)
     loss += w_depth * np.abs(dn - depth_obs)[use_d].sum()
     GD = np.where(use_d, w_depth * np.sign(dn - depth_obs) / np.where(use_d, acc, 1.0), 0.0)  # d loss / d D
-    gcov = np.where(seen, -w_cover, 0.0) if w_cover > 0 else np.zeros((height, width))
-    loss += w_cover * Tr[seen].sum() if w_cover > 0 else 0.0
+    gcov = np.where(seen, -w_cover * Ts, 0.0) if w_cover > 0 else np.zeros((height, width))
+    loss += w_cover * Ts[seen].sum() if w_cover > 0 else 0.0
     Tf = Tr
 
     g2d = np.zeros((m, 10))
@@ -246,7 +252,9 @@ def fit_gradients_reference(
         df = Tp[..., None] * c - (f[ys, xs] - P[ys, xs] - w[..., None] * c) * inv[..., None]
         dD = Tp * zp - (D[ys, xs] - Pd[ys, xs] - w * zp) * inv
         dacc = Tf[ys, xs] * inv  # d acc / d alpha = T_final / (1 - alpha)
-        ga = ((G[ys, xs] * df).sum(axis=2) + GD[ys, xs] * (dD - dn[ys, xs] * dacc) + gcov[ys, xs] * dacc)
+        # d T_s / d alpha = -T_s / (1 - alpha) for the Gaussians within the limit
+        ga = ((G[ys, xs] * df).sum(axis=2) + GD[ys, xs] * (dD - dn[ys, xs] * dacc)
+              + np.where(zp <= lim[ys, xs], gcov[ys, xs] * inv, 0.0))
         gs = np.where(ok & (raw < ALPHA_MAX), ga, 0.0)
         gp = gs * np.minimum(ALPHA_MAX, raw)
         ca, cb, cc = feat[g, [FEAT_CONIC_A, FEAT_CONIC_B, FEAT_CONIC_C]]

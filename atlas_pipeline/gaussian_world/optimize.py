@@ -8,7 +8,10 @@ rotation, opacity and colour to the keyframe images and depths by gradient desce
 
     loss = w_rgb * mean |render_rgb - image| + w_depth * mean w_p |render_depth - depth_m|
 
-plus ``w_cover * mean_{depth > 0} T_final`` (a measured surface is opaque), the depth term over
+plus ``w_cover * mean_{depth > 0} T_surface`` (a measured surface is opaque: ``T_surface`` is the
+transmittance through the Gaussians whose plane depth at the pixel is within a band behind the
+reading, ``T_final`` without bands; so a surface behind the measured one, such as a far wall seen
+past a silhouette, cannot stand in for it), the depth term over
 pixels with a reading that the render covers (accumulated alpha >= 0.5; pixels without a reading
 add nothing), ``w_p`` in [0, 1] a per-pixel weight (default 1; the mapper passes the inverse of the
 sensor's depth noise, so far, noisy readings pull less), with
@@ -105,9 +108,10 @@ _N_GRAD = 10
 _P_POS, _P_LOG_SCALE, _P_ROT, _P_LOGIT, _P_COL = 0, 3, 6, 9, 10
 _N_PARAM = 13
 # Per-pixel rows handed from the forward to the backward pass: d loss / d colour (3), d loss / d
-# depth sum (already divided by the accumulated alpha), and the gradient-weighted total S (below).
-_D_R, _D_G, _D_B, _D_DEPTH, _D_TOTAL = range(5)
-_N_DOUT = 5
+# depth sum (already divided by the accumulated alpha), the gradient-weighted total S (below), the
+# coverage term's weighted transmittance through the measured surface and that surface's far limit.
+_D_R, _D_G, _D_B, _D_DEPTH, _D_TOTAL, _D_COVER, _D_LIMIT = range(7)
+_N_DOUT = 7
 
 STOP_PLATEAU = "plateau"  # plateau_patience passes in a row without a relative gain of plateau_rel_tol
 STOP_STEP_CAP = "step_cap"  # max_steps reached
@@ -284,12 +288,14 @@ class OptimizationResult:
 
 
 @njit(cache=True, inline="always")
-def _forward_row(Tv, Crv, Cgv, Cbv, Dv, ux, qy, by, nha, op, cr, cgr, cbl, zy, slu, lx0, lx1):
+def _forward_row(Tv, Crv, Cgv, Cbv, Dv, Sv, Lv, ux, qy, by, nha, op, cr, cgr, cbl, zy, slu, lx0, lx1):
     """One tile row through one Gaussian, front to back: the renderer's compositing step (one
     branch-free vector of ``TILE_SIZE`` lanes; lanes outside ``lx0 .. lx1``, below ``ALPHA_MIN`` or
-    terminated get alpha 0), with the depth of the Gaussian's plane. Returns the lanes that
-    terminated here. (A narrower 8-lane window for the many Gaussians that span few columns measured
-    2.5x slower here: the 16 lanes are one AVX-512 vector.)"""
+    terminated get alpha 0), with the depth of the Gaussian's plane; ``Sv`` keeps the transmittance
+    through the Gaussians whose plane depth at the lane is at most its limit ``Lv`` (the measured
+    surface and what lies before it). Returns the lanes that terminated here. (A narrower 8-lane
+    window for the many Gaussians that span few columns measured 2.5x slower here: the 16 lanes are
+    one AVX-512 vector.)"""
     t_min = np.float32(T_MIN)
     a_min = np.float32(ALPHA_MIN)
     a_max = np.float32(ALPHA_MAX)
@@ -312,18 +318,23 @@ def _forward_row(Tv, Crv, Cgv, Cbv, Dv, ux, qy, by, nha, op, cr, cgr, cbl, zy, s
         Crv[j] += wgt * cr
         Cgv[j] += wgt * cgr
         Cbv[j] += wgt * cbl
-        Dv[j] += wgt * (zy + slu * dx)
+        zp = zy + slu * dx
+        Dv[j] += wgt * zp
         Tn = Tl * (one - a)
         Tv[j] = Tn
+        Sv[j] = Sv[j] * (one - a) if zp <= Lv[j] else Sv[j]
         done += np.uint64(ok & (Tn < t_min))
     return done
 
 
 @njit(cache=True, inline="always")
-def _backward_row(Tv, Qv, G0, G1, G2, GD, S, acc, ux, dy, qy, by, nha, op, cr, cgr, cbl, zy, slu, lx0, lx1):
+def _backward_row(Tv, Qv, G0, G1, G2, GD, S, CV, LV, acc, ux, dy, qy, by, nha, op, cr, cgr, cbl, zy, slu, lx0,
+                  lx1):
     """The same row and Gaussian once more (alphas, transmittances recomputed bit for bit), adding its
     per-lane gradient sums into ``acc [_N_GRAD, lanes]``: d loss / d opacity; d loss / d power
-    (alpha-weighted) times dx, dy, dx^2, dx dy, dy^2; d loss / d colour (3); d loss / d z."""
+    (alpha-weighted) times dx, dy, dx^2, dx dy, dy^2; d loss / d colour (3); d loss / d z. ``CV``:
+    the coverage term (weight times the transmittance through the measured surface), which only
+    the Gaussians whose plane depth is within the lane's limit ``LV`` move."""
     t_min = np.float32(T_MIN)
     a_min = np.float32(ALPHA_MIN)
     a_max = np.float32(ALPHA_MAX)
@@ -357,7 +368,8 @@ def _backward_row(Tv, Qv, G0, G1, G2, GD, S, acc, ux, dy, qy, by, nha, op, cr, c
         gdj = GD[j]
         h = G0[j] * cr + G1[j] * cgr + G2[j] * cbl + gdj * zp
         Ql = Qv[j]
-        ga = Tl * h - (S[j] - Ql - wgt * h) / (one - a)  # d loss / d alpha
+        cv = CV[j] if zp <= LV[j] else zero  # d (w T_surface) / d alpha = -w T_surface / (1 - alpha)
+        ga = Tl * h - (S[j] - Ql - wgt * h + cv) / (one - a)  # d loss / d alpha
         gs = ga if ok & (e < a_max) else zero  # a capped alpha moves with nothing
         gp = gs * alpha  # d loss / d power
         gpx = gp * dx
@@ -383,12 +395,13 @@ def _backward_row(Tv, Qv, G0, G1, G2, GD, S, acc, ux, dy, qy, by, nha, op, cr, c
 
 @njit(cache=True)
 def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, box, width, height, tiles_x, n_tiles,
-                    bg, image, depth_obs, depth_w, w_rgb, w_depth, w_cover, dout, k_end, tile_loss):
+                    bg, image, depth_obs, depth_w, depth_limit, w_rgb, w_depth, w_cover, dout, k_end, tile_loss):
     """Tiles ``worker, worker + n_workers, ...``: composite front to back exactly as
     ``raster._composite_worker`` does (16-lane float32 rows, same alpha tests, same termination), the
     depth of each Gaussian at each pixel from its slope; then per pixel the L1 loss against
     ``image [H, W, 3]`` and ``depth_obs [H, W]`` (float32, 0 = no reading; its L1 term weighted by
-    ``depth_w [H, W]`` float32 per pixel) into ``tile_loss[t]``
+    ``depth_w [H, W]`` float32 per pixel; its coverage term counts the transmittance through the
+    Gaussians whose plane depth is at most ``depth_limit [H, W]`` float32) into ``tile_loss[t]``
     (float64), the per-pixel rows ``dout [_N_DOUT, H, W]`` and ``k_end[t]``, the end of the tile's
     list where every pixel had terminated (the backward pass stops there too).
 
@@ -396,14 +409,18 @@ def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, b
     depth ``D / acc``'s gradient over ``acc``) and ``gcov`` the coverage weight,
     ``d loss / d alpha_i = T_i h_i - (S - Q_i - w_i h_i) / (1 - alpha_i)`` with
     ``h_i = G . c_i + GD z_i``, ``Q_i = sum_{j < i} w_j h_j`` and the per-pixel total
-    ``S = G . f + GD (D + dn T_f) - gcov T_f`` (``f`` final colour, ``dn`` rendered depth, ``T_f``
-    final transmittance): ``S`` is kept, ``Q`` is rebuilt by the backward pass.
+    ``S = G . f + GD (D + dn T_f)`` (``f`` final colour, ``dn`` rendered depth, ``T_f``
+    final transmittance): ``S`` is kept, ``Q`` is rebuilt by the backward pass. The coverage term
+    ``gcov T_s`` (``T_s`` the transmittance through the Gaussians within the limit, a product over
+    them) adds ``-gcov T_s / (1 - alpha_i)`` for those Gaussians only; ``gcov T_s`` is kept.
     """
     T = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     Cr = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     Cg = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     Cb = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     D = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    Ts = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
+    L = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
     for t in range(worker, n_tiles, n_workers):
         px0, py0, px1, py1 = tile_pixel_bounds(t, tiles_x, width, height)
         T[:] = 1.0
@@ -411,6 +428,11 @@ def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, b
         Cg[:] = 0.0
         Cb[:] = 0.0
         D[:] = 0.0
+        Ts[:] = 1.0
+        L[:] = 0.0  # lanes past the image edge: no surface
+        for py in range(py0, py1 + 1):
+            for px in range(px0, px1 + 1):
+                L[py - py0, px - px0] = depth_limit[py, px]
         n_active = (px1 - px0 + 1) * (py1 - py0 + 1)
         k = tile_start[t]
         k1 = tile_start[t + 1]
@@ -434,8 +456,8 @@ def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, b
             for py in range(max(box[g, 2], py0), min(box[g, 3], py1) + 1):
                 dy = np.float32(py) - v
                 r = py - py0
-                done = _forward_row(T[r], Cr[r], Cg[r], Cb[r], D[r], ux, nhc * dy * dy, cb * dy, nha, op, cr, cgr,
-                                    cbl, z + slv * dy, slu, lx0, lx1)
+                done = _forward_row(T[r], Cr[r], Cg[r], Cb[r], D[r], Ts[r], L[r], ux, nhc * dy * dy, cb * dy, nha,
+                                    op, cr, cgr, cbl, z + slv * dy, slu, lx0, lx1)
                 n_active -= np.int64(done)
         k_end[t] = k
         loss = 0.0
@@ -465,21 +487,23 @@ def _forward_worker(worker, n_workers, tile_start, tile_ids, feat, order, aux, b
                     wd = w_depth * np.float64(depth_w[py, px])
                     loss += wd * abs(rd)
                     gdp = wd * np.sign(rd) / acc
-                gcov = 0.0
-                if obs > 0.0 and w_cover > 0.0:  # a sensor reading: a surface, opaque
-                    loss += w_cover * tf
-                    gcov = -w_cover
+                cover = 0.0
+                if obs > 0.0 and w_cover > 0.0:  # a sensor reading: a surface there, opaque
+                    cover = w_cover * np.float64(Ts[r, c])
+                    loss += cover
                 dout[_D_R, py, px] = g0
                 dout[_D_G, py, px] = g1
                 dout[_D_B, py, px] = g2
                 dout[_D_DEPTH, py, px] = gdp
-                dout[_D_TOTAL, py, px] = g0 * f0 + g1 * f1 + g2 * f2 + gdp * (d + dn * tf) - gcov * tf
+                dout[_D_TOTAL, py, px] = g0 * f0 + g1 * f1 + g2 * f2 + gdp * (d + dn * tf)
+                dout[_D_COVER, py, px] = cover
+                dout[_D_LIMIT, py, px] = L[r, c]
         tile_loss[t] = loss
 
 
 @njit(cache=True, parallel=True)
 def _forward_tiles(tile_start, tile_ids, feat, order, aux, box, width, height, tiles_x, n_tiles, bg, image,
-                   depth_obs, depth_w, w_rgb, w_depth, w_cover, n_workers):
+                   depth_obs, depth_w, depth_limit, w_rgb, w_depth, w_cover, n_workers):
     """All tiles: ``(loss, dout [_N_DOUT, H, W] float32, k_end [n_tiles] int64)``. Worker ``w`` takes
     tiles ``w, w + n_workers, ...``; every result is per tile, so the split does not change a bit."""
     dout = np.zeros((_N_DOUT, height, width), dtype=np.float32)
@@ -487,7 +511,7 @@ def _forward_tiles(tile_start, tile_ids, feat, order, aux, box, width, height, t
     tile_loss = np.zeros(n_tiles)
     for w in prange(n_workers):
         _forward_worker(w, n_workers, tile_start, tile_ids, feat, order, aux, box, width, height, tiles_x, n_tiles,
-                        bg, image, depth_obs, depth_w, w_rgb, w_depth, w_cover, dout, k_end, tile_loss)
+                        bg, image, depth_obs, depth_w, depth_limit, w_rgb, w_depth, w_cover, dout, k_end, tile_loss)
     loss = 0.0
     for t in range(n_tiles):  # fixed order
         loss += tile_loss[t]
@@ -542,8 +566,9 @@ def _backward_worker(worker, n_workers, tile_start, tile_ids, tile_slot, k_end, 
             for py in range(max(box[g, 2], py0), min(box[g, 3], py1) + 1):
                 dy = np.float32(py) - v
                 r = py - py0
-                _backward_row(T[r], Q[r], G[_D_R, r], G[_D_G, r], G[_D_B, r], G[_D_DEPTH, r], G[_D_TOTAL, r], acc,
-                              ux, dy, nhc * dy * dy, cb * dy, nha, op, cr, cgr, cbl, z + slv * dy, slu, lx0, lx1)
+                _backward_row(T[r], Q[r], G[_D_R, r], G[_D_G, r], G[_D_B, r], G[_D_DEPTH, r], G[_D_TOTAL, r],
+                              G[_D_COVER, r], G[_D_LIMIT, r], acc, ux, dy, nhc * dy * dy, cb * dy, nha, op, cr, cgr,
+                              cbl, z + slv * dy, slu, lx0, lx1)
             sums[:] = 0.0  # lanes summed in float64, in lane order
             for c in range(_N_GRAD):
                 for j in range(TILE_SIZE):
@@ -828,9 +853,12 @@ def _n_workers(n_tiles: int) -> int:
 
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,
                     w_cover: float, bg: np.ndarray, near_m: float, gparam: np.ndarray, vs_sum: np.ndarray,
-                    vs_cnt: np.ndarray, clock: _StageClock, depth_w: np.ndarray | None = None) -> float:
+                    vs_cnt: np.ndarray, clock: _StageClock, depth_w: np.ndarray | None = None,
+                    band: np.ndarray | None = None) -> float:
     """Loss of one view (``image [h, w, 3]``, ``depth [h, w]`` float32 at the view's size, its
-    per-pixel depth-term weights ``depth_w [h, w]`` float32, None = 1) and the gradient of every
+    per-pixel depth-term weights ``depth_w [h, w]`` float32, None = 1, and the depth band
+    ``band [h, w]`` (m) behind each reading within which a Gaussian counts as the measured surface
+    for the coverage term, None = any depth) and the gradient of every
     parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does not draw). The state
     arrays are float32."""
     width, height = view.width, view.height
@@ -844,9 +872,10 @@ def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, d
     nw = _n_workers(sp.n_tiles)
     if depth_w is None:
         depth_w = np.ones(depth.shape, np.float32)
+    limit = np.full(depth.shape, np.inf, np.float32) if band is None else np.asarray(depth + band, np.float32)
     loss, dout, k_end = _forward_tiles(sp.tile_start, sp.tile_ids, sp.feat, sp.order, sp.aux, sp.box, width, height,
                                        sp.tiles_x, sp.n_tiles, bg.astype(np.float64), image, depth,
-                                       np.ascontiguousarray(depth_w, np.float32), w_rgb / npix,
+                                       np.ascontiguousarray(depth_w, np.float32), limit, w_rgb / npix,
                                        w_depth / npix, w_cover / npix, nw)
     clock.lap("forward")
     pair_grad = _backward_tiles(sp.tile_start, sp.tile_ids, tile_slot, k_end, sp.feat, sp.order, sp.aux, sp.box,
@@ -863,7 +892,8 @@ def render_loss_and_gradients(positions: np.ndarray, scales: np.ndarray, quat_xy
                               colors01: np.ndarray, opacities: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray,
                               image01: np.ndarray, depth_m: np.ndarray, w_rgb: float = 1.0, w_depth: float = 0.0,
                               background01: tuple[float, float, float] = (0.0, 0.0, 0.0), near_m: float = 0.05,
-                              w_cover: float = 0.0, depth_weight_map: np.ndarray | None = None):
+                              w_cover: float = 0.0, depth_weight_map: np.ndarray | None = None,
+                              coverage_band_map: np.ndarray | None = None):
     """L1 loss of one rendered view and its gradient w.r.t. every parameter (the fit's own kernels).
 
     Args:
@@ -871,7 +901,9 @@ def render_loss_and_gradients(positions: np.ndarray, scales: np.ndarray, quat_xy
         [0, 1], opacities ``[N]``: the Gaussians (any float dtype; the fit's state is float32).
         image01 ``[H, W, 3]`` in [0, 1]; depth_m ``[H, W]``, 0 where there is no reading. The loss
         is a mean over pixels. depth_weight_map ``[H, W]``: per-pixel weight of the depth term
-        (None: 1 everywhere).
+        (None: 1 everywhere). coverage_band_map ``[H, W]`` (m): the coverage term counts the
+        transmittance through the Gaussians whose plane depth is at most the reading plus this
+        (None: every Gaussian, the final transmittance).
 
     Returns:
         ``(loss, grads)`` with grads a dict of float64 ``position [N, 3]``, ``log_scale [N, 3]``,
@@ -886,7 +918,8 @@ def render_loss_and_gradients(positions: np.ndarray, scales: np.ndarray, quat_xy
     loss = _view_gradients(*f32, view, np.ascontiguousarray(image01, np.float32),
                            np.ascontiguousarray(depth_m, np.float32), w_rgb, w_depth, w_cover,
                            np.asarray(background01, np.float64), near_m, gparam, np.zeros(n), np.zeros(n, np.int32),
-                           _StageClock(), depth_weight_map)
+                           _StageClock(), depth_weight_map,
+                           None if coverage_band_map is None else np.ascontiguousarray(coverage_band_map, np.float32))
     g = gparam.T.astype(np.float64)
     return loss, {"position": g[:, _P_POS:_P_POS + 3].copy(), "log_scale": g[:, _P_LOG_SCALE:_P_LOG_SCALE + 3].copy(),
                   "rotation": g[:, _P_ROT:_P_ROT + 3].copy(), "logit": g[:, _P_LOGIT].copy(),
@@ -953,7 +986,7 @@ def _reciprocal_factor(scale: float, name: str) -> int:
 # it (one image decode and box filter per step, ~10 % of a step at 320x240), so the fit's memory
 # does not grow with the sequence.
 LEVEL_MEMORY_BUDGET_BYTES = 384 << 20
-_LEVEL_BYTES_PER_PIXEL = (3 + 1 + 1) * 4  # float32 RGB, depth, depth weight
+_LEVEL_BYTES_PER_PIXEL = (3 + 1 + 1 + 1) * 4  # float32 RGB, depth, depth weight, coverage band
 
 
 class OnDemandViews(Sequence):
@@ -980,10 +1013,11 @@ class OnDemandViews(Sequence):
 
 class _Level:
     """The keyframes at one image scale (float32 images in [0, 1], depths, depth-term weights,
-    intrinsics): held, or made per view on access when they would exceed
-    ``LEVEL_MEMORY_BUDGET_BYTES``."""
+    coverage bands (None when not given), intrinsics): held, or made per view on access when they
+    would exceed ``LEVEL_MEMORY_BUDGET_BYTES``."""
 
-    def __init__(self, name: str, f: int, images, depths_m, K: np.ndarray, depth_weights=None) -> None:
+    def __init__(self, name: str, f: int, images, depths_m, K: np.ndarray, depth_weights=None,
+                 coverage_bands=None) -> None:
         self.name, self.f, self.scale = name, f, 1.0 / f
         h0, w0 = np.shape(images[0])[:2]
         n = len(images)
@@ -994,20 +1028,28 @@ class _Level:
         def depth(k):
             return np.ascontiguousarray(_downsample_depth(np.asarray(depths_m[k], np.float64), f), np.float32)
 
+        def per_reading(maps, k):  # the mean of the readings' values each block averages (same validity rule)
+            d = np.asarray(depths_m[k])
+            return np.ascontiguousarray(
+                _downsample_depth(np.where(d > 0, np.asarray(maps[k], np.float64), 0.0), f), np.float32)
+
         def weight(k):
             if depth_weights is None:
                 return np.ones(((h0 // f), (w0 // f)), np.float32)  # the shape _downsample_depth gives
-            d = np.asarray(depths_m[k])  # the mean weight of the readings each block averages (same validity rule)
-            return np.ascontiguousarray(
-                _downsample_depth(np.where(d > 0, np.asarray(depth_weights[k], np.float64), 0.0), f), np.float32)
+            return per_reading(depth_weights, k)
+
+        def band(k):
+            return per_reading(coverage_bands, k)
 
         if n * (h0 // f) * (w0 // f) * _LEVEL_BYTES_PER_PIXEL <= LEVEL_MEMORY_BUDGET_BYTES:
             self.images = [image(k) for k in range(n)]
             self.depths = [depth(k) for k in range(n)]
             self.depth_w = [weight(k) for k in range(n)]
+            self.bands = None if coverage_bands is None else [band(k) for k in range(n)]
         else:
             self.images, self.depths, self.depth_w = (OnDemandViews(n, image), OnDemandViews(n, depth),
                                                       OnDemandViews(n, weight))
+            self.bands = None if coverage_bands is None else OnDemandViews(n, band)
         self.K = raster.scale_intrinsics(K, 1.0 / f)
         self.height, self.width = self.images[0].shape[:2]
 
@@ -1126,11 +1168,15 @@ def _densify_and_prune(st: _FitState, s: OptimizationSettings, n_start: int,
 def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depths_m: Sequence[np.ndarray],
                        poses: Sequence[np.ndarray], K: np.ndarray, settings: OptimizationSettings = OptimizationSettings(),
                        log: Callable[[str], None] | None = None,
-                       depth_weights: Sequence[np.ndarray] | None = None) -> OptimizationResult:
+                       depth_weights: Sequence[np.ndarray] | None = None,
+                       coverage_bands_m: Sequence[np.ndarray] | None = None) -> OptimizationResult:
     """Fit ``field`` to keyframe ``images`` (``[H, W, 3]`` uint8) and ``depths_m`` (``[H, W]``,
     0 = no reading) seen from ``poses`` (``[4, 4]`` camera-to-world each, intrinsics ``K``).
     ``depth_weights`` (``[H, W]`` each, >= 0; None = 1): per-pixel weights of the depth term
-    (the mapper's: inverse depth noise, so far readings pull less).
+    (the mapper's: inverse depth noise, so far readings pull less). ``coverage_bands_m``
+    (``[H, W]`` each, >= 0, metres; None = no limit): the coverage term at a reading counts only
+    the Gaussians whose plane depth there is within this of it, so the measured surface must be
+    opaque itself, not a surface behind it (the mapper's: a few sigma of the depth noise).
 
     Returns a new (canonical) field (the starting Gaussians keep their ids; densification adds
     Gaussians with ``CHILD_ID_BIT`` ids; pruning, and at the end every Gaussian whose opacity fell
@@ -1144,6 +1190,10 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             np.shape(w) != np.shape(d) or not (np.isfinite(w).all() and (np.asarray(w) >= 0).all())
             for w, d in zip(depth_weights, depths_m))):
         raise ValueError("optimize_gaussians: depth_weights must be one finite, non-negative [H, W] map per depth")
+    if coverage_bands_m is not None and (len(coverage_bands_m) != len(images) or any(
+            np.shape(b) != np.shape(d) or not (np.isfinite(b).all() and (np.asarray(b) >= 0).all())
+            for b, d in zip(coverage_bands_m, depths_m))):
+        raise ValueError("optimize_gaussians: coverage_bands_m must be one finite, non-negative [H, W] map per depth")
     t0, c0 = time.perf_counter(), time.process_time()
     if s.epochs < 1 or not images or len(field) == 0:
         return OptimizationResult(field, np.zeros(0), 0, 0.0)
@@ -1168,8 +1218,8 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     coarse = coarse and images[0].shape[1] / fc >= MIN_COARSE_WIDTH_PX
     coarse_passes = (max(0, min(s.coarse_max_steps // n_views, int(n_cap // n_views * COARSE_MAX_PASS_FRACTION)))
                      if coarse else 0)
-    levels = ([_Level("coarse", fc, images, depths_m, K, depth_weights)] if coarse_passes else []) + [
-        _Level("fine", f, images, depths_m, K, depth_weights)]
+    levels = ([_Level("coarse", fc, images, depths_m, K, depth_weights, coverage_bands_m)] if coarse_passes else []) + [
+        _Level("fine", f, images, depths_m, K, depth_weights, coverage_bands_m)]
 
     st = _FitState(field, s)
     n_start = len(st)
@@ -1202,7 +1252,7 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             gparam = np.zeros((_N_PARAM, len(st)), np.float32)
             loss = _view_gradients(st.pos, st.scl, st.quat, st.col, st.opa, view, lv.images[v], lv.depths[v], 1.0,
                                    s.depth_weight, s.coverage_weight, bg, raster.NEAR_M, gparam, st.vs_sum,
-                                   st.vs_cnt, clock, lv.depth_w[v])
+                                   st.vs_cnt, clock, lv.depth_w[v], None if lv.bands is None else lv.bands[v])
             t = step + 1
             _adam_step(gparam, st.m1, st.m2, lr0 * decay, b1, b2, 1.0 - b1 ** t, 1.0 - b2 ** t, eps, lo, hi,
                        st.pos, st.log_s, st.quat, st.logit, st.col, st.scl, st.opa)

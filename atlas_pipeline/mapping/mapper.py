@@ -10,7 +10,9 @@ Gaussians are made from every keyframe point within the longer mapping range
 (``mapping.max_depth_m``, 8 m: walls past 4 m are mapped instead of rendering as background),
 each weighted by its inverse depth variance (:func:`depth_weight`), so a far, noisy reading moves a
 voxel less than a near one, and the fit's depth term trusts far pixels less
-(:func:`depth_loss_weight`)."""
+(:func:`depth_loss_weight`); its coverage term asks for opacity at each reading's own depth
+(:func:`coverage_band_m`), so the far Gaussians behind a silhouette cannot stand in for the near
+surface the sensor measured there."""
 
 from __future__ import annotations
 
@@ -36,7 +38,8 @@ logger = logging.getLogger(__name__)
 LogFn = Callable[[str], None]
 
 __all__ = ["build_world", "extend_world", "extend_world_by_tracking", "select_keyframes_stage",
-           "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight"]
+           "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight",
+           "coverage_band_m"]
 
 # Axial depth noise of a Kinect v1-class structured-light camera (TUM RGB-D's sensor): Nguyen,
 # Izadi & Lovell, "Modeling Kinect Sensor Noise for Improved 3D Reconstruction and Tracking",
@@ -70,6 +73,22 @@ def depth_loss_weight(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
     d = np.asarray(depth_m)
     w = np.sqrt(depth_weight(d, voxel_size_m))
     return np.where(d > 0, w, 0.0).astype(np.float32)
+
+
+# A reading's surface lies within this many standard deviations of its position error (sensor noise
+# and map resolution, as depth_weight combines them) behind it: 3 sigma holds 99.7 % of a Gaussian error.
+COVERAGE_BAND_SIGMAS = 3.0
+
+
+def coverage_band_m(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Per-pixel depth band (m, ``[H, W]`` float32, 0 where there is no reading) behind each reading
+    within which a Gaussian counts as the measured surface for the fit's coverage term:
+    ``COVERAGE_BAND_SIGMAS * sqrt(sigma_z^2 + v^2)`` (6 cm at 1 m, 7 cm at 3 m, 34 cm at 8 m with
+    2 cm voxels). The reading says the first surface on the ray is there, so the Gaussians up to it
+    must be opaque; a surface behind it (a far wall seen past a silhouette) must not stand in for it."""
+    d = np.asarray(depth_m)
+    band = COVERAGE_BAND_SIGMAS * np.sqrt(depth_sigma_m(d) ** 2 + voxel_size_m ** 2)
+    return np.where(d > 0, band, 0.0).astype(np.float32)
 
 
 def _mapping_points(fused: FusedFrames, k: int, cfg: MappingConfig, manifest: FrameManifest | None):
@@ -232,8 +251,8 @@ def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: Pip
     return build_keyframes(manifest, fused, cfg.mapping, cfg.localization, log)
 
 
-# Full-resolution fit inputs per pixel: RGB uint8 (3 B), depth and its loss weight (float32 each).
-FIT_INPUT_BYTES_PER_PIXEL = 3 + 4 + 4
+# Full-resolution fit inputs per pixel: RGB uint8 (3 B), depth, its loss weight and coverage band (float32 each).
+FIT_INPUT_BYTES_PER_PIXEL = 3 + 4 + 4 + 4
 # Above this the keyframes' images and depths are read from disk at each use (a few reads each per
 # fit) rather than held: ~150 keyframes at 640x480.
 FIT_INPUT_MEMORY_BUDGET_BYTES = 512 << 20
@@ -280,8 +299,11 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
         depths = _keyframe_reads(len(idx), depth, in_memory)
         # far pixels trusted less
         weights = _keyframe_reads(len(idx), lambda k: depth_loss_weight(depths[k], mc.voxel_size_m), in_memory)
+        # the measured surface itself must be opaque, not one behind it
+        bands = _keyframe_reads(len(idx), lambda k: coverage_band_m(depths[k], mc.voxel_size_m), in_memory)
         res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
-                                 OptimizationSettings.from_mapping(mc), log, depth_weights=weights)
+                                 OptimizationSettings.from_mapping(mc), log, depth_weights=weights,
+                                 coverage_bands_m=bands)
         world.field = res.field
         world.fit = res.record  # no timing: the record is content
     return world
