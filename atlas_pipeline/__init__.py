@@ -23,4 +23,22 @@ def _default_numba_cache() -> None:
     os.environ["NUMBA_CACHE_DIR"] = str(Path(base) / "atlas-gs" / "numba")
 
 
+# GNU OpenMP (Numba's "omp" threading layer here, and Open3D's) spins at every barrier by default.
+# With any other busy process on the machine (a second run, a test, a benchmark), a kernel's
+# threads then burn their time slices spinning while the thread they wait for is descheduled:
+# measured on 2 cores beside one other Numba job, tracking fell from 14 to 0.7 frames/s. Passive
+# waiting costs microseconds per parallel region on an idle machine.
+OPENMP_WAIT_POLICY = "PASSIVE"
+
+
+def _default_openmp_wait_policy() -> None:
+    """Threads of parallel kernels sleep instead of spinning while they wait (see
+    :data:`OPENMP_WAIT_POLICY`). OpenMP reads it once, when its runtime loads: set before Numba or
+    Open3D starts any thread; ``OMP_WAIT_POLICY`` set by the user wins."""
+    import os
+
+    os.environ.setdefault("OMP_WAIT_POLICY", OPENMP_WAIT_POLICY)
+
+
 _default_numba_cache()
+_default_openmp_wait_policy()
