@@ -26,8 +26,9 @@ def _default_numba_cache() -> None:
 # GNU OpenMP (Numba's "omp" threading layer here, and Open3D's) spins at every barrier by default.
 # With any other busy process on the machine (a second run, a test, a benchmark), a kernel's
 # threads then burn their time slices spinning while the thread they wait for is descheduled:
-# measured on 2 cores beside one other Numba job, tracking fell from 14 to 0.7 frames/s. Passive
-# waiting costs microseconds per parallel region on an idle machine.
+# benchmarks/bench_openmp_wait.py, two tracking jobs on 2 cores: 0.9-6.6 frames/s each spinning,
+# 10.8-11.0 passive. The price: one job alone tracks at 0.69x (waking a sleeping thread is slow in
+# a VM); on a machine of your own, OMP_WAIT_POLICY=ACTIVE takes it back.
 OPENMP_WAIT_POLICY = "PASSIVE"
 
 
