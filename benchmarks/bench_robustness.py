@@ -67,14 +67,29 @@ class Sequence:
     source: str  # "synthetic", "shared", "registry" or "user"
 
 
-def _synthetic_sequences(names: list[str] | None) -> list[Sequence]:
-    """Synthetic registry entries, generated (or reused) in the data folder."""
+def _synthetic_sequences(names: list[str] | None, sensor: dict | None = None,
+                         variant_dir: Path | None = None) -> list[Sequence]:
+    """Synthetic registry entries, generated (or reused) in the data folder; with ``sensor``
+    (``SyntheticSpec`` fields), variants of them with those fields changed, generated into
+    ``variant_dir`` (ablations: which part of the sensor model costs what)."""
+    import dataclasses
+
     from atlas_pipeline.sensors.registry import ensure_dataset_files, load_registry
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec
 
     out = []
     for name, e in load_registry().items():
         if e.kind != "synthetic" or (names is not None and name not in names):
             continue
+        if sensor:
+            label = name + "[" + ",".join(f"{k}={v}" for k, v in sensor.items()) + "]"
+            params = {**e.params, **sensor}
+            try:
+                SyntheticSpec(**params)
+            except (TypeError, ValueError) as exc:
+                raise SystemExit(f"--sensor: {exc}") from exc
+            e = dataclasses.replace(e, name=label, path=variant_dir / f"{name}-variant", params=params)
+            name = label
         t0 = time.perf_counter()
         root = ensure_dataset_files(e)
         logger.info("%s: dataset ready at %s (%.1f s)", name, root, time.perf_counter() - t0)
@@ -214,6 +229,10 @@ def main(argv: list[str] | None = None) -> int:
                          "%(default)s); its figures then cover the frames it reached")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a config value (YAML syntax) for ours and the Open3D depth range")
+    ap.add_argument("--sensor", action="append", default=[], metavar="KEY=VALUE",
+                    help="run variants of the synthetic presets with this SyntheticSpec field changed "
+                         "(YAML value; repeatable), generated into a temporary folder, e.g. "
+                         "--sensor depth_noise_b_per_m=0 --sensor inverse_depth_step_per_m=0")
     ap.add_argument("--json", default=None, help="also write every figure here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
@@ -241,7 +260,15 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.budget_s or 'none'} s; timings exclude image decoding; "
           "ATE after rigid alignment; RPE over 1 s", flush=True)
 
-    sequences = _synthetic_sequences(args.synthetic) + _real_sequences(args.sequence, builtin=not args.no_real)
+    import tempfile
+
+    try:
+        sensor = parse_set_overrides(args.sensor, "--sensor")
+    except ConfigError as exc:
+        ap.error(str(exc))
+    variant_tmp = tempfile.TemporaryDirectory(prefix="atlas-sensor-variants-") if sensor else None
+    sequences = (_synthetic_sequences(args.synthetic, sensor, Path(variant_tmp.name) if variant_tmp else None)
+                 + _real_sequences(args.sequence, builtin=not args.no_real))
     if not sequences:
         print("no sequence to run")
         return 1
