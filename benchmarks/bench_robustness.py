@@ -246,6 +246,10 @@ def main(argv: list[str] | None = None) -> int:
         overrides = {"mapping.pose_source": "estimated", **parse_set_overrides(args.set)}
     except ConfigError as exc:
         ap.error(str(exc))
+    try:
+        sensor = parse_set_overrides(args.sensor, "--sensor")
+    except ConfigError as exc:
+        ap.error(str(exc))
     cfg = load_profile("default").with_overrides(overrides)
     cmd = " ".join(shlex.quote(a) for a in [sys.executable.split("/")[-1], "benchmarks/bench_robustness.py",
                                               *(argv if argv is not None else sys.argv[1:])])
@@ -262,10 +266,6 @@ def main(argv: list[str] | None = None) -> int:
 
     import tempfile
 
-    try:
-        sensor = parse_set_overrides(args.sensor, "--sensor")
-    except ConfigError as exc:
-        ap.error(str(exc))
     variant_tmp = tempfile.TemporaryDirectory(prefix="atlas-sensor-variants-") if sensor else None
     sequences = (_synthetic_sequences(args.synthetic, sensor, Path(variant_tmp.name) if variant_tmp else None)
                  + _real_sequences(args.sequence, builtin=not args.no_real))
