@@ -3,6 +3,8 @@ ordinary Dagster run in the shared sqlite instance)."""
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -48,8 +50,15 @@ def test_run_all_runs_partitions_in_parallel_processes(isolated, monkeypatch, ca
     names = ["par-a", "par-b"]
     monkeypatch.setenv("ATLAS_PROJECT_ROOT", str(project_with_datasets(isolated / "project", names)))
     monkeypatch.setenv("ATLAS_LOCAL_REGISTRY", str(isolated / "none.yaml"))
-    assert main(["run", "--all", "--concurrency", "2", "--json"]) == 0
-    docs = _json_docs(capsys.readouterr().out)
+    from atlas_pipeline.sensors.registry import ensure_dataset_files, load_registry
+
+    for entry in load_registry().values():
+        ensure_dataset_files(entry)
+    # The command as a user runs it: a fresh process, datasets on disk, so its workers are forked.
+    cli = subprocess.run([sys.executable, "-m", "assets.cli", "run", "--all", "--concurrency", "2", "--json"],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert cli.returncode == 0, cli.stderr[-3000:]
+    docs = _json_docs(cli.stdout)
     assert [d["partition"] for d in docs] == names  # printed in partition order
     assert all(d["success"] and len(d["recomputed"]) == 9 for d in docs), docs
 
@@ -78,3 +87,30 @@ def test_the_instance_config_example_queues_runs_two_at_a_time_one_per_partition
     assert queue.max_concurrent_runs == 2
     assert queue.tag_concurrency_limits == [
         {"key": "dagster/partition", "value": {"applyLimitPerUniqueValue": True}, "limit": 1}]
+
+
+def test_workers_are_forked_only_before_numbas_parallel_runtime_started():
+    """GNU OpenMP aborts a child forked after the parent used it, so ``--all`` forks its workers
+    (to share the parent's imports) only while no parallel kernel has run here; then it spawns."""
+    import textwrap
+
+    code = textwrap.dedent("""
+        import numpy as np
+        from numba import njit, prange
+        from assets.cli import worker_start_method
+
+        @njit(parallel=True)
+        def total(a):
+            s = 0.0
+            for i in prange(a.size):
+                s += a[i]
+            return s
+
+        before = worker_start_method()
+        total(np.ones(64))
+        print(before, worker_start_method())
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    expected = "fork spawn" if sys.platform.startswith("linux") else "spawn spawn"
+    assert out.stdout.split() == expected.split()
