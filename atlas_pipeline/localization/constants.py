@@ -106,8 +106,13 @@ class TrackerConstants:
     # throw the pose out of the basin.
     max_step_m: float = 0.02
     max_step_rad: float = 0.02
-    # Converged when a step moves less than this (m) and turns less than this (rad): 10 um / 2 mdeg.
-    converged_step: float = 1e-5
+    # Converged when a step moves less than this (m) and turns less than this (rad) at the finest
+    # level: 0.1 mm / 6 mdeg, a tenth of the best depth noise; smaller steps only polish within
+    # the noise (1e-5 everywhere tracked 1.1-1.6x slower for the same ATE, within 0.04 cm, on
+    # every sequence of bench_robustness) ...
+    converged_step: float = 1e-4
+    # ... and this many times more per coarser level, whose solution the finer levels refine.
+    converged_step_level_factor: float = 4.0
 
     @property
     def photometric_scale(self) -> float:

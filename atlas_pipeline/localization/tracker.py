@@ -406,7 +406,7 @@ class RGBDTracker:
                 if xi is None:
                     break
                 T = apply_update(xi, T)
-                if converged(xi):
+                if converged(xi, C.converged_step * C.converged_step_level_factor ** (level - fin)):
                     break
         # Quality at the final pose, finest level, geometry only; a view re-rendered there when
         # the pose travelled far from the one the model view was made at (relocalization).
@@ -463,9 +463,9 @@ def apply_update(xi: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
     return dT @ T_world_cam
 
 
-def converged(xi: np.ndarray) -> bool:
-    """The step ``xi`` ``[6]`` moved and turned less than ``converged_step`` (m, rad)."""
-    return bool(np.linalg.norm(xi[:3]) < C.converged_step and np.linalg.norm(xi[3:]) < C.converged_step)
+def converged(xi: np.ndarray, tolerance: float = C.converged_step) -> bool:
+    """The step ``xi`` ``[6]`` moved and turned less than ``tolerance`` (m, rad)."""
+    return bool(np.linalg.norm(xi[:3]) < tolerance and np.linalg.norm(xi[3:]) < tolerance)
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:
