@@ -45,9 +45,8 @@ __all__ = [
     "associate", "build_linear_system", "normal_equations",
 ]
 
-# Parallel layout (not tuning): the points are summed in this many chunks, in parallel, then added
-# in chunk order, so the sums do not depend on the number of threads. Changing it changes the
-# rounding of every pose.
+# Summation layout (not tuning): the points are summed in this many chunks, then the chunks are
+# added in chunk order. Changing it changes the rounding of every pose.
 N_CHUNKS = 16
 # Splatting runs over this many horizontal image bands in parallel (each owns its rows of the z-buffer).
 N_SPLAT_BANDS = 4
@@ -576,17 +575,22 @@ def build_linear_system(corr, model, ref, params):
     return H, g, Stats(n, n_on_model, n_geometric, n_photometric, geometric_cost, photometric_cost, geometric_sq)
 
 
-# ---- both steps, in parallel ------------------------------------------------------------------------
+# ---- both steps, chunk by chunk -----------------------------------------------------------------------
 
 
-@njit(cache=True, parallel=True)
+# Serial on purpose: a frame's solve calls this ~10 times on 2k-40k points, and waking OpenMP
+# threads that sleep at barriers (OMP_WAIT_POLICY=PASSIVE, set by atlas_pipeline) cost ~2 ms a
+# call in a VM, more than the work (teddy: 2.4 / 2.6 / 3.6 ms a call on 2k / 10k / 40k points in
+# parallel, 0.3 / 0.9 / 2.9 ms serial). The chunked sum is kept: it is what makes the result
+# independent of how the chunks are run.
+@njit(cache=True)
 def normal_equations(frame, T_world_cam, model, ref, params):
     """:func:`associate` then :func:`build_linear_system` over all points of ``frame`` at the pose
     ``T_world_cam`` ``[4, 4]``: the hybrid (point-to-plane + photometric) Gauss-Newton system.
 
-    Points are split into :data:`N_CHUNKS` chunks, each associated and accumulated in parallel
-    (its correspondences stay in cache between the two steps), then the chunks' sums are added in
-    chunk order (deterministic whatever the thread count).
+    Points are split into :data:`N_CHUNKS` chunks, each associated and accumulated in turn (its
+    correspondences stay in cache between the two steps), then the chunks' sums are added in
+    chunk order.
 
     Args:
         frame: :class:`FramePoints` ``[N]``; model: :class:`ModelView`; ref:
@@ -597,7 +601,7 @@ def normal_equations(frame, T_world_cam, model, ref, params):
     n_pts = frame.points_cam.shape[0]
     Hs = np.zeros((N_CHUNKS, 6, 6))
     gs = np.zeros((N_CHUNKS, 6))
-    # per-chunk Stats fields (a prange body cannot store a tuple)
+    # per-chunk Stats fields
     on_model = np.zeros(N_CHUNKS, np.int64)
     geometric = np.zeros(N_CHUNKS, np.int64)
     photometric = np.zeros(N_CHUNKS, np.int64)
@@ -605,7 +609,7 @@ def normal_equations(frame, T_world_cam, model, ref, params):
     photometric_cost = np.zeros(N_CHUNKS)
     geometric_sq = np.zeros(N_CHUNKS)
     step = (n_pts + N_CHUNKS - 1) // N_CHUNKS
-    for c in prange(N_CHUNKS):
+    for c in range(N_CHUNKS):
         lo = c * step
         hi = min(n_pts, lo + step)
         if lo < hi:

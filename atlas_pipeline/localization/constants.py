@@ -113,6 +113,11 @@ class TrackerConstants:
     converged_step: float = 1e-4
     # ... and this many times more per coarser level, whose solution the finer levels refine.
     converged_step_level_factor: float = 4.0
+    # At the finest level only every other pixel (a checkerboard) is aligned: neighbouring pixels
+    # of the 2x2-averaged level are strongly correlated, half of them still give tens of thousands
+    # of points for six unknowns, and the finest level is where the time goes (teddy, fr1, the
+    # synthetic presets: same ATE within 0.04 cm, tracking 1.1-1.25x faster).
+    finest_checkerboard: bool = True
 
     @property
     def photometric_scale(self) -> float:

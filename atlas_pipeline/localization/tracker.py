@@ -65,6 +65,15 @@ def _level_rays(camera: CameraIntrinsics, level: int) -> np.ndarray:
     return rays
 
 
+@functools.lru_cache(maxsize=8)
+def _checkerboard(shape: tuple[int, int]) -> np.ndarray:
+    """``[h, w]`` bool, True where ``u + v`` is even (read-only, shared)."""
+    v, u = np.indices(shape)
+    m = ((u + v) % 2) == 0
+    m.setflags(write=False)
+    return m
+
+
 def _level_K(camera: CameraIntrinsics, level: int) -> tuple[float, float, float, float]:
     """Pinhole intrinsics ``(fx, fy, cx, cy)`` px of pyramid level ``level`` (block-centred pixel grid)."""
     s = 2 ** level
@@ -120,11 +129,14 @@ class FramePyramid:
             grads.append(kn.image_gradients(intens[-1]))
         return cls(camera, depths, intens, grads, rgb)
 
-    def points(self, level: int) -> kn.FramePoints:
+    def points(self, level: int, checkerboard: bool = False) -> kn.FramePoints:
         """Camera-frame points ``[M, 3]`` float64 and their intensities ``[M]`` at ``level``
-        (a named tuple: unpacks as ``points, intensity``)."""
+        (a named tuple: unpacks as ``points, intensity``); with ``checkerboard``, only pixels
+        whose ``u + v`` is even."""
         z = self.depth[level]
         valid = z > 0
+        if checkerboard:
+            valid = valid & _checkerboard(z.shape)
         rays = _level_rays(self.camera, level)
         return kn.FramePoints(rays[valid] * z[valid][:, None].astype(np.float64),
                               self.intensity[level][valid].astype(np.float64))
@@ -390,7 +402,7 @@ class RGBDTracker:
         total_it = 0
         for li, iters in enumerate(cfg.iterations):
             level = fin + (n_levels - 1 - li)  # coarse first
-            points = frame.points(level)
+            points = frame.points(level, C.finest_checkerboard and level == fin)
             if len(points.points_cam) < C.min_points_per_level:
                 continue
             params = self._params._replace(max_distance_m=self._gate_m(li), photometric_weight=w_photo)
@@ -422,7 +434,7 @@ class RGBDTracker:
         """Geometric correspondences of ``frame``'s finest-level points at ``T_world_cam`` with the
         model ``view``, at the tightest gate (``min_correspondence_m``), no photometric term: what
         :meth:`judge` grades."""
-        points = frame.points(self.cfg.finest_level)
+        points = frame.points(self.cfg.finest_level, C.finest_checkerboard)
         T = np.ascontiguousarray(T_world_cam, np.float64)
         return kn.normal_equations(points, T, view, self._no_reference, self._params)[2]
 
