@@ -191,7 +191,7 @@ class SurfelCache:
 
     def model(self) -> "SurfelModel":
         from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels_subset
-        from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, pack_voxel_ids, unpack_voxel_ids
+        from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, unpack_voxel_ids
 
         b = self.builder
         if self._model is not None and self._version == b.version:
@@ -206,12 +206,7 @@ class SurfelCache:
                      _OFFSET, _BITS)
             if self._ids is not None and self._version is not None and b.version == self._version + 1:
                 # Voxels near the last merge: the touched ones and their neighbours.
-                ijk = unpack_voxel_ids(b.last_touched_ids)
-                nb = (ijk[:, None, :] + _NEIGHBOUR_OFFSETS[None]).reshape(-1, 3)
-                nb = np.unique(pack_voxel_ids(np.clip(nb, -_OFFSET, _OFFSET - 1)))
-                pos_nb = np.minimum(np.searchsorted(ids, nb), n - 1)
-                affected = np.zeros(n, bool)
-                affected[pos_nb[ids[pos_nb] == nb]] = True
+                affected = _near(ids, np.ascontiguousarray(b.last_touched_ids, np.uint64))
                 old = np.minimum(np.searchsorted(self._ids, ids), max(len(self._ids) - 1, 0))
                 had = (self._ids[old] == ids) if len(self._ids) else np.zeros(n, bool)
                 redo = affected | ~had
@@ -232,8 +227,29 @@ class SurfelCache:
         return self._model
 
 
-# The 27 voxel offsets of a 3x3x3 neighbourhood.
-_NEIGHBOUR_OFFSETS = np.stack(np.meshgrid(*(np.arange(-1, 2),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+def _near(ids: np.ndarray, touched: np.ndarray) -> np.ndarray:
+    """``[N]`` bool: which of the sorted voxel ``ids`` ``[N]`` lie in the 3x3x3 neighbourhood of a
+    ``touched`` id ``[T]`` (sorted uint64, :func:`pack_voxel_ids`).
+
+    The three neighbours along the last axis are consecutive ids, so each of the nine (i, j)
+    offsets is one shifted copy of ``touched`` (still sorted) searched in ``ids``: no sort of the
+    27 T candidates. A shift that carries past the edge of the +-2^20 voxel range lands on some
+    other id and at worst marks a voxel that did not need recomputing."""
+    from atlas_pipeline.gaussian_world.builder import _BITS
+
+    n = len(ids)
+    out = np.zeros(n, bool)
+    if n == 0 or len(touched) == 0:
+        return out
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            shift = (di << (2 * _BITS)) + (dj << _BITS) - 1  # (i + di, j + dj, k - 1)
+            first = touched + np.uint64(shift % (1 << 64))  # wraps like a signed add
+            pos = np.searchsorted(ids, first)
+            for dk in range(3):  # the ids in [first, first + 2] are the (up to) three from pos on
+                p = np.minimum(pos + dk, n - 1)
+                out[p[(ids[p] >= first) & (ids[p] - first <= np.uint64(2))]] = True
+    return out
 
 
 # surfels.npz members: (dtype kinds, ndim) -- centres [M, 3], normals [M, 3], radius_m scalar.

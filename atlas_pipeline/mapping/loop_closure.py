@@ -320,10 +320,11 @@ def _voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """One point (the mean) per occupied voxel: ``[M, 3]`` -> ``[V, 3]`` float32."""
     if len(points) == 0:
         return np.zeros((0, 3), np.float32)
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inv.ravel(), points)
+    from atlas_pipeline.gaussian_world.builder import pack_voxel_ids
+
+    # One packed integer per voxel: a 1-D unique is several times cheaper than a row-wise one.
+    _, inv, counts = np.unique(pack_voxel_ids(np.floor(points / voxel_m)), return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(inv, weights=points[:, a], minlength=len(counts)) for a in range(3)], axis=1)
     return (sums / counts[:, None]).astype(np.float32)
 
 
