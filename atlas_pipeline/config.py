@@ -132,6 +132,9 @@ class MappingConfig:
     # Merge points into cells as wide as their depth noise (powers of two of voxel_size_m, up to 8):
     # far walls become a few wide Gaussians, not a cloud of small noisy ones (mapping/mapper.py).
     noise_adaptive_cells: bool = True
+    # Give keyframe pixels without a depth reading, near one, that reading's depth (low weight), so
+    # the fit can colour what the images show and the depth missed (mapping/mapper.py hole_fill_depth).
+    fill_depth_holes: bool = True
     keyframe_translation_m: float = _setting(0.08, NON_NEGATIVE)
     keyframe_rotation_deg: float = _setting(8.0, NON_NEGATIVE)
     # Colour-only fit before the full one; 0 = none (the full fit fits colours too: 3 cost ~35

@@ -316,3 +316,55 @@ def test_a_noise_cell_is_one_wide_gaussian_under_its_first_voxels_id():
     assert len(cells) == 1 and cells.ids[0] == pack_voxel_ids(np.array([[-4, 0, 4]]))[0] and len(fine) > 30
     g = cells.to_field()
     assert np.allclose(g.positions[0], pts.mean(axis=0)) and g.scales[0].min() > 1.5 * v  # as wide as the cell (fine voxels stop at 0.75 v)
+
+
+def test_hole_fill_takes_the_nearest_reading_within_reach():
+    """A pixel without a reading gets the nearest reading's depth when one lies within
+    ``HOLE_FILL_MAX_FRACTION`` of the width; readings, far holes and out-of-range depth do not."""
+    depth = np.zeros((40, 100), np.float32)
+    depth[10:, :50] = 2.0
+    depth[10:, 50:] = 3.0
+    depth[30:, 90:] = 9.0  # past the range: a hole too
+    reach = mapper.HOLE_FILL_MAX_FRACTION * depth.shape[1]  # 5 px
+    filled = mapper.hole_fill_depth(depth, 0.1, 8.0)
+    assert (filled[10:30, :90] == 0).all()  # readings are not holes
+    assert (filled[5:10, :50] == 2.0).all() and (filled[5:10, 50:90] == 3.0).all()  # the band above them
+    assert (filled[: 10 - int(reach) - 1] == 0).all()  # out of reach
+    assert (filled[35:, 95:] == 0).all() and (filled[30:, 90:93] == 3.0).all()  # 9 m is no reading
+    assert (mapper.hole_fill_depth(np.zeros((8, 8), np.float32), 0.1, 8.0) == 0).all()  # nothing to copy
+
+
+def test_depth_holes_get_gaussians_only_when_filled(small_manifest, monkeypatch):
+    """Keyframes whose top rows have no depth (as a registered depth image's border band): with
+    hole filling the map holds Gaussians there and a keyframe's view of the band is drawn;
+    without it the band renders as background."""
+    from atlas_pipeline.gaussian_world.render import render_gaussians
+
+    band = 6
+    read = small_manifest.read_depth_m
+
+    def holed(i, **kw):
+        d = read(i, **kw).copy()
+        d[:band] = 0.0
+        return d
+
+    monkeypatch.setattr(small_manifest, "read_depth_m", holed)
+    cam = small_manifest.camera
+    cover = {}
+    for fill in (False, True):
+        cfg = _cfg(8.0, **{"mapping.fill_depth_holes": fill})
+        world = _world(small_manifest, cfg)
+        T = world.T_world_cam_keyframes[0]
+        f = world.field
+        r = render_gaussians(f.positions, f.scales, f.rotations_xyzw, f.colors, f.opacities, T, cam.K,
+                             cam.width, cam.height)
+        pc = (f.positions - T[:3, 3]) @ T[:3, :3]  # camera frame
+        front = pc[:, 2] > 0.1
+        v = cam.fy * pc[front, 1] / pc[front, 2] + cam.cy
+        u = cam.fx * pc[front, 0] / pc[front, 2] + cam.cx
+        in_band = int(((v >= 0) & (v < band) & (u >= 0) & (u < cam.width)).sum())
+        cover[fill] = (float((r.alpha[:band] > 0.5).mean()), in_band)
+    # Gaussians in the band: a few from other keyframes' lower rows without filling, many with it;
+    # and the band is drawn (without the fit, voxel Gaussians of a 160x120 view cover 60 % of a frame).
+    assert cover[True][1] > 5 * cover[False][1], cover
+    assert cover[False][0] == 0.0 and cover[True][0] > 0.1, cover
