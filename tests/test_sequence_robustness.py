@@ -101,3 +101,29 @@ def test_relocalization_tries_a_bounded_number_of_viewpoints():
     assert x.min() < 1.0 and x.max() > 29.0  # and the ends of the map
     assert len(select_priors(priors[:10], [guess])) == 10  # small maps: every keyframe
     np.testing.assert_array_equal(select_priors(priors, [guess]), sel)  # deterministic
+
+
+def test_voxels_near_a_merge_match_the_brute_force_neighbourhood():
+    """``_near`` (nine sorted searches) marks exactly the voxels within one step of a touched one,
+    also at the edge of the addressable range, where a shifted id may carry into another axis
+    (it may then mark more, never fewer)."""
+    from atlas_pipeline.gaussian_world.builder import _OFFSET, pack_voxel_ids, unpack_voxel_ids
+    from atlas_pipeline.localization.tracker import _near
+
+    rng = np.random.default_rng(3)
+    ijk = rng.integers(-6, 6, (600, 3))
+    edge = np.array([[_OFFSET - 1, 0, _OFFSET - 1], [-_OFFSET, -_OFFSET, -_OFFSET], [0, _OFFSET - 1, -_OFFSET]])
+    beside = np.array([[_OFFSET - 2, 0, _OFFSET - 1], [_OFFSET - 1, 1, _OFFSET - 2], [-_OFFSET, -_OFFSET, 1 - _OFFSET],
+                       [1 - _OFFSET, -_OFFSET, -_OFFSET], [0, _OFFSET - 2, -_OFFSET], [1, _OFFSET - 1, 1 - _OFFSET]])
+    ijk = np.concatenate([ijk, edge, beside])
+    ids = np.unique(pack_voxel_ids(ijk))
+    touched = np.sort(rng.choice(ids, 40, replace=False))
+    touched = np.unique(np.concatenate([touched, pack_voxel_ids(edge)]))
+    t = unpack_voxel_ids(touched)
+    a = unpack_voxel_ids(ids)
+    truth = (np.abs(a[:, None, :] - t[None, :, :]).max(axis=2) <= 1).any(axis=1)
+    got = _near(ids, touched)
+    assert (got >= truth).all()  # never misses a neighbour
+    inner = (np.abs(a) < _OFFSET - 2).all(axis=1)
+    assert (got[inner] == truth[inner]).all()  # and is exact away from the range's edge
+    assert not _near(ids, touched[:0]).any() and len(_near(ids[:0], touched)) == 0

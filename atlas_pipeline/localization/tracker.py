@@ -234,7 +234,8 @@ def _near(ids: np.ndarray, touched: np.ndarray) -> np.ndarray:
     The three neighbours along the last axis are consecutive ids, so each of the nine (i, j)
     offsets is one shifted copy of ``touched`` (still sorted) searched in ``ids``: no sort of the
     27 T candidates. A shift that carries past the edge of the +-2^20 voxel range lands on some
-    other id and at worst marks a voxel that did not need recomputing."""
+    other id and at worst marks a voxel that did not need recomputing; the window's low end stops
+    at id 0 instead of wrapping."""
     from atlas_pipeline.gaussian_world.builder import _BITS
 
     n = len(ids)
@@ -243,8 +244,8 @@ def _near(ids: np.ndarray, touched: np.ndarray) -> np.ndarray:
         return out
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
-            shift = (di << (2 * _BITS)) + (dj << _BITS) - 1  # (i + di, j + dj, k - 1)
-            first = touched + np.uint64(shift % (1 << 64))  # wraps like a signed add
+            base = touched + np.uint64(((di << (2 * _BITS)) + (dj << _BITS)) % (1 << 64))  # (i + di, j + dj, k)
+            first = np.where(base > 0, base - np.uint64(1), base)  # (i + di, j + dj, k - 1)
             pos = np.searchsorted(ids, first)
             for dk in range(3):  # the ids in [first, first + 2] are the (up to) three from pos on
                 p = np.minimum(pos + dk, n - 1)
