@@ -12,7 +12,9 @@ each weighted by its inverse depth variance (:func:`depth_weight`), so a far, no
 voxel less than a near one, and the fit's depth term trusts far pixels less
 (:func:`depth_loss_weight`); its coverage term asks for opacity at each reading's own depth
 (:func:`coverage_band_m`), so the far Gaussians behind a silhouette cannot stand in for the near
-surface the sensor measured there."""
+surface the sensor measured there. Keyframe pixels the depth missed near a reading take that
+reading's depth at a tenth of the weight (:func:`hole_fill_depth`), so the fit has Gaussians to
+colour where the images show a surface and the depth does not."""
 
 from __future__ import annotations
 
