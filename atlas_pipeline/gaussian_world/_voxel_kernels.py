@@ -94,28 +94,32 @@ def neighbourhood_surfels_subset(ids, ijk, count, sum_xyz, sum_sq, offset, bits,
         q3 = 0.0
         q4 = 0.0
         q5 = 0.0
+        c_lo = max(ijk[k, 2] - 1, -lim)
+        c_hi = min(ijk[k, 2] + 1, lim - 1)
         for di in range(-1, 2):
             for dj in range(-1, 2):
-                for dk in range(-1, 2):
-                    a = ijk[k, 0] + di
-                    b = ijk[k, 1] + dj
-                    c = ijk[k, 2] + dk
-                    if a < -lim or a >= lim or b < -lim or b >= lim or c < -lim or c >= lim:
-                        continue
-                    nid = ((np.uint64(a + offset) << np.uint64(2 * bits)) | (np.uint64(b + offset) << np.uint64(bits))
-                           | np.uint64(c + offset))
-                    j = np.searchsorted(ids, nid)
-                    if j < n and ids[j] == nid:
-                        s_n += count[j]
-                        s0 += sum_xyz[j, 0]
-                        s1 += sum_xyz[j, 1]
-                        s2 += sum_xyz[j, 2]
-                        q0 += sum_sq[j, 0]
-                        q1 += sum_sq[j, 1]
-                        q2 += sum_sq[j, 2]
-                        q3 += sum_sq[j, 3]
-                        q4 += sum_sq[j, 4]
-                        q5 += sum_sq[j, 5]
+                a = ijk[k, 0] + di
+                b = ijk[k, 1] + dj
+                if a < -lim or a >= lim or b < -lim or b >= lim:
+                    continue
+                # The (up to) three neighbours along the last axis are consecutive ids: one search
+                # for the first, then a scan, in the order (dk = -1, 0, 1) the sums always had.
+                ab = (np.uint64(a + offset) << np.uint64(2 * bits)) | (np.uint64(b + offset) << np.uint64(bits))
+                id_lo = ab | np.uint64(c_lo + offset)
+                id_hi = ab | np.uint64(c_hi + offset)
+                j = np.searchsorted(ids, id_lo)
+                while j < n and ids[j] <= id_hi:
+                    s_n += count[j]
+                    s0 += sum_xyz[j, 0]
+                    s1 += sum_xyz[j, 1]
+                    s2 += sum_xyz[j, 2]
+                    q0 += sum_sq[j, 0]
+                    q1 += sum_sq[j, 1]
+                    q2 += sum_sq[j, 2]
+                    q3 += sum_sq[j, 3]
+                    q4 += sum_sq[j, 4]
+                    q5 += sum_sq[j, 5]
+                    j += 1
         cnt = count[k]
         centres[s_i, 0] = sum_xyz[k, 0] / cnt
         centres[s_i, 1] = sum_xyz[k, 1] / cnt
