@@ -127,3 +127,35 @@ def test_voxels_near_a_merge_match_the_brute_force_neighbourhood():
     inner = (np.abs(a) < _OFFSET - 2).all(axis=1)
     assert (got[inner] == truth[inner]).all()  # and is exact away from the range's edge
     assert not _near(ids, touched[:0]).any() and len(_near(ids[:0], touched)) == 0
+
+
+def test_neighbourhood_surfels_match_a_numpy_reference():
+    """The compiled neighbourhood statistics against a plain dictionary walk of every voxel's 27
+    neighbours: same support, same centre, the same least-variance axis (up to sign), also for
+    voxels at the edges of the addressable range."""
+    from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels
+    from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, pack_voxel_ids, unpack_voxel_ids
+
+    rng = np.random.default_rng(5)
+    ijk = np.concatenate([rng.integers(-4, 4, (300, 3)),
+                          [[_OFFSET - 1, 0, _OFFSET - 1], [_OFFSET - 1, 0, _OFFSET - 2], [_OFFSET - 2, 1, _OFFSET - 1],
+                           [-_OFFSET, -_OFFSET, -_OFFSET], [-_OFFSET, 1 - _OFFSET, -_OFFSET], [1 - _OFFSET, -_OFFSET, 1 - _OFFSET]]])
+    ids = np.unique(pack_voxel_ids(ijk))
+    ijk = unpack_voxel_ids(ids)
+    n = len(ids)
+    count = rng.integers(1, 6, n).astype(np.float64)
+    pts = [ijk[i] + rng.uniform(0, 1, (int(count[i]), 3)) * [1.0, 1.0, 0.2] for i in range(n)]  # flat-ish in z
+    sum_xyz = np.stack([p.sum(axis=0) for p in pts])
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    sum_sq = np.stack([[np.sum(p[:, a] * p[:, b]) for a, b in pairs] for p in pts])
+    centres, normals, support = neighbourhood_surfels(ids, ijk, count, sum_xyz, sum_sq, _OFFSET, _BITS)
+
+    where = {tuple(v): i for i, v in enumerate(ijk)}
+    for i in range(n):
+        nb = [where[t] for t in (tuple(ijk[i] + d) for d in np.ndindex(3, 3, 3) for d in [np.array(d) - 1]) if t in where]
+        p = np.concatenate([pts[j] for j in nb])
+        assert support[i] == len(p)
+        np.testing.assert_allclose(centres[i], pts[i].mean(axis=0), rtol=0, atol=1e-9)
+        w, v = np.linalg.eigh(np.cov(p.T, bias=True))
+        if w[1] - w[0] > 1e-6 * max(w[2], 1e-12):  # a well-defined least-variance axis
+            assert abs(float(v[:, 0] @ normals[i])) > 0.999, (i, v[:, 0], normals[i])
