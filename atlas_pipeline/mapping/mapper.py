@@ -94,19 +94,32 @@ def coverage_band_m(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
 
 
 def _mapping_points(fused: FusedFrames, k: int, cfg: MappingConfig, manifest: FrameManifest | None):
-    """Camera-frame points ``[M, 3]`` and colours ``[M, 3]`` of keyframe ``k`` within the mapping
-    range: back-projected from its depth image out to ``cfg.max_depth_m`` when the sequence's
-    ``manifest`` is given, else the fused points (the tracking range)."""
-    if manifest is None or cfg.max_depth_m <= fused.max_depth_m:
+    """Camera-frame points ``[M, 3]`` and colours ``[M, 3]`` of keyframe ``k`` for the map: those
+    within the mapping range (back-projected from its depth image out to ``cfg.max_depth_m`` when
+    the sequence's ``manifest`` is given, else the fused points: the tracking range), and those of
+    its pixels without depth at :func:`hole_fill_depth` (none without the ``manifest`` or with
+    ``cfg.fill_depth_holes`` off). Returns ``((points, colours), (hole_points, hole_colours))``;
+    the keyframe's images are read once for both."""
+    from atlas_pipeline.perception.rgbd import backproject
+
+    far = manifest is not None and cfg.max_depth_m > fused.max_depth_m
+    fill = manifest is not None and cfg.fill_depth_holes
+    if far or fill:
+        depth, rgb = manifest.read_depth_m(k, allow_empty=True), manifest.read_rgb(k)
+    if far:
+        measured = backproject(depth, rgb, manifest.camera, fused.stride, fused.min_depth_m, cfg.max_depth_m)
+    else:
         pts, cols = fused.frame(k)
         if cfg.max_depth_m < fused.max_depth_m:
             keep = pts[:, 2] < cfg.max_depth_m
             pts, cols = pts[keep], cols[keep]
-        return pts, cols
-    from atlas_pipeline.perception.rgbd import backproject
-
-    depth = manifest.read_depth_m(k, allow_empty=True)
-    return backproject(depth, manifest.read_rgb(k), manifest.camera, fused.stride, fused.min_depth_m, cfg.max_depth_m)
+        measured = (pts, cols)
+    holes = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))
+    if fill:
+        hi = max(cfg.max_depth_m, fused.max_depth_m)
+        holes = backproject(hole_fill_depth(depth, fused.min_depth_m, hi), rgb, manifest.camera, fused.stride,
+                            fused.min_depth_m, hi)
+    return measured, holes
 
 
 # Keyframe pixels the image shows but the depth missed (the registered depth's border bands, where
@@ -163,18 +176,6 @@ def _integrate_mapping(builder: VoxelGaussianBuilder, pts_cam: np.ndarray, cols:
                       noise_cell_voxels(z, voxel_size_m) if noise_cells else None)
 
 
-def _hole_points(fused: FusedFrames, k: int, cfg: MappingConfig, manifest: FrameManifest | None):
-    """Camera-frame points ``[M, 3]`` and colours of keyframe ``k``'s pixels without depth, at
-    :func:`hole_fill_depth` (none without the ``manifest`` or with ``cfg.fill_depth_holes`` off)."""
-    if manifest is None or not cfg.fill_depth_holes:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    from atlas_pipeline.perception.rgbd import backproject
-
-    hi = max(cfg.max_depth_m, fused.max_depth_m)
-    filled = hole_fill_depth(manifest.read_depth_m(k, allow_empty=True), fused.min_depth_m, hi)
-    return backproject(filled, manifest.read_rgb(k), manifest.camera, fused.stride, fused.min_depth_m, hi)
-
-
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
                  cfg: MappingConfig, log: Callable[[str], None] | None = None,
                  manifest: FrameManifest | None = None) -> GaussianWorld:
@@ -204,10 +205,9 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         T = keyframes.T_world_cam[k]
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         builder.integrate(pw, cols)
-        _integrate_mapping(mapping, *_mapping_points(fused, int(k), cfg, manifest), T, cfg.voxel_size_m,
-                           cfg.noise_adaptive_cells)
-        _integrate_mapping(mapping, *_hole_points(fused, int(k), cfg, manifest), T, cfg.voxel_size_m,
-                           cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
+        measured, holes = _mapping_points(fused, int(k), cfg, manifest)
+        _integrate_mapping(mapping, *measured, T, cfg.voxel_size_m, cfg.noise_adaptive_cells)
+        _integrate_mapping(mapping, *holes, T, cfg.voxel_size_m, cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
         history.append(len(mapping))
         progress.update()
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
