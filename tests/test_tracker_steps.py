@@ -305,3 +305,64 @@ def test_tracker_constants_are_frozen_and_derived_values_follow():
     assert C.photometric_scale == (C.sigma_depth_m / C.sigma_intensity) ** 2
     assert C.depth_noise_reference_sigma_m == pytest.approx(
         C.depth_noise_a_m + C.depth_noise_b_per_m * (C.depth_noise_reference_m - C.depth_noise_z0_m) ** 2)
+
+
+# ---- model view: splatting ------------------------------------------------------------------------
+
+SPLAT_W, SPLAT_H, SPLAT_F = 64, 48, 60.0
+LAYER_DEPTH_M = 2.0  # the plane z = 2 m the noisy layer scatters around
+LAYER_SIGMA_M = 0.006  # the depth noise a Kinect-class sensor has at 2 m (TrackerConstants' model)
+
+
+def _noisy_layer(depth_m: float, sigma_m: float, spacing_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fronto-parallel disks on a grid ``spacing_m`` apart at ``depth_m``, each moved along the
+    view axis by N(0, sigma_m): a wall fused from a few noisy frames. ``(centres, normals) [N, 3]``."""
+    xs = np.arange(-1.2, 1.2, spacing_m)
+    ys = np.arange(-0.9, 0.9, spacing_m)
+    gx, gy = np.meshgrid(xs, ys)
+    rng = np.random.default_rng(seed)
+    c = np.stack([gx.ravel(), gy.ravel(), depth_m + rng.normal(0.0, sigma_m, gx.size)], axis=1)
+    return c, np.tile([0.0, 0.0, -1.0], (len(c), 1))
+
+
+def _splat(centres, normals, radius_m, blend_sigmas: float, blend_floor_m: float):
+    C = TRACKER_CONSTANTS
+    params = kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos, blend_sigmas,
+                            blend_floor_m, C.depth_noise_a_m, C.depth_noise_b_per_m, C.depth_noise_z0_m)
+    view = kn.PinholeView(np.eye(4), SPLAT_F, SPLAT_F, (SPLAT_W - 1) / 2.0, (SPLAT_H - 1) / 2.0, SPLAT_W, SPLAT_H)
+    return kn.splat_surfels(np.ascontiguousarray(centres), np.ascontiguousarray(normals), radius_m, view, params)
+
+
+def test_splatting_averages_a_noisy_layer_instead_of_taking_its_front():
+    """Overlapping disks of a noisy layer: the nearest alone sits about a sigma in front of the
+    surface (the bias that pulled each frame after a keyframe towards its camera); the visibility
+    band's mean sits on it."""
+    c, n = _noisy_layer(LAYER_DEPTH_M, LAYER_SIGMA_M, spacing_m=0.01, seed=3)
+    radius = 0.016  # 0.8 voxels of 2 cm: each pixel's ray meets several disks
+    C = TRACKER_CONSTANTS
+    nearest, _ = _splat(c, n, radius, 0.0, 0.0)
+    blended, nrm = _splat(c, n, radius, C.splat_blend_sigmas, 0.02)
+    z_near = np.nanmean(nearest[..., 2])
+    z_blend = np.nanmean(blended[..., 2])
+    assert LAYER_DEPTH_M - z_near > 0.5 * LAYER_SIGMA_M  # the front of the layer
+    assert abs(z_blend - LAYER_DEPTH_M) < 0.15 * LAYER_SIGMA_M  # its middle
+    faced = nrm[np.isfinite(nrm[..., 2])]
+    np.testing.assert_allclose(faced, np.broadcast_to([0.0, 0.0, -1.0], faced.shape), atol=1e-12)
+    # Every pixel holds a point on its own ray.
+    v, u = np.nonzero(np.isfinite(blended[..., 2]))
+    np.testing.assert_allclose(blended[v, u, 0], (u - (SPLAT_W - 1) / 2.0) / SPLAT_F * blended[v, u, 2], atol=1e-12)
+
+
+def test_splatting_band_keeps_occluded_surfaces_out():
+    """A surface farther behind than the band stays hidden: the view holds the front one alone,
+    and its pixels match the nearest-hit render exactly where the front surface is flat."""
+    front, n1 = _noisy_layer(1.0, 0.0, spacing_m=0.01, seed=0)
+    back, n2 = _noisy_layer(1.3, 0.0, spacing_m=0.01, seed=0)
+    c, n = np.concatenate([back, front]), np.concatenate([n2, n1])
+    C = TRACKER_CONSTANTS
+    blended, _ = _splat(c, n, 0.016, C.splat_blend_sigmas, 0.02)
+    nearest, _ = _splat(c, n, 0.016, 0.0, 0.0)
+    hit = np.isfinite(blended[..., 2])
+    assert hit.mean() > 0.9
+    np.testing.assert_allclose(blended[hit, 2], 1.0, atol=1e-12)
+    np.testing.assert_allclose(blended[hit], nearest[hit], atol=1e-12)

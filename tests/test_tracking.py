@@ -9,7 +9,7 @@ import pytest
 
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.errors import DatasetError
-from atlas_pipeline.geometry import pose_from_tq, so3_exp
+from atlas_pipeline.geometry import pose_from_tq, so3_exp, so3_log
 from atlas_pipeline.localization.localizer import localize_sequence
 from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
 from atlas_pipeline.perception.rgbd import fuse
@@ -173,16 +173,22 @@ def test_frames_of_another_scene_get_a_status_not_a_crash(small_manifest, small_
     assert statuses == ["lost"] * 3
 
 
-def test_time_gap_switches_the_motion_model_off(small_manifest, small_world):
+def test_motion_model_carries_the_velocity_over_short_gaps_only(small_manifest, small_world):
     cfg, world = small_world
     m = small_manifest
     st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder))
     for i in range(2):
         st.process(i, read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera),
                    T_given=m.T_world_cam_gt[0] if i == 0 else None, timestamp_s=i / 30.0)
-    last = st._last[1]
-    assert not np.allclose(st._predict(2, 2 / 30.0), last)  # even spacing: constant velocity
-    assert np.allclose(st._predict(2, 1.0), last)  # a 1 s gap: the last pose
+    last, first = st._last[1], st._prev[1]
+    one_step = np.linalg.solve(first, last)  # the last increment (camera frame)
+    # Even spacing: one increment on.
+    np.testing.assert_allclose(st._predict(2, 2 / 30.0), last @ one_step, atol=1e-9)
+    # Two frames dropped (three intervals): three increments on, as the velocity carries it.
+    three = np.linalg.solve(last, st._predict(2, 4 / 30.0))
+    np.testing.assert_allclose(three[:3, 3], 3 * one_step[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(so3_log(three[:3, :3]), 3 * so3_log(one_step[:3, :3]), atol=1e-9)
+    assert np.allclose(st._predict(2, 1.0), last)  # a 1 s gap: no velocity to trust, the last pose
 
 
 @pytest.mark.slow

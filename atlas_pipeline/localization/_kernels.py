@@ -78,6 +78,14 @@ class SplatParams(NamedTuple):
     max_radius_px: int  # largest disk footprint
     min_depth_m: float  # near clip
     min_incidence_cos: float  # grazing rays below this are not splatted
+    # Visibility band: hits within max(blend_floor_m, blend_sigmas * sigma(z)) behind a pixel's
+    # nearest hit z are averaged with it (sigma(z) = noise_a_m + noise_b_per_m (z - noise_z0_m)^2
+    # for z > noise_z0_m); both 0 keep the nearest hit alone.
+    blend_sigmas: float
+    blend_floor_m: float
+    noise_a_m: float
+    noise_b_per_m: float
+    noise_z0_m: float
 
 
 class FramePoints(NamedTuple):
@@ -238,7 +246,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
         params: :class:`SplatParams`.
     Returns:
         ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` float64, NaN where nothing was hit;
-        each pixel holds the exact ray / disk-plane intersection, so the model surface is smooth
+        each pixel holds the mean ray / disk-plane intersection of the disks in its visibility
+        band (see :class:`SplatParams` and :func:`_splat_band`), so the model surface is smooth
         and point-to-plane residuals against it are sub-voxel.
     """
     R = view.T_world_cam[:3, :3]
@@ -280,41 +289,90 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
     # race on the z-buffer and the result does not depend on the number of threads.
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
     for band in prange(N_SPLAT_BANDS):
-        _splat_band(band * band_h, min(h, (band + 1) * band_h), cam, box, r2, fx, fy, cx, cy,
-                    params.min_incidence_cos, zbuf, pts, nrm)
+        _splat_band(band * band_h, min(h, (band + 1) * band_h), cam, box, r2, fx, fy, cx, cy, params, zbuf, pts, nrm)
     return pts, nrm
 
 
+@njit(cache=True, inline="always")
+def _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, min_incidence_cos):
+    """Depth along pixel ``(u, v)``'s ray where it meets disk ``k`` (inf: it misses)."""
+    rx = (u - cx) / fx
+    ry = (v - cy) / fy
+    denom = cam[k, 3] * rx + cam[k, 4] * ry + cam[k, 5]
+    if denom > -min_incidence_cos:  # grazing or back-facing ray
+        return np.inf
+    z = cam[k, 6] / denom
+    if z <= 0.0:
+        return np.inf
+    ex = rx * z - cam[k, 0]
+    ey = ry * z - cam[k, 1]
+    ez = z - cam[k, 2]
+    if ex * ex + ey * ey + ez * ez > r2:
+        return np.inf
+    return z
+
+
 @njit(cache=True)
-def _splat_band(row_lo, row_hi, cam, box, r2, fx, fy, cx, cy, min_incidence_cos, zbuf, pts, nrm):
-    """Surfels into rows ``row_lo:row_hi`` of the buffers (see :func:`splat_surfels`)."""
+def _splat_band(row_lo, row_hi, cam, box, r2, fx, fy, cx, cy, params, zbuf, pts, nrm):
+    """Surfels into rows ``row_lo:row_hi`` of the buffers (see :func:`splat_surfels`).
+
+    Two sweeps: the nearest hit per pixel (z-buffer), then the mean depth and normal of every hit
+    within the visibility band behind it (surface splatting's blending, Zwicker et al. 2001). A
+    surface seen by few noisy frames is a layer of disks as thick as the depth noise; the nearest
+    disk alone lies in front of it by about one sigma, and a frame aligned to it is pulled towards
+    its camera (the model looks nearer than it is)."""
+    mic = params.min_incidence_cos
     for k in range(cam.shape[0]):
         if box[k, 0] < 0 or box[k, 3] < row_lo or box[k, 2] >= row_hi:
             continue
-        xc, yc, zc = cam[k, 0], cam[k, 1], cam[k, 2]
-        nx, ny, nz, ndotc = cam[k, 3], cam[k, 4], cam[k, 5], cam[k, 6]
         for v in range(max(box[k, 2], row_lo), min(box[k, 3], row_hi - 1) + 1):
-            ry = (v - cy) / fy
             for u in range(box[k, 0], box[k, 1] + 1):
-                rx = (u - cx) / fx
-                denom = nx * rx + ny * ry + nz
-                if denom > -min_incidence_cos:  # grazing or back-facing ray
+                z = _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, mic)
+                if z < zbuf[v, u]:
+                    zbuf[v, u] = z
+    rows = row_hi - row_lo
+    w = zbuf.shape[1]
+    wsum = np.zeros((rows, w))
+    zsum = np.zeros((rows, w))
+    nsum = np.zeros((rows, w, 3))
+    for k in range(cam.shape[0]):
+        if box[k, 0] < 0 or box[k, 3] < row_lo or box[k, 2] >= row_hi:
+            continue
+        for v in range(max(box[k, 2], row_lo), min(box[k, 3], row_hi - 1) + 1):
+            for u in range(box[k, 0], box[k, 1] + 1):
+                z0 = zbuf[v, u]
+                if not np.isfinite(z0):
                     continue
-                z = ndotc / denom
-                if z <= 0.0 or z >= zbuf[v, u]:
+                z = _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, mic)
+                if not np.isfinite(z):
                     continue
-                ex = rx * z - xc
-                ey = ry * z - yc
-                ez = z - zc
-                if ex * ex + ey * ey + ez * ez > r2:
+                dz = z0 - params.noise_z0_m if z0 > params.noise_z0_m else 0.0
+                band = max(params.blend_floor_m, params.blend_sigmas * (params.noise_a_m + params.noise_b_per_m * dz * dz))
+                if z > z0 + band:
                     continue
-                zbuf[v, u] = z
-                pts[v, u, 0] = rx * z
-                pts[v, u, 1] = ry * z
-                pts[v, u, 2] = z
-                nrm[v, u, 0] = nx
-                nrm[v, u, 1] = ny
-                nrm[v, u, 2] = nz
+                r = v - row_lo
+                wsum[r, u] += 1.0
+                zsum[r, u] += z
+                nsum[r, u, 0] += cam[k, 3]
+                nsum[r, u, 1] += cam[k, 4]
+                nsum[r, u, 2] += cam[k, 5]
+    for r in range(rows):
+        v = row_lo + r
+        ry = (v - cy) / fy
+        for u in range(w):
+            if wsum[r, u] <= 0.0:
+                continue
+            z = zsum[r, u] / wsum[r, u]
+            nx, ny, nz = nsum[r, u, 0], nsum[r, u, 1], nsum[r, u, 2]
+            nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if nn <= 0.0:
+                continue
+            pts[v, u, 0] = (u - cx) / fx * z
+            pts[v, u, 1] = ry * z
+            pts[v, u, 2] = z
+            nrm[v, u, 0] = nx / nn
+            nrm[v, u, 1] = ny / nn
+            nrm[v, u, 2] = nz / nn
 
 
 # ---- small helpers --------------------------------------------------------------------------------

@@ -83,6 +83,13 @@ FRAME_TO_FRAME_STRIDE = 2
 # Map merging (see the module doc). As strict as a loop edge (mapping/loop_closure.py): a wrong
 # merge bends one map onto another for good.
 MAP_MERGE_MIN_INLIER_FRACTION = 0.3
+# Frames whose time steps differ by less than this factor count as evenly spaced: the motion
+# model steps one increment (timestamps jitter by a few ms) ...
+EVEN_SPACING_RATIO = 1.5
+# ... and past it, the increment is scaled by the time ratio, up to this many frame intervals:
+# a USB stream drops 1-3 frames in a row (a ratio of 2-4, and 5 leaves room for timestamp
+# jitter); over longer gaps constant velocity is a guess no better than none.
+MAX_VELOCITY_EXTRAPOLATION = 5.0
 # Relocalization into older maps costs seconds: tried on every this-many keyframes of a new map.
 MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES = 5
 
@@ -184,9 +191,10 @@ class SequenceTracker:
         return self._relocalizer
 
     def _predict(self, index: int, timestamp_s: float | None = None) -> np.ndarray:
-        """Constant-velocity guess from the last two frames when they and this one are evenly
-        spaced in time (within a factor 1.5); the last pose otherwise (a gap in the recording,
-        a restart after a loss)."""
+        """Constant-velocity guess from the last two frames, carried over the time to this one:
+        a frame after dropped frames is predicted as far as the velocity takes the camera (up to
+        :data:`MAX_VELOCITY_EXTRAPOLATION` frame intervals). The last pose after a longer gap, a
+        restart after a loss, or frames not in sequence."""
         assert self._last is not None
         li, lT = self._last
         if (self.cfg.motion_model == "constant_velocity" and self._prev is not None
@@ -194,8 +202,12 @@ class SequenceTracker:
             if timestamp_s is None or self._t_last is None or self._t_prev is None:
                 return predict_constant_velocity(lT, self._prev[1])
             dt, dt_prev = abs(timestamp_s - self._t_last), abs(self._t_last - self._t_prev)
-            if dt_prev > 0 and 1 / 1.5 <= dt / dt_prev <= 1.5:
-                return predict_constant_velocity(lT, self._prev[1])
+            if dt_prev > 0:
+                ratio = dt / dt_prev
+                if 1 / EVEN_SPACING_RATIO <= ratio <= EVEN_SPACING_RATIO:  # timestamp jitter: one step
+                    return predict_constant_velocity(lT, self._prev[1])
+                if ratio <= MAX_VELOCITY_EXTRAPOLATION:
+                    return predict_constant_velocity(lT, self._prev[1], ratio)
         return lT.copy()
 
     # -- one frame -----------------------------------------------------------------------------

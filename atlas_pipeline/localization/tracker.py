@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
-from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp
+from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp, so3_log
 from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
 from atlas_pipeline.perception.rgbd import _undistort_normalized
@@ -87,7 +87,12 @@ def _level_view(T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -
                           camera.width // s, camera.height // s)
 
 
-_SPLAT_PARAMS = kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos)
+def _splat_params(radius_m: float) -> kn.SplatParams:
+    """Splatting limits for disks of ``radius_m`` (``surfel_radius_voxels`` voxels)."""
+    voxel_m = radius_m / C.surfel_radius_voxels
+    return kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos, C.splat_blend_sigmas,
+                          C.splat_blend_floor_voxels * voxel_m, C.depth_noise_a_m, C.depth_noise_b_per_m,
+                          C.depth_noise_z0_m)
 
 
 def _dist5(camera: CameraIntrinsics) -> np.ndarray:
@@ -334,7 +339,7 @@ class SurfelModel:
     def render(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Model view ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` at pyramid ``level`` (NaN = empty)."""
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, _level_view(T_world_cam, camera, level),
-                                _SPLAT_PARAMS)
+                                _splat_params(self.radius_m))
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> kn.ModelView:
         """:meth:`render` as the tracker's geometric reference (the view and its pinhole)."""
@@ -512,11 +517,22 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def predict_constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None) -> np.ndarray:
-    """Constant-velocity prediction ``T_prev @ (T_prev2^-1 T_prev)`` (camera-frame increment)."""
+def predict_constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None, scale: float = 1.0) -> np.ndarray:
+    """Constant-velocity prediction ``T_prev @ (T_prev2^-1 T_prev)^scale`` (camera-frame increment).
+
+    ``scale`` = (time to this frame) / (time between the last two): a frame after a gap in the
+    recording is predicted as far along as the camera's velocity carries it. The increment's
+    rotation vector and translation are scaled apart, exact for the small increments of
+    consecutive frames."""
     if T_prev2 is None:
         return T_prev.copy()
-    return orthonormalize(T_prev @ (invert_se3(T_prev2) @ T_prev))
+    inc = invert_se3(T_prev2) @ T_prev
+    if scale != 1.0:
+        scaled = np.eye(4)
+        scaled[:3, :3] = so3_exp(scale * so3_log(inc[:3, :3]))
+        scaled[:3, 3] = scale * inc[:3, 3]
+        inc = scaled
+    return orthonormalize(T_prev @ inc)
 
 
 def pose_change(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
