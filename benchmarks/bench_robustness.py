@@ -212,6 +212,32 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _override_tracker_constants(changes: dict) -> dict:
+    """Replace the :class:`TrackerConstants` instance every loaded tracking module reads (their
+    module-level ``C``) by one with ``changes``; returns the changes. Only values read at call
+    time change (not a function's default argument)."""
+    import dataclasses
+
+    import atlas_pipeline.localization.constants as constants_module
+    import atlas_pipeline.localization.relocalize  # noqa: F401  (loaded, so its C is replaced too)
+    import atlas_pipeline.localization.sequence  # noqa: F401
+    import atlas_pipeline.localization.tracker  # noqa: F401
+
+    if not changes:
+        return {}
+    fields = {f.name: f.type for f in dataclasses.fields(constants_module.TrackerConstants)}
+    unknown = sorted(set(changes) - set(fields))
+    if unknown:
+        raise ValueError(f"--constant: no TrackerConstants field {', '.join(unknown)}")
+    old = constants_module.TRACKER_CONSTANTS
+    new = dataclasses.replace(old, **changes)
+    for name, module in list(sys.modules.items()):
+        if name.startswith("atlas_pipeline.") and getattr(module, "C", None) is old:
+            module.C = new
+    constants_module.TRACKER_CONSTANTS = new
+    return changes
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true",
@@ -233,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="run variants of the synthetic presets with this SyntheticSpec field changed "
                          "(YAML value; repeatable), generated into a temporary folder, e.g. "
                          "--sensor depth_noise_b_per_m=0 --sensor inverse_depth_step_per_m=0")
+    ap.add_argument("--constant", action="append", default=[], metavar="NAME=VALUE",
+                    help="run ours with a field of the tracker's TrackerConstants changed (YAML value; "
+                         "repeatable), e.g. --constant splat_blend_sigmas=0")
     ap.add_argument("--json", default=None, help="also write every figure here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", stream=sys.stderr)
@@ -251,6 +280,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         ap.error(str(exc))
     cfg = load_profile("default").with_overrides(overrides)
+    try:
+        constants = _override_tracker_constants(parse_set_overrides(args.constant, "--constant"))
+    except (ConfigError, TypeError, ValueError) as exc:
+        ap.error(str(exc))
     cmd = " ".join(shlex.quote(a) for a in [sys.executable.split("/")[-1], "benchmarks/bench_robustness.py",
                                               *(argv if argv is not None else sys.argv[1:])])
     print("# Robustness benchmark (issue 11)")
@@ -260,6 +293,8 @@ def main(argv: list[str] | None = None) -> int:
           "(frames/s are measured on a shared machine: compare the ratios)")
     print(f"# ours: profile default + {overrides}; depth range {cfg.fusion.min_depth_m}-{cfg.fusion.max_depth_m} m "
           f"for every method; Open3D F2M voxel {O3D_MODEL_VOXEL_M} m on CPU")
+    if constants:
+        print(f"# tracker constants changed: {constants}")
     print(f"# frames per sequence: {max_frames or 'all'}; time budget of ours per sequence: "
           f"{args.budget_s or 'none'} s; timings exclude image decoding; "
           "ATE after rigid alignment; RPE over 1 s", flush=True)
