@@ -60,6 +60,35 @@ def test_incremental_merge_equals_one_batch_and_keeps_ids():
     assert len(np.unique(fi.ids)) == len(fi)
 
 
+def test_sorted_merge_of_voxel_sums_matches_a_union_of_both_id_sets():
+    """``_add`` merges by search and insertion; the reference unions and re-sorts both id sets.
+    New ids before, between and after the old ones; ``last_inserted_at`` rebuilds the new order."""
+    rng = np.random.default_rng(5)
+    b = VoxelGaussianBuilder(0.1)
+    state = {"ids": np.zeros(0, np.uint64), "count": np.zeros(0, np.int64), "sum_xyz": np.zeros((0, 3))}
+    for step in range(4):
+        uk = np.unique(rng.choice(np.arange(1, 400, dtype=np.uint64), size=60))
+        cnt = rng.integers(1, 9, len(uk)).astype(np.int64)
+        sxyz = rng.normal(size=(len(uk), 3))
+        old_ids = b.ids.copy()
+        n_new = b._add(uk, cnt, sxyz, np.zeros((len(uk), 3)), np.zeros((len(uk), 6)), np.ones(len(uk), np.int32),
+                       cnt.astype(np.float64))
+        # Reference: union of the id sets, old sums scattered, new ones added.
+        all_ids, inv = np.unique(np.concatenate([state["ids"], uk]), return_inverse=True)
+        ref_count = np.zeros(len(all_ids), np.int64)
+        ref_xyz = np.zeros((len(all_ids), 3))
+        ref_count[inv[: len(state["ids"])]] = state["count"]
+        ref_xyz[inv[: len(state["ids"])]] = state["sum_xyz"]
+        ref_count[inv[len(state["ids"]):]] += cnt
+        ref_xyz[inv[len(state["ids"]):]] += sxyz
+        np.testing.assert_array_equal(b.ids, all_ids)
+        np.testing.assert_array_equal(b.count, ref_count)
+        np.testing.assert_array_equal(b.sum_xyz, ref_xyz)  # bit for bit: the same additions
+        assert n_new == len(all_ids) - len(state["ids"])
+        np.testing.assert_array_equal(np.insert(old_ids, b.last_inserted_at, b.ids[~np.isin(b.ids, old_ids)]), b.ids)
+        state = {"ids": all_ids, "count": ref_count, "sum_xyz": ref_xyz}
+
+
 def test_same_input_same_world_bit_for_bit():
     p, c = _points(3)
     a, b = VoxelGaussianBuilder(0.05), VoxelGaussianBuilder(0.05)

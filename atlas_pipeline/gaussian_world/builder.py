@@ -97,9 +97,11 @@ class VoxelGaussianBuilder:
     n_keyframes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     weight: np.ndarray | None = None  # None: every point had weight 1 (weight = count)
     # Bookkeeping for incremental consumers (the tracker's surfel map), not state: bumped by every
-    # merge of statistics, with the sorted ids that merge touched.
+    # merge of statistics, with the sorted ids that merge touched ...
     version: int = field(default=0, compare=False, repr=False)
     last_touched_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint64), compare=False, repr=False)
+    # ... and where its new voxels were inserted, as ``numpy.insert`` positions in the ids before it.
+    last_inserted_at: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.weight is None:
@@ -182,15 +184,21 @@ class VoxelGaussianBuilder:
 
     def _add(self, uk: np.ndarray, cnt: np.ndarray, sxyz: np.ndarray, srgb: np.ndarray, ssq: np.ndarray,
              nkf: np.ndarray, wsum: np.ndarray) -> int:
-        """Merge per-voxel sums for the sorted unique ids ``uk [M]`` into the state; returns new voxels."""
-        # Merge sorted key sets: existing voxels accumulate, new ones are inserted in id order.
-        all_ids, inv2 = np.unique(np.concatenate([self.ids, uk]), return_inverse=True)
-        n_new = len(all_ids) - len(self.ids)
-        old_idx, new_idx = inv2[: len(self.ids)], inv2[len(self.ids):]
+        """Merge per-voxel sums for the sorted unique ids ``uk [M]`` into the state; returns new voxels.
+
+        Both id sets are sorted, so the merge is a search of ``uk`` in ``ids`` and an insertion of
+        the new ones (O(N + M log N)), not a sort of both."""
+        n_old = len(self.ids)
+        pos = np.searchsorted(self.ids, uk)
+        exists = np.zeros(len(uk), bool)
+        if n_old:
+            exists = self.ids[np.minimum(pos, n_old - 1)] == uk
+        at = pos[~exists]  # where each new id goes in the old order (before the voxel there)
+        all_ids = np.insert(self.ids, at, uk[~exists])
+        new_idx = np.searchsorted(all_ids, uk)
 
         def merged(old: np.ndarray, new: np.ndarray) -> np.ndarray:
-            out = np.zeros((len(all_ids),) + old.shape[1:], dtype=old.dtype)
-            out[old_idx] = old
+            out = np.insert(old, at, 0, axis=0)  # the new voxels start from zero sums
             out[new_idx] += new.astype(old.dtype)
             return out
 
@@ -203,7 +211,8 @@ class VoxelGaussianBuilder:
         self.ids = all_ids
         self.version += 1
         self.last_touched_ids = uk
-        return n_new
+        self.last_inserted_at = at
+        return int(len(at))
 
     def to_field(self, min_points: int = 1) -> GaussianField:
         """The current Gaussians, one per voxel with at least ``min_points`` points.

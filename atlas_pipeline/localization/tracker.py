@@ -210,16 +210,14 @@ class SurfelCache:
                      np.ascontiguousarray(b.sum_xyz, np.float64), np.ascontiguousarray(b.sum_sq, np.float64),
                      _OFFSET, _BITS)
             if self._ids is not None and self._version is not None and b.version == self._version + 1:
-                # Voxels near the last merge: the touched ones and their neighbours.
-                affected = _near(ids, np.ascontiguousarray(b.last_touched_ids, np.uint64))
-                old = np.minimum(np.searchsorted(self._ids, ids), max(len(self._ids) - 1, 0))
-                had = (self._ids[old] == ids) if len(self._ids) else np.zeros(n, bool)
-                redo = affected | ~had
-                centres, normals = np.empty((n, 3)), np.empty((n, 3))
-                support = np.empty(n, np.int64)
-                keep_old = ~redo
-                centres[keep_old], normals[keep_old] = self._centres[old[keep_old]], self._normals[old[keep_old]]
-                support[keep_old] = self._support[old[keep_old]]
+                # The last merge inserted new voxels among the old ones (numpy.insert positions):
+                # the old surfels move along the same way. Redone: the voxels near the merge (the
+                # touched ones and their neighbours), the new ones among them.
+                at = b.last_inserted_at
+                centres = np.insert(self._centres, at, 0.0, axis=0)
+                normals = np.insert(self._normals, at, 0.0, axis=0)
+                support = np.insert(self._support, at, 0, axis=0)
+                redo = _near(ids, np.ascontiguousarray(b.last_touched_ids, np.uint64))
                 sub = np.flatnonzero(redo).astype(np.int64)
                 centres[sub], normals[sub], support[sub] = neighbourhood_surfels_subset(*stats, sub)
             else:
