@@ -674,15 +674,10 @@ class _Captured:
         return self._buf.getvalue()
 
 
-# Imported by a run only when its stages first need them (the library's modules, and what they import
-# lazily); loaded in the parent before a fork so that every worker starts with them.
-WORKER_PRELOAD = ("matplotlib.figure", "scipy.ndimage", "upath")
-
-
 def worker_start_method() -> str:
     """How ``--all`` starts its workers: ``fork`` on Linux while this process has not started
-    Numba's parallel runtime, so each worker starts with the parent's imports (Dagster, the
-    library: about 3 s of CPU a worker otherwise); else ``spawn``. GNU OpenMP, Numba's threading
+    Numba's parallel runtime, so each worker starts with the parent's imports (Dagster and the
+    command line: about 3 s of CPU a worker otherwise); else ``spawn``. GNU OpenMP, Numba's threading
     layer here, cannot be used in a child forked after the parent used it, and ``atlas-gs run
     --all`` only reaches the pool before any kernel has run unless it generated a dataset first.
     The threads the parent does hold (OpenBLAS's, Arrow's pool and jemalloc's) re-initialise after
@@ -694,22 +689,6 @@ def worker_start_method() -> str:
     numba_parallel = sys.modules.get("numba.np.ufunc.parallel")
     started = numba_parallel is not None and getattr(numba_parallel, "_is_initialized", True)
     return "spawn" if started else "fork"
-
-
-def _preload_worker_modules() -> None:
-    """Import the library's modules (skipping any whose optional extra is missing) and
-    :data:`WORKER_PRELOAD`, so forked workers do not import them once each."""
-    import importlib
-    import pkgutil
-
-    import atlas_pipeline
-
-    names = [m.name for m in pkgutil.walk_packages(atlas_pipeline.__path__, "atlas_pipeline.")]
-    for name in [*names, *WORKER_PRELOAD]:
-        try:
-            importlib.import_module(name)
-        except ImportError as exc:  # an optional extra (viewer, ROS bags, S3) not installed: the run does not need it
-            logger.debug("not preloaded: %s (%s)", name, exc)
 
 
 def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
@@ -744,9 +723,10 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     saved = os.environ.get(NUMBA_THREADS_ENV)
     if saved is None:  # the workers inherit the environment they start with
         os.environ[NUMBA_THREADS_ENV] = str(max(1, (os.cpu_count() or 1) // concurrency))
+    # The library's modules are not imported here first: the workers import what their stages
+    # need at the same time, on both cores, where importing them here would run alone (measured:
+    # four partitions 0.5-1 s sooner without it, benchmarks/bench_parallel.py).
     start_method = worker_start_method()
-    if start_method == "fork":
-        _preload_worker_modules()
     worst = 0
     try:
         with ProcessPoolExecutor(max_workers=concurrency, mp_context=multiprocessing.get_context(start_method)) as pool:
