@@ -520,8 +520,8 @@ def predict_constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None, sc
 
     ``scale`` = (time to this frame) / (time between the last two): a frame after a gap in the
     recording is predicted as far along as the camera's velocity carries it. The increment's
-    rotation vector and translation are scaled apart, exact for the small increments of
-    consecutive frames."""
+    rotation vector and translation are scaled apart: not the SE(3) power exactly, but within
+    millimetres of it for the few-degree increments of consecutive frames."""
     if T_prev2 is None:
         return T_prev.copy()
     inc = invert_se3(T_prev2) @ T_prev
