@@ -281,12 +281,16 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
             nx, ny, nz, ndotc = -nx, -ny, -nz, -ndotc
         u0 = fx * xc / zc + cx
         v0 = fy * yc / zc + cy
-        # Pixel box of the disk: a ray meets it only within radius_m of its centre, so at most
-        # radius_m / cos(ray angle) from it in the centre's depth plane, i.e. within
-        # f radius_m |c| / zc^2 pixels of its projection; capped at max_px.
-        reach = radius_m * math.sqrt(xc * xc + yc * yc + zc * zc) / (zc * zc)
-        ru = min(fx * reach, float(max_px))
-        rv = min(fy * reach, float(max_px))
+        # Pixel box of the disk: a ray meets it only if it passes within radius_m of the centre
+        # c; a ray through the point c + d of the centre's depth plane passes at least
+        # zc |d| / |c + d| from it, so |d| <= radius_m |c| / (zc - radius_m), which is
+        # f radius_m |c| / (zc (zc - radius_m)) pixels from the centre's projection; capped at max_px.
+        if zc > radius_m:
+            reach = radius_m * math.sqrt(xc * xc + yc * yc + zc * zc) / (zc * (zc - radius_m))
+            ru = min(fx * reach, float(max_px))
+            rv = min(fy * reach, float(max_px))
+        else:  # the camera is within a radius of the disk's plane
+            ru = rv = float(max_px)
         if u0 + ru < 0.0 or u0 - ru > w - 1 or v0 + rv < 0.0 or v0 - rv > h - 1:
             continue
         ulo = max(int(math.ceil(u0 - ru)), 0)
