@@ -104,3 +104,17 @@ def test_import_ply_makes_a_world_to_relocalize_in(isolated, capsys):
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nend_header\n")
     assert main(["import-ply", str(bad), "--output", str(isolated / "nope")]) == 2
     assert not (isolated / "nope").exists()
+
+
+def test_import_ply_benchmark_uses_the_tests_small_scene():
+    """benchmarks/bench_import_ply.py measures the scene this file's tests use."""
+    import importlib.util
+    from pathlib import Path
+
+    from conftest import SMALL_SYNTH
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_import_ply.py"
+    spec = importlib.util.spec_from_file_location("bench_import_ply", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.SMALL_SYNTH == SMALL_SYNTH
