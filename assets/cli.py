@@ -724,8 +724,8 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     if saved is None:  # the workers inherit the environment they start with
         os.environ[NUMBA_THREADS_ENV] = str(max(1, (os.cpu_count() or 1) // concurrency))
     # The library's modules are not imported here first: the workers import what their stages
-    # need at the same time, on both cores, where importing them here would run alone (measured:
-    # four partitions 0.5-1 s sooner without it, benchmarks/bench_parallel.py).
+    # need at the same time, on both cores, where importing them here would run alone (four
+    # partitions finished 0.5-1 s sooner without it, timed with benchmarks/bench_parallel.py's runs).
     start_method = worker_start_method()
     worst = 0
     try:
