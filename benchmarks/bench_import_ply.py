@@ -85,7 +85,26 @@ def main(argv: list[str] | None = None) -> int:
                     e = out["frames"][0].get("error_t_m") if out else None
                     errs.append("-" if e is None else f"{e * 100:.2f}")
                 print(f"| {label} | {fit} | " + " | ".join(errs) + f" | {build_s:.1f} |")
+        print(_centre_shift(work / "world-fit-on", work / "world-fit-off"))
     return 0
+
+
+def _centre_shift(fitted: Path, unfitted: Path) -> str:
+    """How far the keyframe fit moved the Gaussians' centres: the same voxel ids with the fit on
+    and off (the fit's densified Gaussians, which have no counterpart, left out)."""
+    import numpy as np
+
+    from atlas_pipeline.scene_memory.bundle import load_world_bundle
+
+    a = load_world_bundle(fitted, "bin").field
+    b = load_world_bundle(unfitted, "bin").field
+    _, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    d = a.positions[ia] - b.positions[ib]  # [M, 3] world frame, m
+    m = np.linalg.norm(d, axis=1)
+    mean = d.mean(axis=0) * 100
+    return (f"\nThe fit moved the centres of {len(ia):,} Gaussians (of {len(a.ids):,} fitted, {len(b.ids):,} unfitted): "
+            f"median {np.median(m) * 100:.2f} cm, 90th percentile {np.percentile(m, 90) * 100:.2f} cm; mean displacement "
+            f"({mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}) cm in the world frame.")
 
 
 if __name__ == "__main__":
