@@ -53,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", default=None, help="a registered dataset (default: the tests' small synthetic scene)")
     ap.add_argument("--frames", type=int, nargs="+", default=list(DEFAULT_FRAMES), help="frames to relocalize")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for both builds (repeatable), as atlas-gs build --set")
     args = ap.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="atlas-bench-import-ply-") as tmp:
@@ -71,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# dataset {dataset}, frames {args.frames}; relocalization error against ground truth, cm\n")
         print("| world | keyframe fit | " + " | ".join(f"frame {f}" for f in args.frames) + " | build s |")
         print("|---|---|" + "---|" * len(args.frames) + "---|")
-        for fit, extra in (("on", []), ("off", ["--set", "mapping.optimization_epochs=0"])):
+        common = [a for kv in args.set for a in ("--set", kv)]
+        for fit, extra in (("on", common), ("off", [*common, "--set", "mapping.optimization_epochs=0"])):
             world = work / f"world-fit-{fit}"
             t0 = time.perf_counter()
             _cli(["build", "--input", dataset, "--output", str(world), *extra])
