@@ -102,12 +102,19 @@ def _centre_shift(fitted: Path, unfitted: Path) -> str:
     a = load_world_bundle(fitted, "bin").field
     b = load_world_bundle(unfitted, "bin").field
     _, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    from atlas_pipeline.geometry import quat_xyzw_to_rotmat
+
     d = a.positions[ia] - b.positions[ib]  # [M, 3] world frame, m
     m = np.linalg.norm(d, axis=1)
     mean = d.mean(axis=0) * 100
+    # Along the surface normal: the unfitted Gaussian's thinnest axis.
+    R = quat_xyzw_to_rotmat(b.rotations_xyzw[ib].astype(np.float64))  # [M, 3, 3]
+    normal = R[np.arange(len(ib)), :, np.argmin(b.scales[ib], axis=1)]  # [M, 3]
+    along = np.abs(np.einsum("ij,ij->i", d, normal))
     return (f"\nThe fit moved the centres of {len(ia):,} Gaussians (of {len(a.ids):,} fitted, {len(b.ids):,} unfitted): "
-            f"median {np.median(m) * 100:.2f} cm, 90th percentile {np.percentile(m, 90) * 100:.2f} cm; mean displacement "
-            f"({mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}) cm in the world frame.")
+            f"median {np.median(m) * 100:.2f} cm, 90th percentile {np.percentile(m, 90) * 100:.2f} cm; along the "
+            f"surface normal median {np.median(along) * 100:.2f} cm, 90th percentile {np.percentile(along, 90) * 100:.2f} cm; "
+            f"mean displacement ({mean[0]:.2f}, {mean[1]:.2f}, {mean[2]:.2f}) cm in the world frame.")
 
 
 if __name__ == "__main__":
