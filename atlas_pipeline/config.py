@@ -151,6 +151,9 @@ class MappingConfig:
     optimization_min_steps_per_keyframe: int = _setting(10, NON_NEGATIVE)
     optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
     optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
+    # How far the fit may move a Gaussian off its surface (along its starting normal), in its
+    # largest starting scales; 0 = free.
+    optimization_normal_offset_max_scales: float = _setting(0.0, NON_NEGATIVE)
     # Its schedule (gaussian_world/optimize.py; measured by benchmarks/bench_fit.py). First passes at
     # 1/factor of optimization_scale (2: a quarter of the image side at scale 0.5); 1 = none.
     optimization_coarse_factor: int = _setting(2, AT_LEAST_ONE)

@@ -356,3 +356,46 @@ def test_step_cap_bounds_the_work(small_manifest, small_world):
                              [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
                              OptimizationSettings(epochs=10, max_steps=7, min_steps_per_view=0, scale=0.5), log=lambda _: None)
     assert len(res.loss) == 7  # two full passes and one view of a third
+
+
+def test_normal_offset_bound_holds_centres_to_their_surface(small_manifest, small_world):
+    """With ``normal_offset_max_scales`` every fitted centre stays within that many of its largest
+    starting scales of where it began, along its starting normal; without it the same fit goes
+    further (so the bound is what holds them)."""
+    from atlas_pipeline.geometry import quat_xyzw_to_rotmat
+
+    train = [0, 4, 8]
+    targets = _views(small_world, small_manifest, train)
+    start = _perturbed(small_world, 2)
+    args = (start, [t[0] for t in targets], [t[1] for t in targets], [small_manifest.T_world_cam_gt[i] for i in train],
+            small_manifest.camera.K)
+    bound = 0.1
+    R = quat_xyzw_to_rotmat(start.rotations_xyzw.astype(np.float64))
+    normal = R[np.arange(len(start)), :, np.argmin(start.scales, axis=1)]  # [N, 3]
+    limit = bound * start.scales.max(axis=1)  # [N]
+
+    def along_normal(fitted):
+        row = {int(i): k for k, i in enumerate(start.ids)}
+        kept = np.array([row[int(i)] for i in fitted.ids if int(i) in row])
+        mine = np.isin(fitted.ids, start.ids)
+        off = np.einsum("ij,ij->i", fitted.positions[mine] - start.positions[kept], normal[kept])
+        return np.abs(off), limit[kept]
+
+    held = optimize_gaussians(*args, OptimizationSettings(epochs=4, scale=0.5, normal_offset_max_scales=bound),
+                              log=lambda _: None).field
+    free = optimize_gaussians(*args, OptimizationSettings(epochs=4, scale=0.5), log=lambda _: None).field
+    off, lim = along_normal(held)
+    assert len(off) > 0.9 * len(start) and (off <= lim + 1e-5).all()
+    off_free, lim_free = along_normal(free)
+    assert (off_free > lim_free + 1e-5).mean() > 0.05
+
+
+def test_profile_sets_the_normal_offset_bound():
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.errors import ConfigError
+
+    cfg = load_profile("default").with_overrides({"mapping.optimization_normal_offset_max_scales": 0.5})
+    assert OptimizationSettings.from_mapping(cfg.mapping).normal_offset_max_scales == 0.5
+    assert OptimizationSettings.from_mapping(load_profile("default").mapping).normal_offset_max_scales == 0.0
+    with pytest.raises(ConfigError, match="normal_offset_max_scales"):
+        load_profile("default").with_overrides({"mapping.optimization_normal_offset_max_scales": -1})
