@@ -1077,15 +1077,19 @@ class _FitState:
         self.logit = np.log(op / (1 - op)).astype(np.float32)
         self.col = (field.colors.astype(np.float64) / 255.0).astype(np.float32)
         self.ids = field.ids.copy()
-        # Where each Gaussian started, its surface normal there (thinnest axis) and how far along
-        # it the fit may move it (normal_offset_max_scales times its largest scale; 0 = free).
+        # Where each Gaussian started ([N, 3]), its surface normal there ([N, 3], the axis of its
+        # smallest scale) and how far along it the fit may move it ([N], normal_offset_max_scales
+        # times its largest scale). Without a bound they are [N, 0] and never read: no memory.
         n = len(field)
-        self.anchor = self.pos.copy()
-        R = quat_xyzw_to_rotmat(self.quat.astype(np.float64))
-        sc = field.scales.astype(np.float64)
-        # [N, 3] unit normals: the column of R along the smallest scale
-        self.anchor_n = np.ascontiguousarray(R[np.arange(n), :, np.argmin(sc, axis=1)], np.float32) if n else np.zeros((0, 3), np.float32)
-        self.anchor_b = (s.normal_offset_max_scales * sc.max(axis=1)).astype(np.float32) if n else np.zeros(0, np.float32)  # [N]
+        width = 3 if s.normal_offset_max_scales > 0 else 0
+        self.anchor = self.pos[:, :width].copy()  # a copy: pos moves in place
+        self.anchor_n = np.zeros((n, width), np.float32)
+        self.anchor_b = np.zeros((n, min(width, 1)), np.float32)
+        if width and n:
+            R = quat_xyzw_to_rotmat(self.quat.astype(np.float64))  # [N, 3, 3]
+            sc = field.scales.astype(np.float64)
+            self.anchor_n = np.ascontiguousarray(R[np.arange(n), :, np.argmin(sc, axis=1)], np.float32)
+            self.anchor_b = (s.normal_offset_max_scales * sc.max(axis=1, keepdims=True)).astype(np.float32)
         self.m1 = np.zeros((_N_PARAM, n), np.float32)  # Adam moments, one row per scalar parameter
         self.m2 = np.zeros((_N_PARAM, n), np.float32)
         self.refresh()
@@ -1127,9 +1131,9 @@ class _FitState:
 
     def hold_to_surface(self) -> None:
         """Clamp each centre's offset from its start along its starting normal to ``anchor_b``."""
-        off = np.einsum("ij,ij->i", self.pos - self.anchor, self.anchor_n)
+        off = np.einsum("ij,ij->i", self.pos - self.anchor, self.anchor_n)[:, None]  # [N, 1]
         excess = off - np.clip(off, -self.anchor_b, self.anchor_b)
-        self.pos -= excess[:, None] * self.anchor_n
+        self.pos -= excess * self.anchor_n
 
     def to_field(self, keep: np.ndarray) -> GaussianField:
         return canonicalize(GaussianField(self.pos[keep], np.exp(self.log_s[keep].astype(np.float64)),
