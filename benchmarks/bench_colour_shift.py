@@ -21,9 +21,8 @@ change says how far the colour edge lies from it (one constraint ``n . d = t`` p
 sub-pixel by a parabola); the shift is the mode of those constraints over the edges of a few
 frames (a kernel vote over a grid, then mean-shift steps), so colour texture near an edge, a
 robust outlier, does not pull it. The edge stencil is a central difference, symmetric about the
-step, so a registered pair votes for zero. The estimate is
-trusted only when two halves of the frames agree and the peak stands out of the search window;
-otherwise it is reported as undetermined and no shift is applied.
+step, so a registered pair votes for zero. The estimate is trusted only when the two halves of
+the frames agree and the peak stands out of the search window; otherwise it is undetermined.
 
 The model is one shift for the whole image: exact for a misregistration in the image plane, the
 mean parallax for two cameras side by side (7-Scenes: f b / z, a few pixels at 1-3 m).
@@ -62,7 +61,6 @@ MIN_EDGE_PIXELS = 2000  # over all frames: fewer edges than this and the peak is
 MAX_HALF_DISAGREEMENT_PX = 0.5
 # ... and the peak must beat the median score of the window by this factor.
 MIN_PEAK_CONTRAST = 1.15
-MIN_APPLIED_SHIFT_PX = 0.25  # a smaller shift is not worth blurring the colour with a resampling
 DEFAULT_N_FRAMES = 12  # frames sampled evenly over the sequence
 
 
@@ -72,7 +70,7 @@ class ColourShift:
 
     Attributes:
         dx_px, dy_px: the shift (colour sampled at ``(u + dx, v + dy)`` for depth pixel ``(u, v)``).
-        determined: whether the estimate passed its checks (else the shift should not be applied).
+        determined: whether the estimate passed its checks.
         halves_px: ``[[dx, dy], [dx, dy]]`` the estimates from the even and the odd frames.
         peak_contrast: the peak score over the median score of the search window.
         n_edge_pixels: depth-edge pixels used.
@@ -88,14 +86,6 @@ class ColourShift:
     n_edge_pixels: int
     n_frames: int
     reason: str = ""
-
-    @property
-    def applied_px(self) -> tuple[float, float]:
-        """The shift to apply: ``(dx, dy)`` when determined and at least ``MIN_APPLIED_SHIFT_PX``
-        long, else ``(0, 0)``."""
-        if not self.determined or np.hypot(self.dx_px, self.dy_px) < MIN_APPLIED_SHIFT_PX:
-            return 0.0, 0.0
-        return self.dx_px, self.dy_px
 
     def to_dict(self) -> dict:
         return {"dx_px": round(self.dx_px, 3), "dy_px": round(self.dy_px, 3), "determined": self.determined,

@@ -87,7 +87,6 @@ from numba import njit, prange
 
 from atlas_pipeline.gaussian_world import raster
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
-from atlas_pipeline.geometry import quat_xyzw_to_rotmat
 from atlas_pipeline.gaussian_world.raster import (
     ALPHA_MAX, ALPHA_MIN, AUX_A, AUX_B, AUX_CXX, AUX_CXY, AUX_CYY, AUX_P, AUX_SLOPE_U, AUX_SLOPE_V, AUX_TXZ, AUX_TYZ,
     AUX_X, AUX_Y, AUX_Z,
@@ -95,6 +94,7 @@ from atlas_pipeline.gaussian_world.raster import (
     FEAT_U, FEAT_V, FEAT_Z, POWER_MIN, T_MIN, TILE_SIZE, exp_neg_fast, jacobian_clamp_limits, rotmat_from_quat,
     tile_pixel_bounds,
 )
+from atlas_pipeline.geometry import quat_xyzw_to_rotmat
 from atlas_pipeline.progress import Progress
 
 logger = logging.getLogger(__name__)
@@ -1078,7 +1078,7 @@ class _FitState:
         self.col = (field.colors.astype(np.float64) / 255.0).astype(np.float32)
         self.ids = field.ids.copy()
         # Where each Gaussian started ([N, 3]), its surface normal there ([N, 3], the axis of its
-        # smallest scale) and how far along it the fit may move it ([N], normal_offset_max_scales
+        # smallest scale) and how far along it the fit may move it ([N, 1], normal_offset_max_scales
         # times its largest scale). Without a bound they are [N, 0] and never read: no memory.
         n = len(field)
         width = 3 if s.normal_offset_max_scales > 0 else 0
