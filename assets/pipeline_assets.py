@@ -152,7 +152,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
     def keyframes_settings(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest):
         return settings_result(context.asset_key, stage_settings(atlas.load(), "keyframes", raw_dataset))
 
-    @stage("raw_dataset", "1", "Frame manifest of the dataset: files, timestamps, intrinsics, ground truth, content hash.",
+    @stage("raw_dataset", "2", "Frame manifest of the dataset: files, frame (depth) and colour timestamps, intrinsics, "
+                              "ground truth at the frame times, content hash.",
            extra_deps=[DATASET_FILES])
     def raw_dataset(context: AssetExecutionContext, atlas: AtlasConfig):
         cfg, name = atlas.load(), context.partition_key

@@ -109,9 +109,9 @@ def test_layout(dataset):
     assert len(rgb) == len(depth) == spec.n_frames
     t_rgb = np.array([float(t) for t, _ in rgb])
     t_depth = np.array([float(t) for t, _ in depth])
-    assert t_rgb[0] == pytest.approx(1000.0)
-    np.testing.assert_allclose(np.diff(t_rgb), 1.0 / spec.fps, atol=2e-6)
-    np.testing.assert_allclose(t_depth - t_rgb, 0.003, atol=2e-6)  # associates within 20 ms
+    assert t_depth[0] == pytest.approx(1000.0)
+    np.testing.assert_allclose(np.diff(t_depth), 1.0 / spec.fps, atol=2e-6)
+    np.testing.assert_allclose(t_rgb - t_depth, 0.003, atol=2e-6)  # associates within 20 ms
     for (ts, name), folder in [(r, "rgb") for r in rgb] + [(d, "depth") for d in depth]:
         assert len(ts.split(".")[1]) == 6
         assert name == f"{folder}/{ts}.png"
@@ -127,11 +127,12 @@ def test_layout(dataset):
     gt = read_gt(root / "groundtruth.txt")
     np.testing.assert_allclose(np.linalg.norm(gt[:, 4:], axis=1), 1.0, atol=1e-6)
     np.testing.assert_allclose(np.diff(gt[:, 0]), 1.0 / spec.gt_rate_hz, atol=2e-6)
-    assert gt[0, 0] < t_rgb[0] and gt[-1, 0] > t_depth[-1]  # covers the frames plus a margin
+    assert gt[0, 0] < t_depth[0] and gt[-1, 0] > t_rgb[-1]  # covers the frames plus a margin
 
 
-def test_files_match_render_at_rgb_timestamp(dataset):
-    """Both images of a frame are the render at the rgb timestamp pose, depth quantised."""
+def test_files_match_render_at_depth_timestamp(dataset):
+    """Both images of a frame are the render at the depth timestamp pose (the frame time), depth
+    quantised."""
     root, spec = dataset
     scene = build_scene(spec.seed)
     rgb_rows, depth_rows = read_list(root / "rgb.txt"), read_list(root / "depth.txt")
@@ -158,18 +159,18 @@ def test_depth_backprojects_onto_scene_surfaces(dataset):
     scene = build_scene(spec.seed)
     gt = read_gt(root / "groundtruth.txt")
     for ts, name in read_list(root / "depth.txt")[::3]:
-        t_rgb = float(ts) - 0.003  # both images were rendered at the rgb timestamp pose
+        t_frame = float(ts)  # both images were rendered at the depth timestamp pose
         depth_m = iio.imread(root / name).astype(np.float64) / spec.depth_scale
         # Pose from the ground-truth file, interpolated like a consumer would.
-        k = np.searchsorted(gt[:, 0], t_rgb)
+        k = np.searchsorted(gt[:, 0], t_frame)
         T0 = pose_from_tq(gt[k - 1, 1:4], gt[k - 1, 4:])
         T1 = pose_from_tq(gt[k, 1:4], gt[k, 4:])
-        T = interpolate_pose(gt[k - 1, 0], T0, gt[k, 0], T1, t_rgb)
+        T = interpolate_pose(gt[k - 1, 0], T0, gt[k, 0], T1, t_frame)
         pw, _, _ = backproject(depth_m, spec, T)
         dist = np.abs(scene.clearance_m(pw))
         assert np.quantile(dist, 0.99) < 0.005
         # With the exact pose, floor points have world z = 0 within depth quantisation.
-        T_exact = camera_path(spec, np.array([t_rgb - 1000.0]))[0]
+        T_exact = camera_path(spec, np.array([t_frame - 1000.0]))[0]
         pw, _, _ = backproject(depth_m, spec, T_exact)
         # Floor pixels: low points that are not on (the bottom of) an object or a wall.
         wall_d = np.minimum(pw[:, :2] - scene.room_min[:2], scene.room_max[:2] - pw[:, :2])
@@ -380,10 +381,12 @@ def test_object_culling_does_not_change_the_image(monkeypatch):
 # ------------------------------------------------------------------------------------------------
 # Realistic sensor model and hand-held / loop motion (issue 11, part 4)
 
-# Content of the tiny default dataset (decoded pixels, lists, spec json, .complete) as generator
-# version 1 wrote it before the sensor model existed: the default output must never change.
-GOLDEN_TINY_DEFAULT_DIGEST = "3caf139e82c5dfcfda5717962f3b4d4052ea9018517d373cfbb0fd79a3fb180f"
-GOLDEN_DEFAULT_SPEC_HASH = "6cfa9911cd5cda6dd5e268e474de5ebd214f64f45d77bcc95c89f35afc732798"
+# Content of the tiny default dataset (decoded pixels, lists, spec json, .complete): the default
+# output must not change by accident. Version 1 (before the sensor model): 3caf139e..., spec hash
+# 6cfa9911...; version 2 stamps the frame time on depth and colour 3 ms later (file names, lists,
+# generator version), the pixels are the same (test_files_match_render_at_depth_timestamp).
+GOLDEN_TINY_DEFAULT_DIGEST = "e63d442bee99f66a3ae7f2011bdbe151f2287373ae8cf6e560ce75e14b57212c"
+GOLDEN_DEFAULT_SPEC_HASH = "d79808fb0a52385070f9b86200c9d1ba3c95c0a47ab8ddac8f1e299a2795eb18"
 
 
 def content_digest(root: Path) -> str:
@@ -595,7 +598,7 @@ def test_dropped_frames_leave_timestamp_gaps(tmp_path):
     # The files carry the gaps; the first frames of a longer sequence are the same frames.
     tiny = tiny_spec(n_frames=12, dropped_frame_rate=0.3)
     root = generate_synthetic_dataset(tmp_path / "ds", tiny)
-    ts = np.array([float(x) for x, _ in read_list(root / "rgb.txt")])
+    ts = np.array([float(x) for x, _ in read_list(root / "depth.txt")])  # the frame times
     np.testing.assert_allclose(ts - 1000.0, syn.frame_times_s(tiny), atol=2e-6)
     assert np.diff(ts).max() > 1.5 / tiny.fps
     np.testing.assert_array_equal(syn.frame_times_s(tiny_spec(n_frames=20, dropped_frame_rate=0.3))[:12],

@@ -144,3 +144,26 @@ def test_real_teddy_ground_truth_coverage():
     root = tum_folder("tum_fr3_teddy_100")
     m = load_tum_sequence(root, TUM_CAMERAS["freiburg3"], "tum-fr3-teddy-100")
     assert m.n_frames == 100 and int(m.has_gt.sum()) == 96
+
+
+def test_frame_time_is_the_depth_time_and_ground_truth_is_looked_up_there(broken_copy, tmp_path):
+    """Colour taken 15 ms after depth (TUM fr1): each frame's time, and its ground truth, are the
+    depth image's (the pose a tracker estimates from it); the colour times are kept beside."""
+    def rows(name):
+        return [ln.split() for ln in (broken_copy / name).read_text().splitlines() if not ln.startswith("#")]
+
+    t_rgb = np.array([float(r[0]) for r in rows("rgb.txt")])
+    rows = rows("depth.txt")
+    t_depth = t_rgb - 0.015
+    (broken_copy / "depth.txt").write_text("".join(f"{t:.6f} {r[1]}\n" for t, r in zip(t_depth, rows)))
+    # the camera moves 1 m/s along x, sampled at 100 Hz like TUM's motion capture
+    ts = np.arange(t_rgb[0] - 0.1, t_rgb[-1] + 0.1, 0.01)
+    (broken_copy / "groundtruth.txt").write_text("".join(f"{t:.6f} {t - 1000:.6f} 0 0 0 0 0 1\n" for t in ts))
+    m = _load(broken_copy)
+    np.testing.assert_allclose(m.timestamps_s, t_depth, atol=1e-6)
+    np.testing.assert_allclose(m.rgb_timestamps_s, t_rgb, atol=1e-6)
+    np.testing.assert_allclose(m.T_world_cam_gt[:, 0, 3], t_depth - 1000, atol=1e-5)  # not t_rgb - 1000
+    m.save(tmp_path / "manifest")
+    back = FrameManifest.load(tmp_path / "manifest")
+    np.testing.assert_array_equal(back.rgb_timestamps_s, m.rgb_timestamps_s)
+    np.testing.assert_array_equal(back.timestamps_s, m.timestamps_s)

@@ -22,9 +22,10 @@ Camera path: an ellipse (semi-axes 2.2 m x 1.7 m) around the room centre at ~1.4
 gentle vertical bob, a wobbling look-at target (yaw/pitch variation) and a small roll, travelling
 36 deg/s, i.e. 72 deg over the default 60 frames at 30 fps (~4 cm and ~1.3 deg per frame).
 
-Timing: frame ``i`` has rgb timestamp ``1000 + i / fps`` and depth timestamp 3 ms later (so the
-loader's RGB-depth association is exercised), but BOTH images of frame ``i`` are rendered at the
-pose of the rgb timestamp so colour and depth are consistent. Ground truth is sampled from the
+Timing: frame ``i`` has depth timestamp ``1000 + i / fps`` and colour timestamp 3 ms later (so the
+loader's RGB-depth association is exercised; TUM fr1 stamps colour ~15 ms after depth), but BOTH
+images of frame ``i`` are rendered at the pose of the depth timestamp, the frame time (a frame's
+pose is its depth image's: ``sensors/tum.py``), so colour and depth are consistent. Ground truth is sampled from the
 same continuous path at ``gt_rate_hz``, so it is exact.
 
 Determinism: the same spec gives byte-identical files. Per-pixel code uses only IEEE-exact
@@ -92,7 +93,7 @@ __all__ = [
     "LOOP_MOTION",
     "SYNTHETIC_PRESETS",
     "TIMESTAMP_START_S",
-    "DEPTH_OFFSET_S",
+    "RGB_OFFSET_S",
     "ROOM_MIN",
     "ROOM_MAX",
 ]
@@ -100,10 +101,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 # Bump when the rendering or file layout changes, so cached datasets are regenerated.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: frames rendered at the depth timestamp, colour stamped 3 ms later
 
 TIMESTAMP_START_S = 1000.0
-DEPTH_OFFSET_S = 0.003  # depth stamped 3 ms after rgb: exercises the loader's association
+RGB_OFFSET_S = 0.003  # colour stamped 3 ms after depth: exercises the loader's association
 GT_MARGIN_S = 0.1  # ground truth extends this far before the first and after the last stamp
 
 ROOM_MIN = np.array([-3.0, -2.5, 0.0])
@@ -1497,13 +1498,13 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     pending: deque[Future] = deque()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="synthetic-png") as pool:
         for i in range(spec.n_frames):
-            ts_rgb = _ts(TIMESTAMP_START_S + t_rel[i])
-            ts_depth = _ts(TIMESTAMP_START_S + t_rel[i] + DEPTH_OFFSET_S)
+            ts_depth = _ts(TIMESTAMP_START_S + t_rel[i])
+            ts_rgb = _ts(TIMESTAMP_START_S + t_rel[i] + RGB_OFFSET_S)
             if sensor:
-                # Depth at the rgb timestamp pose, colour exposed around it.
+                # Depth at the depth timestamp pose, colour exposed around it.
                 rgb, depth_m = _sensor_frame(spec, scene, float(t_rel[i]), i)
             else:
-                # Both images at the rgb timestamp pose: colour and depth stay exactly consistent.
+                # Both images at the depth timestamp pose: colour and depth stay exactly consistent.
                 rgb, depth_m = render_synthetic_frame(spec, scene, poses[i])
             raw = np.round(depth_m.astype(np.float64) * spec.depth_scale)
             raw = np.where((depth_m > 0) & (depth_m <= spec.max_depth_m), raw, 0.0)
@@ -1532,7 +1533,7 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     )
 
     # Ground truth on a regular grid k / rate covering all stamps plus a margin, from the same path.
-    t_last = t_rel[-1] + DEPTH_OFFSET_S
+    t_last = t_rel[-1] + RGB_OFFSET_S
     k0 = -int(math.ceil(GT_MARGIN_S * spec.gt_rate_hz))
     k1 = int(math.ceil((t_last + GT_MARGIN_S) * spec.gt_rate_hz))
     t_gt = np.arange(k0, k1 + 1, dtype=np.float64) / spec.gt_rate_hz
