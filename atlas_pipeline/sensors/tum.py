@@ -7,7 +7,8 @@ Layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
     groundtruth.txt  timestamp tx ty tz qx qy qz qw   (camera-to-world, optional)
 
 Comment lines start with ``#``. RGB and depth frames are paired by nearest timestamp within 20 ms
-(as TUM's ``associate.py``); ground truth at each RGB timestamp is interpolated between the two
+(as TUM's ``associate.py``). A frame's time is its depth image's (the pose estimated from it;
+the colour time is kept beside it), and ground truth there is interpolated between the two
 neighbouring motion-capture samples, or taken from the nearest one within 20 ms at the ends.
 """
 
