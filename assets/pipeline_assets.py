@@ -179,7 +179,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         return versioned(context, fused, {"n_points": fused.n_points,
                                           "mean_valid_fraction": _num(fused.valid_fraction.mean())})
 
-    @stage("keyframes", "9", "Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
+    @stage("keyframes", "10", "Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
                              "no ground truth) the RGB-D tracker's own trajectory and keyframes.")
     def keyframes(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                   fused_frames: FusedFrames):
@@ -216,7 +216,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         yield out
         yield check_gaussians(artifact(context, out).field)
 
-    @stage("localization_report", "8", "Per-frame pose tracked against the world (frame-to-model, no ground truth used): "
+    @stage("localization_report", "9", "Per-frame pose tracked against the world (frame-to-model, no ground truth used): "
                                        "status, residual; ATE and RPE where ground truth exists; trajectory plot. Timings "
                                        "are metadata.", check=ATE_BOUND)
     def localization_report(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,

@@ -198,6 +198,9 @@ class LocalizationConfig:
     reference_translation_m: float = _setting(0.05, NON_NEGATIVE)  # photometric reference renewed after this motion
     reference_rotation_deg: float = _setting(5.0, NON_NEGATIVE)
     relocalize: bool = True  # lost frames try global relocalization against the map
+    # colour taken after its depth image (unsynchronised streams, TUM fr1 ~15 ms) is moved to the
+    # depth image's time with the motion model's velocity (perception/colour_timing.py)
+    colour_delay_compensation: bool = True
     max_ate_m: float = _setting(0.05, POSITIVE)  # blocking check: ATE RMSE above this (where ground truth exists) fails
 
 

@@ -74,7 +74,8 @@ def bench_localization(manifest, frames, cfg, builder, keyframe_poses) -> dict:
     status = []
     t0 = time.perf_counter()
     for i, (rgb, depth) in enumerate(frames):
-        e = st.process(i, rgb, depth, T_given=keyframe_poses[0] if i == 0 else None, timestamp_s=float(manifest.timestamps_s[i]))
+        e = st.process(i, rgb, depth, T_given=keyframe_poses[0] if i == 0 else None, timestamp_s=float(manifest.timestamps_s[i]),
+                       colour_delay_s=manifest.colour_delay_s(i))
         poses[i] = e.T_world_cam
         status.append(e.status)
     dt = time.perf_counter() - t0

@@ -321,7 +321,8 @@ def localize_sequence(
             rgb = manifest.read_rgb(i)
             depth = manifest.read_depth_m(i, allow_empty=True)
             given = T_world_cam_start if (i == anchor_index and T_world_cam_start is not None) else None
-            est = st.process(i, rgb, depth, T_given=given, timestamp_s=float(manifest.timestamps_s[i]))
+            est = st.process(i, rgb, depth, T_given=given, timestamp_s=float(manifest.timestamps_s[i]),
+                             colour_delay_s=manifest.colour_delay_s(i))
             T_est[i], status[i] = est.T_world_cam, est.status
             fitness[i], rmse[i], times[i] = est.inlier_fraction, est.residual_m, est.time_s
             counts[est.status] = counts.get(est.status, 0) + 1

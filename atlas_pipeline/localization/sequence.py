@@ -52,6 +52,7 @@ from atlas_pipeline.localization.tracker import (
     pose_change,
     predict_constant_velocity,
 )
+from atlas_pipeline.perception.colour_timing import MAX_COLOUR_DELAY_S, colour_at_depth_time
 from atlas_pipeline.perception.rgbd import backproject
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -211,15 +212,41 @@ class SequenceTracker:
         return lT.copy()
 
     # -- one frame -----------------------------------------------------------------------------
+    def _colour_motion(self, index: int, timestamp_s: float | None, colour_delay_s: float) -> np.ndarray | None:
+        """The camera's motion from this frame's depth image to its colour image, ``colour_delay_s``
+        later: the velocity of the last two frames (as :meth:`_predict`) over that time, as the
+        colour camera's pose in the depth camera's frame ``[4, 4]``; None without a velocity."""
+        if (not colour_delay_s or not self.cfg.colour_delay_compensation or abs(colour_delay_s) > MAX_COLOUR_DELAY_S
+                or self._last is None
+                or self._prev is None or timestamp_s is None or self._t_last is None or self._t_prev is None
+                or self.cfg.motion_model != "constant_velocity"):
+            return None
+        li, lT = self._last
+        dt_prev = self._t_last - self._t_prev  # signed: negative when tracking backwards in time
+        if not (self._prev[0] == li - (index - li) and abs(index - li) == 1 and dt_prev != 0):
+            return None
+        # the camera-frame increment of the last two frames, per second, over colour_delay_s
+        return np.linalg.solve(lT, predict_constant_velocity(lT, self._prev[1], colour_delay_s / dt_prev))
+
     def process(self, index: int, rgb: np.ndarray | None, depth_m: np.ndarray,
-                T_given: np.ndarray | None = None, timestamp_s: float | None = None) -> FrameEstimate:
+                T_given: np.ndarray | None = None, timestamp_s: float | None = None,
+                colour_delay_s: float = 0.0) -> FrameEstimate:
         """Estimate frame ``index``; ``T_given`` makes it an anchor with that pose.
 
         Args:
             rgb: ``[H, W, 3]`` uint8 or None (geometry only); depth_m ``[H, W]`` float32.
-            timestamp_s: the frame's time; a gap in time switches the motion model off for it.
+            timestamp_s: the frame's time (its depth image's); a gap in time switches the motion
+                model off for it.
+            colour_delay_s: when the colour image was taken after the depth image (TUM fr1: ~15 ms);
+                the colour is moved to the depth image's time with the motion model's velocity
+                (:func:`~atlas_pipeline.perception.colour_timing.colour_at_depth_time`), for
+                tracking and for the map.
         """
         t0 = time.perf_counter()
+        if rgb is not None and T_given is None:
+            dT = self._colour_motion(index, timestamp_s, colour_delay_s)
+            if dT is not None:
+                rgb = colour_at_depth_time(rgb, depth_m, self.camera, dT)
         fp = self.tracker.prepare(rgb, depth_m)
         nan = float("nan")
         if T_given is not None:

@@ -121,7 +121,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
             rgb, depth = manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)
         # The first frame with depth anchors the world at the identity.
         anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
-        est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]))
+        est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]),
+                         colour_delay_s=manifest.colour_delay_s(i))
         started = started or anchor is not None
         poses[i], map_ids[i] = est.T_world_cam, est.map_id
         status.append(est.status)

@@ -264,7 +264,8 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     for i in range(n):
         rgb = manifest.read_rgb(i)
         depth = manifest.read_depth_m(i, allow_empty=True)
-        est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]))
+        est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]),
+                         colour_delay_s=manifest.colour_delay_s(i))
         poses[i] = est.T_world_cam
         status.append(est.status)
         progress.update(extra=est.status)

@@ -194,7 +194,7 @@ _SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "f
     "depth_noise_b_per_m", "depth_noise_angle_m", "depth_noise_corr_px", "inverse_depth_step_per_m",
     "depth_lateral_noise_px", "edge_dropout_prob", "projector_baseline_m", "dark_dropout_luma", "shiny_dropout_deg",
     "grazing_dropout_deg", "rgb_shift_x_px", "rgb_shift_y_px", "motion_blur_samples", "exposure_time_s",
-    "exposure_drift", "white_balance_drift", "rgb_noise_std", "dropped_frame_rate"}
+    "exposure_drift", "white_balance_drift", "rgb_noise_std", "dropped_frame_rate", "colour_delay_s"}
 
 
 # Registry keys of each recording kind besides kind and path; camera: "preset" when it has a

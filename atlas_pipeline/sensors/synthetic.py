@@ -22,10 +22,10 @@ Camera path: an ellipse (semi-axes 2.2 m x 1.7 m) around the room centre at ~1.4
 gentle vertical bob, a wobbling look-at target (yaw/pitch variation) and a small roll, travelling
 36 deg/s, i.e. 72 deg over the default 60 frames at 30 fps (~4 cm and ~1.3 deg per frame).
 
-Timing: frame ``i`` has depth timestamp ``1000 + i / fps`` and colour timestamp 3 ms later (so the
-loader's RGB-depth association is exercised; TUM fr1 stamps colour ~15 ms after depth), but BOTH
-images of frame ``i`` are rendered at the pose of the depth timestamp, the frame time (a frame's
-pose is its depth image's: ``sensors/tum.py``), so colour and depth are consistent. Ground truth is sampled from the
+Timing: frame ``i`` has depth timestamp ``1000 + i / fps`` (the frame time: a frame's pose is its
+depth image's, ``sensors/tum.py``) and both images are rendered at that pose, so colour and depth
+are consistent. The sensor model's ``colour_delay_s`` takes the colour that much later instead,
+rendered and stamped there, as an unsynchronised Kinect's (TUM fr1: ~15 ms). Ground truth is sampled from the
 same continuous path at ``gt_rate_hz``, so it is exact.
 
 Determinism: the same spec gives byte-identical files. Per-pixel code uses only IEEE-exact
@@ -75,6 +75,7 @@ import numpy as np
 from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.geometry import look_at, rotmat_to_quat_xyzw
 from atlas_pipeline.sensors.camera import CameraIntrinsics
+from atlas_pipeline.sensors.tum import MAX_ASSOCIATION_DT_S
 
 __all__ = [
     "SyntheticSpec",
@@ -93,7 +94,6 @@ __all__ = [
     "LOOP_MOTION",
     "SYNTHETIC_PRESETS",
     "TIMESTAMP_START_S",
-    "RGB_OFFSET_S",
     "ROOM_MIN",
     "ROOM_MAX",
 ]
@@ -101,10 +101,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 # Bump when the rendering or file layout changes, so cached datasets are regenerated.
-GENERATOR_VERSION = 2  # 2: frames rendered at the depth timestamp, colour stamped 3 ms later
+GENERATOR_VERSION = 2  # 2: frames at the depth timestamp, colour stamped with it (1: depth 3 ms after colour)
 
 TIMESTAMP_START_S = 1000.0
-RGB_OFFSET_S = 0.003  # colour stamped 3 ms after depth: exercises the loader's association
 GT_MARGIN_S = 0.1  # ground truth extends this far before the first and after the last stamp
 
 ROOM_MIN = np.array([-3.0, -2.5, 0.0])
@@ -215,6 +214,7 @@ class SyntheticSpec:
 
     # -- Timing --
     dropped_frame_rate: float = 0.0  # chance per sensor frame that a drop burst (1-3 frames) starts
+    colour_delay_s: float = 0.0  # colour taken this long after depth (unsynchronised streams), < 20 ms
 
     def __post_init__(self) -> None:
         # Canonical types (YAML may give 525 for 525.0): equal specs hash equally, seeds are ints.
@@ -235,6 +235,9 @@ class SyntheticSpec:
         for name in ("loop_revolutions", "motion_blur_samples"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"synthetic: {name} must be >= 0, got {getattr(self, name)}")
+        if self.colour_delay_s >= MAX_ASSOCIATION_DT_S:
+            raise ConfigError(f"synthetic: colour_delay_s must be < {MAX_ASSOCIATION_DT_S} (the pairing gap), "
+                              f"got {self.colour_delay_s}")
         if self.dropped_frame_rate >= 0.5:
             raise ConfigError(f"synthetic: dropped_frame_rate must be < 0.5, got {self.dropped_frame_rate}")
         if self.edge_dropout_prob > 1.0 or self.dark_dropout_luma > 1.0:
@@ -1402,18 +1405,20 @@ def _sensor_frame(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One frame through the sensor model: ``(rgb uint8 [H, W, 3], depth_m float64 [H, W])``.
 
-    Depth is sensed at the pose of time ``t``; colour integrates the exposure around ``t``.
+    Depth is sensed at the pose of time ``t``; colour integrates the exposure around
+    ``t + colour_delay_s``.
     """
     T = camera_path(spec, np.array([t]))[0]
     lay = _render_layers(spec, scene, T)
     luma = _luma(lay.col)
     depth = apply_depth_sensor_model(spec, lay.depth_m, lay.cos_incidence, luma, lay.shiny, frame_index)
 
-    col = lay.col
+    t_col = t + spec.colour_delay_s
+    col = lay.col if t_col == t else _render_colour(spec, scene, camera_path(spec, np.array([t_col]))[0])
     n = spec.motion_blur_samples
     if n >= 2 and spec.exposure_time_s > 0:
         offsets = [spec.exposure_time_s * (k / (n - 1) - 0.5) for k in range(n)]
-        sub = camera_path(spec, t + np.array(offsets))
+        sub = camera_path(spec, t_col + np.array(offsets))
         acc = np.zeros_like(col)
         for off, Tk in zip(offsets, sub):  # fixed order: deterministic float sums
             acc += col if off == 0.0 else _render_colour(spec, scene, Tk)
@@ -1499,7 +1504,7 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="synthetic-png") as pool:
         for i in range(spec.n_frames):
             ts_depth = _ts(TIMESTAMP_START_S + t_rel[i])
-            ts_rgb = _ts(TIMESTAMP_START_S + t_rel[i] + RGB_OFFSET_S)
+            ts_rgb = _ts(TIMESTAMP_START_S + t_rel[i] + spec.colour_delay_s)
             if sensor:
                 # Depth at the depth timestamp pose, colour exposed around it.
                 rgb, depth_m = _sensor_frame(spec, scene, float(t_rel[i]), i)
@@ -1533,7 +1538,7 @@ def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     )
 
     # Ground truth on a regular grid k / rate covering all stamps plus a margin, from the same path.
-    t_last = t_rel[-1] + RGB_OFFSET_S
+    t_last = t_rel[-1] + spec.colour_delay_s
     k0 = -int(math.ceil(GT_MARGIN_S * spec.gt_rate_hz))
     k1 = int(math.ceil((t_last + GT_MARGIN_S) * spec.gt_rate_hz))
     t_gt = np.arange(k0, k1 + 1, dtype=np.float64) / spec.gt_rate_hz

@@ -286,6 +286,13 @@ class FrameManifest:
     def n_frames(self) -> int:
         return len(self.timestamps_s)
 
+    def colour_delay_s(self, i: int) -> float:
+        """How long after frame ``i``'s depth image its colour image was taken (s; 0 when the
+        manifest has no colour times)."""
+        if self.rgb_timestamps_s is None:
+            return 0.0
+        return float(self.rgb_timestamps_s[i] - self.timestamps_s[i])
+
     def rgb_path(self, i: int) -> Path:
         return self.root / self.rgb_files[i]
 
