@@ -383,10 +383,10 @@ def test_object_culling_does_not_change_the_image(monkeypatch):
 
 # Content of the tiny default dataset (decoded pixels, lists, spec json, .complete): the default
 # output must not change by accident. Version 1 (before the sensor model): 3caf139e..., spec hash
-# 6cfa9911...; version 2 stamps depth with the render time, as colour, not 3 ms after it (file names,
-# lists, generator version), the pixels are the same (test_files_match_render_at_depth_timestamp).
-GOLDEN_TINY_DEFAULT_DIGEST = "1a09a276c1f98f74e2569383af0c2d2514e8f76a6b50bb67d01e363c81f0228a"
-GOLDEN_DEFAULT_SPEC_HASH = "d79808fb0a52385070f9b86200c9d1ba3c95c0a47ab8ddac8f1e299a2795eb18"
+# 6cfa9911...; version 3 stamps depth with the render time, as colour, not 3 ms after it (file
+# names, lists, generator version), the pixels are the same (test_files_match_render_at_depth_timestamp).
+GOLDEN_TINY_DEFAULT_DIGEST = "fab4b4670003ff0c75f0d1b6a1e19880b1f5c68e843e0417f4ded7d02a6fc537"
+GOLDEN_DEFAULT_SPEC_HASH = "3e9ed9d5c287909e381b50d92a95e44e3bff0e5e9d94ecaef49cc4dd9b1d7a55"
 
 
 def content_digest(root: Path) -> str:

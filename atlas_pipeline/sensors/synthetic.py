@@ -101,7 +101,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 # Bump when the rendering or file layout changes, so cached datasets are regenerated.
-GENERATOR_VERSION = 2  # 2: frames at the depth timestamp, colour stamped with it (1: depth 3 ms after colour)
+GENERATOR_VERSION = 3  # 3: colour stamped with depth, at the render time (2: colour 3 ms later; 1: depth 3 ms later)
 
 TIMESTAMP_START_S = 1000.0
 GT_MARGIN_S = 0.1  # ground truth extends this far before the first and after the last stamp
