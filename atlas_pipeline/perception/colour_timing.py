@@ -49,22 +49,21 @@ def _resample(rgb, depth_m, rays, R, t, fx, fy, cx, cy):  # pragma: no cover - c
     out = rgb.copy()
     for v in prange(H):  # rows are independent
         for u in range(W):
-            rx, ry, rz = rays[v, u, 0], rays[v, u, 1], rays[v, u, 2]
+            rx, ry = rays[v, u, 0], rays[v, u, 1]  # pixel_rays have z = 1
             z = depth_m[v, u]
             if z > 0:
-                X0, X1, X2 = rx * z, ry * z, rz * z
-                c0 = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + t[0]
-                c1 = R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + t[1]
-                c2 = R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + t[2]
+                c0 = (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) * z + t[0]
+                c1 = (R[1, 0] * rx + R[1, 1] * ry + R[1, 2]) * z + t[1]
+                c2 = (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]) * z + t[2]
             else:  # a point at infinity along the ray: the rotation alone moves it
-                X0, X1, X2 = rx, ry, rz
-                c0 = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2
-                c1 = R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2
-                c2 = R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2
-            if c2 <= 1e-6 or X2 <= 1e-6:  # behind the camera: keep the colour
+                c0 = R[0, 0] * rx + R[0, 1] * ry + R[0, 2]
+                c1 = R[1, 0] * rx + R[1, 1] * ry + R[1, 2]
+                c2 = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
+            if c2 <= 1e-6:  # behind the colour camera: keep the colour
                 continue
-            x = u + fx * (c0 / c2 - X0 / X2)
-            y = v + fy * (c1 / c2 - X1 / X2)
+            inv = np.float32(1.0) / c2
+            x = u + fx * (c0 * inv - rx)
+            y = v + fy * (c1 * inv - ry)
             if x < 0.0 or y < 0.0 or x > W - 1 or y > H - 1:
                 continue
             x0 = min(int(x), W - 2)
