@@ -191,25 +191,35 @@ class SequenceTracker:
             self._relocalizer = Relocalizer(self.tracker, self.model, np.array(self.priors + self.keyframe_poses))
         return self._relocalizer
 
+    def _velocity_poses(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(T_last, T_prev)``, the last two placed frames, when the constant-velocity model
+        carries them to frame ``index``: they are consecutive and lead to it (either direction)."""
+        if self.cfg.motion_model != "constant_velocity" or self._last is None or self._prev is None:
+            return None
+        li, lT = self._last
+        if self._prev[0] == li - (index - li) and abs(index - li) == 1:
+            return lT, self._prev[1]
+        return None
+
     def _predict(self, index: int, timestamp_s: float | None = None) -> np.ndarray:
         """Constant-velocity guess from the last two frames, carried over the time to this one:
         a frame after dropped frames is predicted as far as the velocity takes the camera (up to
         :data:`MAX_VELOCITY_EXTRAPOLATION` frame intervals). The last pose after a longer gap, a
         restart after a loss, or frames not in sequence."""
         assert self._last is not None
-        li, lT = self._last
-        if (self.cfg.motion_model == "constant_velocity" and self._prev is not None
-                and self._prev[0] == li - (index - li) and abs(index - li) == 1):
+        base = self._velocity_poses(index)
+        if base is not None:
+            lT, pT = base
             if timestamp_s is None or self._t_last is None or self._t_prev is None:
-                return predict_constant_velocity(lT, self._prev[1])
+                return predict_constant_velocity(lT, pT)
             dt, dt_prev = abs(timestamp_s - self._t_last), abs(self._t_last - self._t_prev)
             if dt_prev > 0:
                 ratio = dt / dt_prev
                 if 1 / EVEN_SPACING_RATIO <= ratio <= EVEN_SPACING_RATIO:  # timestamp jitter: one step
-                    return predict_constant_velocity(lT, self._prev[1])
+                    return predict_constant_velocity(lT, pT)
                 if ratio <= MAX_VELOCITY_EXTRAPOLATION:
-                    return predict_constant_velocity(lT, self._prev[1], ratio)
-        return lT.copy()
+                    return predict_constant_velocity(lT, pT, ratio)
+        return self._last[1].copy()
 
     # -- one frame -----------------------------------------------------------------------------
     def _colour_motion(self, index: int, timestamp_s: float | None, colour_delay_s: float) -> np.ndarray | None:
@@ -217,16 +227,15 @@ class SequenceTracker:
         later: the velocity of the last two frames (as :meth:`_predict`) over that time, as the
         colour camera's pose in the depth camera's frame ``[4, 4]``; None without a velocity."""
         if (not colour_delay_s or not self.cfg.colour_delay_compensation or abs(colour_delay_s) > MAX_COLOUR_DELAY_S
-                or self._last is None
-                or self._prev is None or timestamp_s is None or self._t_last is None or self._t_prev is None
-                or self.cfg.motion_model != "constant_velocity"):
+                or timestamp_s is None or self._t_last is None or self._t_prev is None):
             return None
-        li, lT = self._last
+        base = self._velocity_poses(index)
         dt_prev = self._t_last - self._t_prev  # signed: negative when tracking backwards in time
-        if not (self._prev[0] == li - (index - li) and abs(index - li) == 1 and dt_prev != 0):
+        if base is None or dt_prev == 0:
             return None
+        lT, pT = base
         # the camera-frame increment of the last two frames, per second, over colour_delay_s
-        return np.linalg.solve(lT, predict_constant_velocity(lT, self._prev[1], colour_delay_s / dt_prev))
+        return np.linalg.solve(lT, predict_constant_velocity(lT, pT, colour_delay_s / dt_prev))
 
     def process(self, index: int, rgb: np.ndarray | None, depth_m: np.ndarray,
                 T_given: np.ndarray | None = None, timestamp_s: float | None = None,

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from atlas_pipeline.geometry import rotation_angle_rad
 from atlas_pipeline.perception.rgbd import pixel_rays
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -37,10 +38,9 @@ NEAREST_DEPTH_M = 0.3  # the nearest surface assumed when bounding the flow from
 def max_flow_px(T_depth_colour: np.ndarray, camera: CameraIntrinsics, nearest_m: float = NEAREST_DEPTH_M) -> float:
     """An upper bound of the pixel flow ``T_depth_colour`` ``[4, 4]`` causes: rotation angle times
     the focal length, plus the translation seen at ``nearest_m``."""
-    R, t = T_depth_colour[:3, :3], T_depth_colour[:3, 3]
-    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = float(rotation_angle_rad(T_depth_colour[:3, :3]))
     f = max(camera.fx, camera.fy)
-    return f * (angle + float(np.linalg.norm(t)) / nearest_m)
+    return f * (angle + float(np.linalg.norm(T_depth_colour[:3, 3])) / nearest_m)
 
 
 @njit(cache=True, parallel=True)

@@ -25,8 +25,8 @@ gentle vertical bob, a wobbling look-at target (yaw/pitch variation) and a small
 Timing: frame ``i`` has depth timestamp ``1000 + i / fps`` (the frame time: a frame's pose is its
 depth image's, ``sensors/tum.py``) and both images are rendered at that pose, so colour and depth
 are consistent. The sensor model's ``colour_delay_s`` takes the colour that much later instead,
-rendered and stamped there, as an unsynchronised Kinect's (TUM fr1: ~15 ms). Ground truth is sampled from the
-same continuous path at ``gt_rate_hz``, so it is exact.
+rendered and stamped there, as an unsynchronised Kinect's (TUM fr1: ~15 ms). Ground truth is
+sampled from the same continuous path at ``gt_rate_hz``, so it is exact.
 
 Determinism: the same spec gives byte-identical files. Per-pixel code uses only IEEE-exact
 elementwise arithmetic (no BLAS, no transcendental functions), so results do not depend on SIMD
