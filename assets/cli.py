@@ -120,10 +120,11 @@ class _CliHandler(logging.Handler):
     """Writes records below the progress bar (:class:`atlas_pipeline.progress.Terminal`); decides
     what the quiet default shows, and turns Dagster's step events into one line per stage."""
 
-    def __init__(self, terminal: Any, verbose: bool):
+    def __init__(self, terminal: Any, verbose: bool, prefix: str = ""):
         super().__init__(logging.DEBUG)
         self.terminal = terminal
         self.verbose = verbose
+        self.prefix = prefix
         self.setFormatter(_CliFormatter(verbose))
         self._reused: dict[str, bool] = {}
         self._warned: set[str] = set()
@@ -182,7 +183,7 @@ class _CliHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         try:
             if self._shown(record):
-                self.terminal.write_line(self.format(record))
+                self.terminal.write_line(self.prefix + self.format(record))
         except Exception:  # noqa: BLE001 - logging must never break the command
             self.handleError(record)
 
@@ -190,10 +191,12 @@ class _CliHandler(logging.Handler):
 class _CliOutput:
     """The command's stderr for the duration of ``main``: one handler on the root logger, levels of
     Dagster's and third-party loggers, warnings (ignored; with -v shown once, as log lines) and
-    the progress terminal. Everything is restored on exit (``main`` may run many times in a process)."""
+    the progress terminal. Everything is restored on exit (``main`` may run many times in a process).
+    ``prefix`` starts every line (a partition's name, when several run at once)."""
 
-    def __init__(self, verbose: bool):
+    def __init__(self, verbose: bool, prefix: str = ""):
         self.verbose = verbose
+        self.prefix = prefix
 
     def __enter__(self) -> "_CliOutput":
         import warnings
@@ -201,7 +204,7 @@ class _CliOutput:
         from atlas_pipeline.progress import Terminal, use_terminal
 
         self.terminal = Terminal(sys.stderr)
-        self.handler = _CliHandler(self.terminal, self.verbose)
+        self.handler = _CliHandler(self.terminal, self.verbose, self.prefix)
         root = logging.getLogger()
         self._levels = {n: logging.getLogger(n).level for n in ("", *MUTED_LOGGERS, *DAGSTER_LOGGERS, RUN_LOGGER)}
         root.setLevel(logging.DEBUG if self.verbose else logging.INFO)
@@ -699,8 +702,11 @@ def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
     numba = sys.modules.get("numba")
     if share and numba is not None:  # a forked worker: numba read its thread count in the parent
         numba.set_num_threads(min(int(share), numba.config.NUMBA_NUM_THREADS))
+    root = logging.getLogger()
+    for inherited in [h for h in root.handlers if isinstance(h, _CliHandler)]:
+        root.removeHandler(inherited)  # a forked worker's copy of the parent's: every line twice
     out = _Captured(tty)
-    with _CliOutput(args.verbose), contextlib.redirect_stdout(out):
+    with _CliOutput(args.verbose, prefix=f"{args.dataset}: "), contextlib.redirect_stdout(out):
         try:
             code = int(cmd_run(args) or 0)
         except AtlasError as exc:

@@ -61,6 +61,10 @@ def test_run_all_runs_partitions_in_parallel_processes(isolated, monkeypatch, ca
     docs = _json_docs(cli.stdout)
     assert [d["partition"] for d in docs] == names  # printed in partition order
     assert all(d["success"] and len(d["recomputed"]) == 9 for d in docs), docs
+    # One line per stage and partition, named (they interleave; a forked worker once also wrote
+    # through its copy of the parent's handler, unnamed).
+    lines = [ln for ln in cli.stderr.splitlines() if "world_bundle " in ln]
+    assert sorted(ln.split()[0] for ln in lines) == [f"{n}:" for n in names], cli.stderr
 
     instance = DagsterInstance.get()
     runs = [instance.get_run_by_id(d["run_id"]) for d in docs]
