@@ -288,3 +288,22 @@ def test_browser_draws_the_splats(viewer_world, tmp_path):
                                                  f"colour (want {MIN_SPLAT_SHARE:.0%}); see {shot}")
     for layer in ("lost", "relocalized"):
         assert shares[layer] >= MIN_MARKER_SHARE, f"{layer} markers: {shares[layer]:.2%} of the screenshot; see {shot}"
+
+
+def test_websocket_refuses_pages_of_other_sites(viewer_world):
+    """Any page open in the user's browser can open a websocket to 127.0.0.1; only the viewer's own
+    (loopback) pages, and clients that send no Origin, may read the map."""
+    import viser
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    with viewer.serve(viewer_world, port=0) as h:
+        uri = f"ws://127.0.0.1:{h.server.get_port()}/"
+        proto = [f"viser-v{viser.__version__}"]
+        for origin in ("https://example.org", "http://127.0.0.1.evil.example:80", "null"):
+            with pytest.raises(InvalidStatus) as refused:
+                connect(uri, origin=origin, subprotocols=proto, open_timeout=10).close()
+            assert refused.value.response.status_code == 403, origin
+        for origin in (h.url.rstrip("/"), f"http://localhost:{h.server.get_port()}", None):
+            with connect(uri, origin=origin, subprotocols=proto, open_timeout=10) as ws:
+                assert ws.subprotocol == proto[0]  # handshake done: the viewer's own page gets in

@@ -18,7 +18,9 @@ The server binds a loopback address only (``127.0.0.1`` by default): it has no a
 what it serves (the map of a recorded place and its camera images) is as private as the
 recording. Binding another address needs ``allow_remote=True`` from library code; the CLI offers
 no such switch. viser's "share URL" (a public tunnel through viser's own relay) is switched off for
-the same reason.
+the same reason. A loopback address alone does not keep other web sites out: any page open in the
+user's browser may open a websocket to ``127.0.0.1``, so the websocket handshake is refused unless
+the page's ``Origin`` is a loopback one (the viewer's own page; :data:`ALLOWED_ORIGIN_HOSTS`).
 
 Conventions: ``T_world_cam`` ``[4, 4]`` camera-to-world (OpenCV camera axes: x right, y down,
 z forward, as viser's frusta), metres; quaternions are ``quat_xyzw`` in our arrays and ``wxyz`` only
@@ -32,6 +34,7 @@ import io
 import ipaddress
 import logging
 import math
+import re
 import signal
 import threading
 from dataclasses import dataclass, field
@@ -522,6 +525,48 @@ def _add_panel(server: Any, summary: dict[str, Any], handles: dict[str, list[Any
 # ---- the server ---------------------------------------------------------------------------------
 
 
+# The hosts (as a browser writes them in an ``Origin`` header) whose pages may open the viewer's
+# websocket: loopback ones, any port (the viewer moves to the next port when its own is taken). Any
+# other origin (a web site in another tab, a DNS-rebinding name for 127.0.0.1) is refused at the
+# handshake (HTTP 403); a client that sends no ``Origin`` (not a browser: a script on this machine)
+# is let in, as anything local could read the bundle's files anyway.
+ALLOWED_ORIGIN_HOSTS = (r"127(\.\d{1,3}){3}", "localhost", r"\[::1\]")
+
+
+def allowed_origins(host: str) -> list[Any]:
+    """The ``Origin`` values the websocket of a viewer bound to ``host`` accepts (the ``origins`` of
+    ``websockets``' server): none, or ``http(s)://`` a loopback host (or ``host`` itself, for a
+    viewer bound elsewhere with ``allow_remote``) with any port."""
+    hosts = list(ALLOWED_ORIGIN_HOSTS)
+    if not is_loopback_host(host):
+        hosts.append(re.escape(f"[{host.strip('[]')}]" if ":" in host else host))
+    return [None, re.compile(rf"https?://({'|'.join(hosts)})(:\d+)?")]
+
+
+@contextlib.contextmanager
+def _origin_checked_websocket(origins: list[Any]) -> Iterator[list[bool]]:
+    """While the viewer's server starts: viser's websocket server gets ``origins`` (viser has no
+    option for it). Yields a one-item list that becomes ``[True]`` once viser's server took them;
+    the caller refuses to serve when it did not (a viser that no longer starts its server through
+    ``websockets.asyncio.server.serve``)."""
+    import websockets.asyncio.server as ws_server
+
+    original = ws_server.serve
+    applied = [False]
+
+    def serve(handler: Any, *args: Any, **kwargs: Any) -> Any:
+        if getattr(handler, "__module__", "").startswith("viser.") and kwargs.get("origins") is None:
+            kwargs["origins"] = origins
+            applied[0] = True
+        return original(handler, *args, **kwargs)
+
+    ws_server.serve = serve
+    try:
+        yield applied
+    finally:
+        ws_server.serve = original
+
+
 def is_loopback_host(host: str) -> bool:
     """Whether ``host`` names this machine only (127.0.0.0/8, ::1, ``localhost``)."""
     if host == "localhost":
@@ -584,9 +629,13 @@ def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report
         raise ConfigError(f"--port {port}: must be 0 (any free port) to 65535")
     if data is None:
         data = load_viewer_data(world_dir, report, read_dataset)
-    with _quiet_stdout():
+    with _quiet_stdout(), _origin_checked_websocket(allowed_origins(host)) as checked:
         server = viser.ViserServer(host=host, port=int(port), label="atlas-gs", verbose=False)
     try:
+        if not checked[0]:
+            raise AtlasError(f"viser {getattr(viser, '__version__', '?')} started its websocket server in a way "
+                             "atlas-gs cannot give an Origin check; refusing to serve the map to any web page "
+                             "that asks (install viser 1.x as pinned in pyproject.toml)")
         server.request_share_url = _refuse_share_url  # a browser's share button calls this
         server.gui.configure_theme(show_share_button=False, control_width="medium")
         summary = build_scene(server, data)
