@@ -1117,5 +1117,19 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_ERROR
 
 
+def command() -> int:
+    """The ``atlas-gs`` executable: :func:`main`, then a quick exit. Everything the command wrote is
+    closed and renamed into place by then; freezing the objects it leaves keeps the interpreter's
+    final garbage collection from walking them one by one (Dagster's, SQLAlchemy's and the
+    plotting modules' object graphs: about 0.4 s of every command). Tests call :func:`main`."""
+    import gc
+
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    gc.freeze()
+    return code
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(command())

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -50,13 +52,24 @@ def make_project(base: Path, names: list[str], frames: int) -> Path:
     return base
 
 
+def children_cpu_s() -> float:
+    """CPU seconds (user + system) of every finished child process so far, with the processes
+    they waited for (an ``atlas-gs run`` with its pool workers and their encoders)."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+CPU_S: dict[str, float] = {}  # tag -> CPU seconds of that ``atlas-gs run`` command
+
+
 def run_all(env: dict[str, str], tag: str, work: Path, extra: list[str]) -> tuple[float, list[dict]]:
     env = {**env, "ATLAS_ARTIFACTS_DIR": str(work / f"artifacts-{tag}"), "DAGSTER_HOME": str(work / f"home-{tag}")}
     Path(env["DAGSTER_HOME"]).mkdir()
-    t0 = time.perf_counter()
+    cpu0, t0 = children_cpu_s(), time.perf_counter()
     out = subprocess.run([sys.executable, "-m", "assets.cli", "run", "--all", "--json", *extra], env=env, cwd=ROOT,
                          capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    CPU_S[tag] = children_cpu_s() - cpu0
     dec, docs, i, text = json.JSONDecoder(), [], 0, out.stdout
     while i < len(text):
         if text[i].isspace():
@@ -127,7 +140,10 @@ def main() -> int:
             run_s["parallel"] += run_durations(work, "parallel" + tag)
         # The pair whose ratio is the median (the lower middle one for an even count).
         ratios = [p[1][0] / p[0][0] for p in pairs]
-        (s_wall, s_docs), (p_wall, p_docs) = pairs[sorted(range(len(pairs)), key=ratios.__getitem__)[(len(pairs) - 1) // 2]]
+        median = sorted(range(len(pairs)), key=ratios.__getitem__)[(len(pairs) - 1) // 2]
+        (s_wall, s_docs), (p_wall, p_docs) = pairs[median]
+        median_tag = "" if median == 0 else f"-{median}"
+        cpu = {m: CPU_S[m + median_tag] for m in ("serial", "parallel")}
         rows = [("serial", s_wall, s_docs), (f"parallel (concurrency {args.concurrency})", p_wall, p_docs)]
 
         from distributed import LocalCluster
@@ -136,7 +152,7 @@ def main() -> int:
         os.environ.setdefault("NUMBA_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // args.dask_workers)))
         t0 = time.perf_counter()
         cluster = LocalCluster(n_workers=args.dask_workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               scheduler_port=0, dashboard_address=None)
+                               scheduler_port=0, dashboard_address=None, silence_logs=logging.ERROR)
         cluster_s = time.perf_counter() - t0
         try:
             wall, docs = run_all(env, "dask", work, ["--concurrency", str(args.concurrency), "--executor", "dask",
@@ -154,6 +170,11 @@ def main() -> int:
               "median_partition_run_s": {k: round(v, 2) for k, v in med.items()},
               "pairs": [{"serial_s": round(a[0], 2), "parallel_s": round(b[0], 2), "ratio": round(b[0] / a[0], 3),
                          "succeeded": sum(bool(d.get("success")) for d in a[1] + b[1])} for a, b in pairs],
+              # the median pair's CPU seconds and the cores they kept busy on average: on C cores a
+              # run cannot take less than its CPU seconds / C, and the serial run already keeps
+              # more than one busy (the kernels' threads, the encoder's)
+              "cpu_s": {m: round(v, 1) for m, v in cpu.items()},
+              "cores_busy": {"serial": round(cpu["serial"] / s_wall, 2), "parallel": round(cpu["parallel"] / p_wall, 2)},
               "dask_cluster_start_s": round(cluster_s, 2), "dask_identical_to_serial": identical,
               "modes": [{"mode": m, "wall_s": round(w, 2), "ratio_to_serial": round(w / serial, 3),
                          "succeeded": sum(bool(d.get("success")) for d in docs)} for m, w, docs in rows]}
@@ -173,7 +194,11 @@ def main() -> int:
         for r in result["modes"]:
             print(f"| {r['mode']:<40s} | {r['wall_s']:6.1f} | {r['ratio_to_serial']:8.2f} | "
                   f"{r['succeeded']}/{args.partitions} |")
-        print(f"\nOne partition's Dagster run (median of all): {med['serial']:.2f} s in the serial runs, "
+        print(f"\nCPU seconds (the table's pair): serial {cpu['serial']:.1f} ({cpu['serial'] / s_wall:.2f} cores busy on "
+              f"average), parallel {cpu['parallel']:.1f} ({cpu['parallel'] / p_wall:.2f}); on {os.cpu_count()} cores the "
+              f"parallel run cannot take less than {cpu['parallel'] / (os.cpu_count() or 1):.1f} s "
+              f"({cpu['parallel'] / (os.cpu_count() or 1) / s_wall:.2f}x serial)")
+        print(f"One partition's Dagster run (median of all): {med['serial']:.2f} s in the serial runs, "
               f"{med['parallel']:.2f} s two at a time ({med['parallel'] / med['serial']:.2f}x); the rest of the wall "
               "time is the command's start and shutdown.")
         print(f"Dask cluster start (not in the time): {cluster_s:.1f} s; Dask artifacts byte-identical to the "

@@ -118,3 +118,16 @@ def test_import_ply_benchmark_uses_the_tests_small_scene():
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     assert bench.SMALL_SYNTH == SMALL_SYNTH
+
+
+def test_the_executable_returns_mains_exit_code_and_freezes_what_is_left(monkeypatch):
+    import gc
+
+    import assets.cli as cli
+
+    monkeypatch.setattr(cli, "main", lambda: 3)
+    try:
+        assert cli.command() == 3
+        assert gc.get_freeze_count() > 0  # the final collection skips them
+    finally:
+        gc.unfreeze()

@@ -133,7 +133,7 @@ def _check_wheel_contents(wheel: Path) -> None:
     shipped = sorted(n.rsplit("/", 1)[1] for n in names if n.startswith("atlas_pipeline/configs/"))
     assert shipped == _shipped_configs()  # the built-in profiles and registry, not datasets.local.yaml
     entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
-    assert "atlas-gs = assets.cli:main" in zipfile.ZipFile(wheel).read(entry_points).decode()
+    assert "atlas-gs = assets.cli:command" in zipfile.ZipFile(wheel).read(entry_points).decode()
 
 
 def _tree(root: Path) -> dict[str, int]:
