@@ -13,6 +13,12 @@ submission differs from :class:`dagster_dask.DaskExecutor`:
   partitions) share task keys and the second is given the first one's results (dagster-io/dagster
   issue 21418). The key here also holds the run id.
 
+A step's result is a list of :class:`~dagster.DagsterEvent`; dask sizes every result it keeps by
+walking tuples, and an event holds Dagster ``@record`` values that forbid iteration, so each worker
+logged "Sizeof calculation for object of type 'list' failed" for every step. An event's size here
+is the length of its serialized form (what Dagster stores of it), registered with dask's ``sizeof``
+when a worker imports this module to run a step.
+
 Remove this module once dagster-dask handles both (then use ``dagster_dask.dask_executor``).
 """
 
@@ -21,6 +27,7 @@ from __future__ import annotations
 from typing import Any
 
 from dagster import (
+    DagsterEvent,
     DagsterInvariantViolationError,
     Field,
     Permissive,
@@ -28,8 +35,16 @@ from dagster import (
     StringSource,
     executor,
     multiple_process_executor_requirements,
+    serialize_value,
 )
 from dagster_dask.executor import DaskExecutor, get_dask_resource_requirements, query_on_dask_worker
+from dask.sizeof import sizeof
+
+
+@sizeof.register(DagsterEvent)
+def _event_bytes(event: DagsterEvent) -> int:
+    """About the memory an event holds (see the module docstring)."""
+    return len(serialize_value(event))
 
 
 class _Sealed:

@@ -93,3 +93,21 @@ def test_dask_cluster_gives_byte_identical_artifacts(isolated, monkeypatch, dask
     assert main(argv) == 0
     again = json.loads(capsys.readouterr().out)
     assert again["success"] and again["recomputed"] == [] and sorted(again["reused"]) == sorted(ASSETS)
+
+
+def test_dask_sizes_step_results_without_walking_dagster_records():
+    """A step's result (a list of events) holds ``@record`` values that forbid iteration; dask's
+    own tuple walk fails on them (a warning per step on every worker), the registered size does not."""
+    from dagster import AssetMaterialization, DagsterEvent, MetadataValue
+    from dagster._core.events import StepMaterializationData
+    from dask.sizeof import sizeof
+
+    import assets.dask_executor  # noqa: F401 - registers the size of an event
+
+    event = DagsterEvent(event_type_value="ASSET_MATERIALIZATION", job_name="atlas_gs_all", step_key="keyframes",
+                         event_specific_data=StepMaterializationData(AssetMaterialization(
+                             asset_key="keyframes", metadata={"n": 3, "path": MetadataValue.path("/tmp/x")})))
+    with pytest.raises(Exception, match="Iteration is not allowed"):
+        sizeof.dispatch(tuple)(event)  # dask's default for a tuple subclass
+    assert 100 < sizeof(event) < 10_000
+    assert sizeof([event] * 4) >= 4 * sizeof(event)
