@@ -190,7 +190,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         return versioned(context, kf, {"n_keyframes": int(len(kf.indices)), "pose_source": kf.pose_source,
                                        "keyframe_indices": MetadataValue.json([int(i) for i in kf.indices])})
 
-    @stage("gaussian_world", "10", "Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 "
+    @stage("gaussian_world", "11", "Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 "
                                   "ids), then fitted to the keyframe images and depths (positions, scales, rotations, "
                                   "opacities, colours).", check=GAUSSIANS_VALID)
     def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
@@ -278,7 +278,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         finally:
             discard_dir(staging)  # empty once the videos moved into the staged artifact
 
-    @stage("render_evaluation", "2", "The world rendered at held-out (non-keyframe) frames from their estimated poses: "
+    @stage("render_evaluation", "3", "The world rendered at held-out (non-keyframe) frames from their estimated poses: "
                                      "PSNR, SSIM and depth L1 against the real images, and a preview (real | rendered | "
                                      "depth error).")
     def render_evaluation(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,

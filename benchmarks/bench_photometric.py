@@ -5,6 +5,7 @@
     python benchmarks/bench_photometric.py --json out.json
     python benchmarks/bench_photometric.py --datasets teddy --unfitted   # also without the keyframe fit
     python benchmarks/bench_photometric.py --datasets teddy --sources ground_truth --set fusion.max_depth_m=8
+    python benchmarks/bench_photometric.py --datasets --synthetic synthetic-handheld --sensor colour_delay_s=0.015
 
 For each dataset and each way of mapping (ground-truth poses, and the tracker's own poses with no
 ground truth), the world is built with the default profile (voxel Gaussians, then fitted to the
@@ -90,7 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     from atlas_pipeline.config import load_profile
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--datasets", nargs="+", default=["teddy", "synthetic"], choices=["synthetic", "teddy", "fr1"])
+    ap.add_argument("--datasets", nargs="*", default=["teddy", "synthetic"], choices=["synthetic", "teddy", "fr1"])
+    ap.add_argument("--synthetic", nargs="+", default=[], metavar="PRESET",
+                    help="registered synthetic presets too (generated when missing), e.g. synthetic-handheld")
+    ap.add_argument("--sensor", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --synthetic: variants of the presets with this SyntheticSpec field changed, "
+                         "e.g. colour_delay_s=0.015 (as bench_robustness.py)")
     ap.add_argument("--view-stride", type=int, default=1, help="evaluate every n-th held-out frame")
     ap.add_argument("--unfitted", action="store_true",
                     help="also run with mapping.optimization_epochs 0 (the voxel field with fitted colours only)")
@@ -106,11 +112,21 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         overrides = parse_set_overrides(args.set)
+        sensor = parse_set_overrides(args.sensor, "--sensor")
     except ConfigError as exc:
         ap.error(str(exc))
     results = {}
-    for name in args.datasets:
-        m = _load(name)
+    manifests = {name: (lambda name=name: _load(name)) for name in args.datasets}
+    variant_tmp = tempfile.TemporaryDirectory(prefix="atlas-sensor-variants-") if sensor else None
+    if args.synthetic:
+        from bench_robustness import _synthetic_sequences
+
+        from atlas_pipeline.sensors.registry import read_dataset_manifest
+
+        for seq in _synthetic_sequences(args.synthetic, sensor, Path(variant_tmp.name) if variant_tmp else None):
+            manifests[seq.name] = lambda e=seq.entry: read_dataset_manifest(e)
+    for name, load in manifests.items():
+        m = load()
         if m is None:
             print(f"{name}: skipped (TUM frames not found)")
             continue

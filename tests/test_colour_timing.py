@@ -74,3 +74,89 @@ def test_tracker_moves_the_colour_with_its_velocity(small_manifest, monkeypatch,
     # the velocity of frames 0 -> 1 over 15 ms: about 0.015 * fps of one frame's motion
     step = np.linalg.solve(m.T_world_cam_gt[0], m.T_world_cam_gt[1])
     assert np.linalg.norm(calls[0][:3, 3]) == pytest.approx(0.015 * 30.0 * np.linalg.norm(step[:3, 3]), rel=0.2)
+
+
+def _moving_trajectory(n=5, fps=30.0, speed_m_s=1.0):
+    """``n`` poses moving ``speed_m_s`` along x and turning 3 degrees a frame about y, at ``fps``."""
+    t = np.arange(n) / fps
+    T = np.stack([_motion([0.0, np.radians(3.0) * k, 0.0], [speed_m_s * tk, 0.0, 1.0]) for k, tk in enumerate(t)])
+    return T, t
+
+
+def test_pose_at_colour_time_interpolates_between_the_frames_around_it():
+    from atlas_pipeline.perception.colour_timing import colour_motion_in_trajectory, pose_at_colour_time
+
+    T, t = _moving_trajectory()
+    T_c = pose_at_colour_time(T, t, 1, 0.015)  # halfway to frame 2 at 30 Hz
+    assert T_c[0, 3] == pytest.approx(T[1, 0, 3] + 0.015)
+    assert np.degrees(np.arccos(np.clip((np.trace(np.linalg.solve(T[1], T_c)[:3, :3]) - 1) / 2, -1, 1))) \
+        == pytest.approx(1.35, abs=0.01)  # 3 degrees a frame, 0.45 of a frame
+    before = pose_at_colour_time(T, t, 2, -0.010)  # colour taken before depth: towards frame 1
+    assert before[0, 3] == pytest.approx(T[2, 0, 3] - 0.010)
+    motion = colour_motion_in_trajectory(T, t, 1, 0.015)
+    assert np.allclose(T[1] @ motion, T_c)
+
+    assert pose_at_colour_time(T, t, 1, 0.0) is None  # nothing to compensate
+    assert pose_at_colour_time(T, t, 1, 0.2) is None  # not the same moment
+    assert pose_at_colour_time(T, t, 4, 0.015) is None  # the last frame: no frame after it
+    lost = T.copy()
+    lost[2] = np.nan
+    assert pose_at_colour_time(lost, t, 1, 0.015) is None  # the neighbour has no pose
+    gap = t.copy()
+    gap[2:] += 0.5  # dropped frames between 1 and 2
+    assert pose_at_colour_time(T, gap, 1, 0.015) is None
+    assert pose_at_colour_time(T, t, 1, 0.040) is None  # past the next frame: not between them
+
+
+@pytest.mark.parametrize("compensate", [True, False])
+def test_keyframe_fit_and_evaluation_take_the_colour_at_its_own_time(small_manifest, monkeypatch, compensate):
+    """With colour stamped 15 ms after depth, the keyframe fit moves each keyframe's colour to its
+    depth time along the mapping trajectory (``mapping.colour_delay_compensation``), and the render
+    evaluation compares each held-out colour image with a render at the trajectory's pose at the
+    colour's time (``localization.colour_delay_compensation``); neither when they are off."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from atlas_pipeline.gaussian_world import evaluation
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception import colour_timing
+    from atlas_pipeline.perception.rgbd import fuse
+
+    delay = 0.015
+    m = dataclasses.replace(small_manifest, rgb_timestamps_s=small_manifest.timestamps_s + delay)
+    cfg = load_profile("default").with_overrides({
+        "localization.colour_delay_compensation": compensate, "mapping.colour_delay_compensation": compensate,
+        "mapping.optimization_epochs": 1,
+        "mapping.colour_refinement_iterations": 0, "evaluation.view_stride": 1})
+    moved = []
+
+    def record(rgb, depth_m, camera, T_depth_colour):
+        moved.append(T_depth_colour)
+        return rgb
+
+    monkeypatch.setattr(colour_timing, "colour_at_depth_time", record)
+    fused = fuse(m, cfg)
+    kf = select_keyframes_stage(m, fused, cfg)
+    world = build_gaussian_world(fused, kf, cfg, manifest=m)
+    gt = m.T_world_cam_gt
+    expected = [colour_timing.colour_motion_in_trajectory(gt, m.timestamps_s, int(i), delay)
+                for i in world.keyframe_indices]
+    if compensate:
+        assert len(moved) == sum(e is not None for e in expected) > 0
+        assert all(np.allclose(a, b, atol=1e-9) for a, b in zip(moved, [e for e in expected if e is not None]))
+    else:
+        assert moved == []
+
+    seen = {}
+    monkeypatch.setattr(evaluation, "evaluate_views", lambda *a, **kw: seen.update(kw))
+    report = SimpleNamespace(T_world_cam=gt)
+    evaluation.evaluate_rendering(m, SimpleNamespace(keyframe_indices=world.keyframe_indices, field=world.field,
+                                                     map_id="m"), report, cfg)
+    poses = seen["colour_poses"]
+    if not compensate:
+        assert poses == {}
+        return
+    held = np.setdiff1d(np.arange(m.n_frames), world.keyframe_indices)
+    assert set(poses) == {int(i) for i in held if i + 1 < m.n_frames}
+    for i, T in poses.items():
+        assert np.allclose(T, colour_timing.pose_at_colour_time(gt, m.timestamps_s, i, delay))

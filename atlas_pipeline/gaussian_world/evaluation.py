@@ -180,9 +180,13 @@ def preview_image(real_rgb: np.ndarray, rendered_rgb: np.ndarray, rendered_depth
 
 def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, frame_indices: np.ndarray,
                    pose_source: str = "estimated", map_id: str = "", depth_range_m: tuple[float, float] = (0.1, 4.0),
-                   background: tuple[int, int, int] = (0, 0, 0), log: Callable[[str], None] | None = None) -> PhotometricReport:
+                   background: tuple[int, int, int] = (0, 0, 0), log: Callable[[str], None] | None = None,
+                   colour_poses: dict[int, np.ndarray] | None = None) -> PhotometricReport:
     """Render ``field_`` at ``T_world_cam[i]`` ``[N, 4, 4]`` for each ``i`` in ``frame_indices`` and
-    compare with frame ``i`` of ``manifest``. Frames without a finite pose are skipped."""
+    compare with frame ``i`` of ``manifest``. Frames without a finite pose are skipped.
+    ``colour_poses``: frame -> the camera's pose ``[4, 4]`` when that frame's colour image was
+    taken, where it differs from its depth image's: the colour is compared with a render there,
+    the depth with one at ``T_world_cam[i]``."""
     from atlas_pipeline.gaussian_world.render import render_gaussians
     from atlas_pipeline.progress import Progress
     from atlas_pipeline.viz.plots import error_panels_png, preview_size
@@ -192,16 +196,22 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     out = {k: np.full(len(idx), np.nan) for k in ("psnr", "psnr_m", "ssim", "l1", "cov")}
     progress = Progress("evaluating views", len(idx), log)
     keep_for_preview: list[tuple[float, int]] = []
+    colour_poses = colour_poses or {}
+
+    def render(T: np.ndarray):
+        return render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors,
+                                field_.opacities, T, cam.K, cam.width, cam.height, background=background)
+
     for k, i in enumerate(idx):
         real = manifest.read_rgb(i)
         depth = manifest.read_depth_m(i, allow_empty=True)
         depth = np.where((depth > depth_range_m[0]) & (depth < depth_range_m[1]), depth, 0.0)
-        r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
-                             T_world_cam[i], cam.K, cam.width, cam.height, background=background)
-        out["psnr"][k] = psnr(real, r.rgb)
+        r = render(T_world_cam[i])
+        rgb = render(colour_poses[i]).rgb if i in colour_poses else r.rgb
+        out["psnr"][k] = psnr(real, rgb)
         seen = depth > 0
-        out["psnr_m"][k] = psnr(real[seen], r.rgb[seen]) if seen.any() else np.nan
-        out["ssim"][k] = ssim(real, r.rgb)
+        out["psnr_m"][k] = psnr(real[seen], rgb[seen]) if seen.any() else np.nan
+        out["ssim"][k] = ssim(real, rgb)
         out["l1"][k], out["cov"][k] = depth_l1(r.depth_median_m, depth)
         keep_for_preview.append((out["psnr_m"][k], i))
         progress.update()
@@ -212,16 +222,16 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
         _, i = sorted(keep_for_preview)[len(keep_for_preview) // 2]
         real = manifest.read_rgb(i)
         depth = manifest.read_depth_m(i, allow_empty=True)
-        r = render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors, field_.opacities,
-                             T_world_cam[i], cam.K, cam.width, cam.height, background=background)
+        r = render(T_world_cam[i])
+        rgb = render(colour_poses[i]).rgb if i in colour_poses else r.rgb
         # at the size the UI shows previews (the dataset's, halved while wide), with a colour bar
         pw, ph = preview_size(cam.width, cam.height)
         step = max(1, cam.width // pw)
         valid = (depth > 0) & np.isfinite(r.depth_median_m) & (r.depth_median_m > 0)
         err = np.where(valid, np.abs(r.depth_median_m - depth), 0.0)
-        rep.preview_png = error_panels_png(real[::step, ::step], r.rgb[::step, ::step], err[::step, ::step],
+        rep.preview_png = error_panels_png(real[::step, ::step], rgb[::step, ::step], err[::step, ::step],
                                            valid[::step, ::step], PREVIEW_MAX_ERROR_M,
-                                           title=f"frame {i}: PSNR {psnr(real, r.rgb):.1f} dB")
+                                           title=f"frame {i}: PSNR {psnr(real, rgb):.1f} dB")
     rep.summarize()
     logger.info("photometric evaluation of %s: %s", manifest.dataset, rep.summary)
     return rep
@@ -230,10 +240,21 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
 def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: LocalizationReport,
                        cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> PhotometricReport:
     """The render-evaluation stage: render the world at the estimated pose of held-out frames (not
-    keyframes: they never fed the map) and compare with the real images (:func:`evaluate_views`)."""
+    keyframes: they never fed the map) and compare with the real images (:func:`evaluate_views`).
+    A colour image taken after its depth image (``localization.colour_delay_compensation``) is
+    compared with a render at the estimated trajectory's pose at its own time."""
+    from atlas_pipeline.perception.colour_timing import MIN_FLOW_PX, max_flow_px, pose_at_colour_time
+
     held = np.setdiff1d(np.arange(manifest.n_frames), world.keyframe_indices)
     held = held[np.isfinite(report.T_world_cam[held]).all(axis=(1, 2))][:: cfg.evaluation.view_stride]
     if cfg.evaluation.max_views is not None:
         held = held[: cfg.evaluation.max_views]
+    colour_poses = {}
+    if cfg.localization.colour_delay_compensation:
+        for i in map(int, held):
+            T = pose_at_colour_time(report.T_world_cam, manifest.timestamps_s, i, manifest.colour_delay_s(i))
+            # a second render only where the two poses' views differ (not for TUM fr3's ~1 ms)
+            if T is not None and max_flow_px(np.linalg.solve(report.T_world_cam[i], T), manifest.camera) >= MIN_FLOW_PX:
+                colour_poses[i] = T
     return evaluate_views(world.field, manifest, report.T_world_cam, held, "estimated", world.map_id,
-                          (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log)
+                          (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log, colour_poses=colour_poses)

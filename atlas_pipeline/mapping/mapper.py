@@ -328,7 +328,19 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     # In memory while small; a long sequence's keyframes are read again at each use instead, so the
     # fit holds its downsampled working copies, not every raw frame (issue 14).
     in_memory = len(idx) * cam.width * cam.height * FIT_INPUT_BYTES_PER_PIXEL <= FIT_INPUT_MEMORY_BUDGET_BYTES
-    images = _keyframe_reads(len(idx), lambda k: manifest.read_rgb(idx[k]), in_memory)
+    from atlas_pipeline.perception.colour_timing import colour_at_depth_time, colour_motion_in_trajectory
+
+    compensate = mc.colour_delay_compensation
+
+    def colour(k: int) -> np.ndarray:  # at the depth image's time, where the keyframe's pose is
+        rgb = manifest.read_rgb(idx[k])
+        motion = colour_motion_in_trajectory(keyframes.T_world_cam, manifest.timestamps_s, idx[k],
+                                             manifest.colour_delay_s(idx[k])) if compensate else None
+        if motion is None:
+            return rgb
+        return colour_at_depth_time(rgb, manifest.read_depth_m(idx[k], allow_empty=True), cam, motion)
+
+    images = _keyframe_reads(len(idx), colour, in_memory)
     if fit_colours:
         from atlas_pipeline.gaussian_world.refine import refine_colours
 

@@ -7,7 +7,9 @@ is fused onto and compared with (TUM fr1 at 0.36 m/s: about 5 mm, 2 px at 1.5 m)
 
 :func:`colour_at_depth_time` resamples the colour image onto the depth image's time given the
 camera's motion between the two (``T_depth_colour``, the colour camera's pose in the depth
-camera's frame; the tracker takes it from its constant-velocity motion model): each depth pixel's
+camera's frame): the tracker takes it from its constant-velocity motion model while it tracks;
+the keyframe fit, and the render evaluation, from the whole trajectory once it is known
+(:func:`pose_at_colour_time`, :func:`colour_motion_in_trajectory`). Each depth pixel's
 point is projected into the colour camera and the colour read there (bilinear). Pixels without
 depth are moved by the rotation alone (points at infinity). The flow is computed on the pinhole
 (undistorted) rays and applied to the raw pixel grid, a first-order approximation for cameras
@@ -22,17 +24,50 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from atlas_pipeline.geometry import rotation_angle_rad
+from atlas_pipeline.geometry import interpolate_pose, rotation_angle_rad
 from atlas_pipeline.perception.rgbd import pixel_rays
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
-__all__ = ["colour_at_depth_time", "max_flow_px", "MIN_FLOW_PX", "MAX_COLOUR_DELAY_S"]
+__all__ = ["colour_at_depth_time", "colour_motion_in_trajectory", "max_flow_px", "pose_at_colour_time",
+           "MIN_FLOW_PX", "MAX_COLOUR_DELAY_S"]
 
 MIN_FLOW_PX = 0.1  # below this the colour is left as it is: resampling would only blur it
 # Colour further than this from its depth image is not the same moment (TUM pairs within 20 ms);
 # the motion model is not extrapolated that far.
 MAX_COLOUR_DELAY_S = 0.05
 NEAREST_DEPTH_M = 0.3  # the nearest surface assumed when bounding the flow from the translation
+# A trajectory's poses are interpolated to a colour time only between frames this close in time
+# (3 frames at 30 Hz): across a longer gap (dropped frames) the motion need not be even.
+MAX_INTERPOLATION_GAP_S = 0.1
+
+
+def pose_at_colour_time(T_world_cam: np.ndarray, timestamps_s: np.ndarray, i: int,
+                        colour_delay_s: float) -> np.ndarray | None:
+    """Frame ``i``'s camera pose ``[4, 4]`` when its colour image was taken, ``colour_delay_s``
+    after its depth image (the frame's time), from a whole trajectory ``T_world_cam`` ``[N, 4, 4]``
+    (NaN where unknown) at ``timestamps_s`` ``[N]``: interpolated between frame ``i`` and its
+    neighbour on the delay's side (linear translation, slerp). None when there is nothing to
+    compensate (no delay, or one beyond ``MAX_COLOUR_DELAY_S``), or frame ``i`` or that neighbour
+    has no pose, or they are more than ``MAX_INTERPOLATION_GAP_S`` apart or do not bracket the
+    colour time."""
+    if not colour_delay_s or abs(colour_delay_s) > MAX_COLOUR_DELAY_S:
+        return None
+    j = i + 1 if colour_delay_s > 0 else i - 1
+    if not 0 <= j < len(T_world_cam) or not (np.isfinite(T_world_cam[i]).all() and np.isfinite(T_world_cam[j]).all()):
+        return None
+    t_i, t_j = float(timestamps_s[i]), float(timestamps_s[j])
+    t_colour = t_i + colour_delay_s
+    if abs(t_j - t_i) > MAX_INTERPOLATION_GAP_S or not min(t_i, t_j) <= t_colour <= max(t_i, t_j):
+        return None
+    return interpolate_pose(t_i, T_world_cam[i], t_j, T_world_cam[j], t_colour)
+
+
+def colour_motion_in_trajectory(T_world_cam: np.ndarray, timestamps_s: np.ndarray, i: int,
+                                colour_delay_s: float) -> np.ndarray | None:
+    """``T_depth_colour`` ``[4, 4]`` of frame ``i`` (the argument of :func:`colour_at_depth_time`)
+    from a whole trajectory, or None (see :func:`pose_at_colour_time`)."""
+    T_colour = pose_at_colour_time(T_world_cam, timestamps_s, i, colour_delay_s)
+    return None if T_colour is None else np.linalg.solve(T_world_cam[i], T_colour)
 
 
 def max_flow_px(T_depth_colour: np.ndarray, camera: CameraIntrinsics, nearest_m: float = NEAREST_DEPTH_M) -> float:
