@@ -31,6 +31,7 @@ from atlas_pipeline.sensors.registry import (
     load_dataset,
     load_registry,
     local_registry_path,
+    recording_bytes,
     register_local_dataset,
     resolve_camera,
     validate_dataset_name,
@@ -715,17 +716,26 @@ def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
     return code, out.getvalue()
 
 
+def longest_first(sizes: list[int]) -> list[int]:
+    """Indices of ``sizes`` largest first, ties in their order: with more partitions than workers,
+    a long recording started last would run on alone at the end (longest processing time first,
+    the classic list-scheduling rule)."""
+    return sorted(range(len(sizes)), key=lambda k: -sizes[k])
+
+
 def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurrency: int) -> int:
     """Up to ``concurrency`` partitions at a time, each an ordinary Dagster run (recorded in
     ``$DAGSTER_HOME``) in a worker process of a bounded pool; results printed in partition order.
     Each worker's numba gets its share of the cores (unless ``$NUMBA_NUM_THREADS`` is set), so
-    parallel runs do not oversubscribe them."""
+    parallel runs do not oversubscribe them. The largest recordings start first (:func:`longest_first`)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     logger.info("running %d partitions, %d at a time", len(partitions), concurrency)
     tty = sys.stdout.isatty()
     jobs = [argparse.Namespace(**{**vars(args), "all": False, "dataset": p, "concurrency": 1}) for p in partitions]
+    registry = load_registry()
+    order = longest_first([recording_bytes(registry[p]) for p in partitions])
     saved = os.environ.get(NUMBA_THREADS_ENV)
     if saved is None:  # the workers inherit the environment they start with
         os.environ[NUMBA_THREADS_ENV] = str(max(1, (os.cpu_count() or 1) // concurrency))
@@ -736,8 +746,8 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     worst = 0
     try:
         with ProcessPoolExecutor(max_workers=concurrency, mp_context=multiprocessing.get_context(start_method)) as pool:
-            futures = [pool.submit(_run_in_worker, a, tty) for a in jobs]
-            for f in futures:
+            futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
+            for f in (futures[k] for k in range(len(jobs))):  # results in partition order
                 code, text = f.result()
                 if text:
                     sys.stdout.write(text)

@@ -118,3 +118,25 @@ def test_workers_are_forked_only_before_numbas_parallel_runtime_started():
                          cwd=Path(__file__).resolve().parents[1])
     expected = "fork spawn" if sys.platform.startswith("linux") else "spawn spawn"
     assert out.stdout.split() == expected.split()
+
+
+def test_the_largest_recordings_start_first(tmp_path):
+    """``run --all`` submits partitions largest first (ties in registry order), sized by the bytes
+    of their files: links are not followed, an absent folder is 0."""
+    from assets.cli import longest_first
+    from atlas_pipeline.sensors.registry import DatasetEntry, recording_bytes
+
+    assert longest_first([10, 30, 20, 30]) == [1, 3, 2, 0]
+    small, big = tmp_path / "small", tmp_path / "big"
+    (small / "rgb").mkdir(parents=True)
+    (big / "depth").mkdir(parents=True)
+    (small / "rgb" / "1.png").write_bytes(b"x" * 100)
+    (big / "depth" / "1.png").write_bytes(b"x" * 300)
+    (big / "rgb.txt").write_bytes(b"x" * 7)
+    (small / "elsewhere").symlink_to(big, target_is_directory=True)  # not counted twice
+    sizes = [recording_bytes(DatasetEntry(n, "tum", p)) for n, p in
+             [("small", small), ("big", big), ("gone", tmp_path / "gone")]]
+    assert sizes == [100, 307, 0]
+    bag = tmp_path / "x.bag"
+    bag.write_bytes(b"x" * 42)
+    assert recording_bytes(DatasetEntry("bag", "bag", bag)) == 42

@@ -63,6 +63,7 @@ __all__ = [
     "ensure_dataset_files",
     "dataset_on_disk",
     "needs_download",
+    "recording_bytes",
 ]
 
 
@@ -394,6 +395,29 @@ def dataset_on_disk(entry: DatasetEntry) -> bool:
     """Whether a run can build the entry without the network: a synthetic entry (generated on
     demand) or a recording whose files are on disk. Only these are offered as partitions."""
     return entry.kind == "synthetic" or recording_exists(entry.kind, entry.path)
+
+
+def recording_bytes(entry: DatasetEntry) -> int:
+    """Bytes of the entry's files on disk (its folder, followed into subfolders but not through
+    links; a bag file's own size; 0 when absent): how much a run of it has to read, the estimate
+    ``run --all`` starts the longest runs first by."""
+    import os
+
+    path = Path(entry.path)
+    if path.is_file():
+        return path.stat().st_size
+    total, stack = 0, [path]
+    while stack:
+        try:
+            with os.scandir(stack.pop()) as it:
+                for e in it:
+                    if e.is_dir(follow_symlinks=False):
+                        stack.append(Path(e.path))
+                    elif e.is_file(follow_symlinks=False):
+                        total += e.stat(follow_symlinks=False).st_size
+        except OSError:  # absent or unreadable: the run reports it, this is an estimate
+            continue
+    return total
 
 
 def needs_download(entry: DatasetEntry) -> bool:
