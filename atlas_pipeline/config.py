@@ -156,8 +156,8 @@ class MappingConfig:
     optimization_normal_offset_max_scales: float = _setting(0.0, NON_NEGATIVE)
     # Colour taken after its depth image (its timestamp) moved to the depth time along the mapping
     # trajectory before the colour refinement and the fit (perception/colour_timing.py). Off: on
-    # TUM fr1 (timestamps 15 ms apart) it cost 2-3 dB held-out, where synthetic colour really
-    # taken 15 ms late gained 2.2 dB (README, "Colour taken after depth").
+    # TUM fr1 (stamps 15 ms apart) it cost 2.3 dB held-out, where synthetic colour really taken
+    # 15 ms late gained 2.5 dB (README, "Current figures" 0c).
     colour_delay_compensation: bool = False
     # Its schedule (gaussian_world/optimize.py; measured by benchmarks/bench_fit.py). First passes at
     # 1/factor of optimization_scale (2: a quarter of the image side at scale 0.5); 1 = none.

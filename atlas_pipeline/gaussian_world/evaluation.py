@@ -241,8 +241,8 @@ def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: Lo
                        cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> PhotometricReport:
     """The render-evaluation stage: render the world at the estimated pose of held-out frames (not
     keyframes: they never fed the map) and compare with the real images (:func:`evaluate_views`).
-    A colour image taken after its depth image (``localization.colour_delay_compensation``) is
-    compared with a render at the estimated trajectory's pose at its own time."""
+    A colour image taken at another time than its depth image (``localization.colour_delay_compensation``)
+    is compared with a render at the estimated trajectory's pose at its own time."""
     from atlas_pipeline.perception.colour_timing import MIN_FLOW_PX, max_flow_px, pose_at_colour_time
 
     held = np.setdiff1d(np.arange(manifest.n_frames), world.keyframe_indices)
