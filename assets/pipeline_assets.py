@@ -258,7 +258,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         yield out
         yield check_transitions_schema(artifact(context, out))
 
-    @stage("demo_videos", "4", "Orbit, trajectory and side-by-side (real | render) MP4s (H.264, yuv420p) from the CPU "
+    @stage("demo_videos", "5", "Orbit, trajectory and side-by-side (real | render) MP4s (H.264, yuv420p) from the CPU "
                                "Gaussian rasterizer.")
     def demo_videos(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                     gaussian_world: GaussianWorld, localization_report: LocalizationReport):

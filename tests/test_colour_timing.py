@@ -160,3 +160,34 @@ def test_keyframe_fit_and_evaluation_take_the_colour_at_its_own_time(small_manif
     assert set(poses) == {int(i) for i in held if i + 1 < m.n_frames}
     for i, T in poses.items():
         assert np.allclose(T, colour_timing.pose_at_colour_time(gt, m.timestamps_s, i, delay))
+
+
+@pytest.mark.parametrize("compensate", [True, False])
+def test_side_by_side_video_renders_the_colour_at_its_own_time(small_manifest, small_world, monkeypatch, tmp_path,
+                                                               compensate):
+    """The demo's real | render video puts beside each colour image a render at the trajectory's
+    pose at that image's time (as the render evaluation), when compensation is on."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from atlas_pipeline.gaussian_world import render
+    from atlas_pipeline.perception.colour_timing import pose_at_colour_time
+    from atlas_pipeline.viz.demo import render_side_by_side_video
+
+    delay = 0.015
+    m = dataclasses.replace(small_manifest, rgb_timestamps_s=small_manifest.timestamps_s + delay)
+    cfg = load_profile("default").with_overrides({"localization.colour_delay_compensation": compensate})
+    seen = []
+
+    def fake_render(*args, **kwargs):
+        seen.append(np.asarray(args[5]))  # T_world_cam
+        return SimpleNamespace(rgb=np.zeros((m.camera.height, m.camera.width, 3), np.uint8))
+
+    monkeypatch.setattr(render, "render_gaussians", fake_render)
+    gt = m.T_world_cam_gt
+    render_side_by_side_video(small_world, m, gt, cfg, tmp_path / "sbs.mp4")
+    assert len(seen) == m.n_frames
+    for i, T in enumerate(seen):
+        at_colour = pose_at_colour_time(gt, m.timestamps_s, i, delay) if compensate else None
+        assert np.allclose(T, gt[i] if at_colour is None else at_colour)
+    assert compensate == (not np.allclose(seen[0], gt[0]))

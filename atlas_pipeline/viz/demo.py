@@ -132,8 +132,11 @@ def render_video(field: GaussianField, poses_se3: np.ndarray, camera_K: np.ndarr
 def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, poses_se3: np.ndarray,
                               cfg: PipelineConfig, path: Path, log: LogFn | None = None) -> int:
     """MP4 of real frame | render from its estimated pose, for every frame with a finite pose,
-    at the dataset's frame size (frames read one at a time)."""
+    at the dataset's frame size (frames read one at a time). A colour image taken at another time
+    than its depth image is shown beside a render at the trajectory's pose at the colour's time
+    (``localization.colour_delay_compensation``, as the render evaluation)."""
     from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.perception.colour_timing import pose_at_colour_time
     from atlas_pipeline.progress import Progress
     from atlas_pipeline.viz.video import side_by_side, write_mp4
 
@@ -145,8 +148,10 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
     def frames():
         progress = Progress("rendering side-by-side video", len(idx), log)
         for i in idx:
+            T = (pose_at_colour_time(poses_se3, manifest.timestamps_s, int(i), manifest.colour_delay_s(int(i)))
+                 if cfg.localization.colour_delay_compensation else None)
             r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
-                                 poses_se3[i], cam.K, cam.width, cam.height)
+                                 poses_se3[i] if T is None else T, cam.K, cam.width, cam.height)
             progress.update()
             yield side_by_side(manifest.read_rgb(int(i)), r.rgb)
 
