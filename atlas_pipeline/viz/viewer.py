@@ -616,8 +616,10 @@ def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report
     return its handle; the server runs in background threads until ``handle.stop()``.
 
     ``host`` must be a loopback address unless ``allow_remote``: the viewer has no authentication
-    and serves the map and camera images of a recorded place to whoever connects. ``data`` (from
-    :func:`load_viewer_data`) skips loading.
+    and serves the map and camera images of a recorded place to whoever connects. Its websocket
+    takes pages from a loopback origin or from ``host`` itself (:func:`allowed_origins`), so a
+    remote viewer must be bound to the name or address its browsers use, not a wildcard
+    (``0.0.0.0``). ``data`` (from :func:`load_viewer_data`) skips loading.
     """
     import viser
 
