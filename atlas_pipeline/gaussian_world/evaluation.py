@@ -243,18 +243,14 @@ def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: Lo
     keyframes: they never fed the map) and compare with the real images (:func:`evaluate_views`).
     A colour image taken at another time than its depth image (``localization.colour_delay_compensation``)
     is compared with a render at the estimated trajectory's pose at its own time."""
-    from atlas_pipeline.perception.colour_timing import MIN_FLOW_PX, max_flow_px, pose_at_colour_time
+    from atlas_pipeline.perception.colour_timing import colour_time_poses
 
     held = np.setdiff1d(np.arange(manifest.n_frames), world.keyframe_indices)
     held = held[np.isfinite(report.T_world_cam[held]).all(axis=(1, 2))][:: cfg.evaluation.view_stride]
     if cfg.evaluation.max_views is not None:
         held = held[: cfg.evaluation.max_views]
-    colour_poses = {}
-    if cfg.localization.colour_delay_compensation:
-        for i in map(int, held):
-            T = pose_at_colour_time(report.T_world_cam, manifest.timestamps_s, i, manifest.colour_delay_s(i))
-            # a second render only where the two poses' views differ (not for TUM fr3's ~1 ms)
-            if T is not None and max_flow_px(np.linalg.solve(report.T_world_cam[i], T), manifest.camera) >= MIN_FLOW_PX:
-                colour_poses[i] = T
+    # a second render only where the two poses' views differ (not for TUM fr3's ~1 ms)
+    colour_poses = (colour_time_poses(report.T_world_cam, manifest, held)
+                    if cfg.localization.colour_delay_compensation else {})
     return evaluate_views(world.field, manifest, report.T_world_cam, held, "estimated", world.map_id,
                           (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), log=log, colour_poses=colour_poses)

@@ -28,8 +28,8 @@ from atlas_pipeline.geometry import interpolate_pose, rotation_angle_rad
 from atlas_pipeline.perception.rgbd import pixel_rays
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
-__all__ = ["colour_at_depth_time", "colour_motion_in_trajectory", "max_flow_px", "pose_at_colour_time",
-           "MIN_FLOW_PX", "MAX_COLOUR_DELAY_S"]
+__all__ = ["colour_at_depth_time", "colour_motion_in_trajectory", "colour_time_poses", "max_flow_px",
+           "pose_at_colour_time", "MIN_FLOW_PX", "MAX_COLOUR_DELAY_S"]
 
 MIN_FLOW_PX = 0.1  # below this the colour is left as it is: resampling would only blur it
 # Colour further than this from its depth image is not the same moment (TUM pairs within 20 ms);
@@ -68,6 +68,19 @@ def colour_motion_in_trajectory(T_world_cam: np.ndarray, timestamps_s: np.ndarra
     from a whole trajectory, or None (see :func:`pose_at_colour_time`)."""
     T_colour = pose_at_colour_time(T_world_cam, timestamps_s, i, colour_delay_s)
     return None if T_colour is None else np.linalg.solve(T_world_cam[i], T_colour)
+
+
+def colour_time_poses(T_world_cam: np.ndarray, manifest, indices) -> dict[int, np.ndarray]:
+    """Frame -> the pose ``[4, 4]`` at its colour image's time (:func:`pose_at_colour_time`), for
+    each of ``indices`` whose colour was taken far enough from its depth image to move a pixel by
+    ``MIN_FLOW_PX``; the others are left out (their colour belongs at ``T_world_cam[i]``). What a
+    render compared with the colour images uses (the render evaluation, the demo's side-by-side)."""
+    out = {}
+    for i in map(int, indices):
+        T = pose_at_colour_time(T_world_cam, manifest.timestamps_s, i, manifest.colour_delay_s(i))
+        if T is not None and max_flow_px(np.linalg.solve(T_world_cam[i], T), manifest.camera) >= MIN_FLOW_PX:
+            out[i] = T
+    return out
 
 
 def max_flow_px(T_depth_colour: np.ndarray, camera: CameraIntrinsics, nearest_m: float = NEAREST_DEPTH_M) -> float:

@@ -136,7 +136,7 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
     than its depth image is shown beside a render at the trajectory's pose at the colour's time
     (``localization.colour_delay_compensation``, as the render evaluation)."""
     from atlas_pipeline.gaussian_world.render import render_gaussians
-    from atlas_pipeline.perception.colour_timing import pose_at_colour_time
+    from atlas_pipeline.perception.colour_timing import colour_time_poses
     from atlas_pipeline.progress import Progress
     from atlas_pipeline.viz.video import side_by_side, write_mp4
 
@@ -144,14 +144,13 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
         raise ValueError("cannot render an empty world")
     cam = manifest.camera
     idx = np.flatnonzero(np.isfinite(poses_se3).all(axis=(1, 2)))
+    colour_poses = colour_time_poses(poses_se3, manifest, idx) if cfg.localization.colour_delay_compensation else {}
 
     def frames():
         progress = Progress("rendering side-by-side video", len(idx), log)
         for i in idx:
-            T = (pose_at_colour_time(poses_se3, manifest.timestamps_s, int(i), manifest.colour_delay_s(int(i)))
-                 if cfg.localization.colour_delay_compensation else None)
             r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
-                                 poses_se3[i] if T is None else T, cam.K, cam.width, cam.height)
+                                 colour_poses.get(int(i), poses_se3[i]), cam.K, cam.width, cam.height)
             progress.update()
             yield side_by_side(manifest.read_rgb(int(i)), r.rgb)
 
