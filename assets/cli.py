@@ -695,24 +695,55 @@ def worker_start_method() -> str:
     return "spawn" if started else "fork"
 
 
+class _CoreShare:
+    """A pool worker's share of the cores now: all of them divided among the runs still going
+    (``unfinished``, a counter in shared memory that each worker lowers when a run ends), so the
+    last runs get the cores the finished ones left instead of leaving them idle."""
+
+    def __init__(self, unfinished, concurrency: int, cores: int):
+        self.unfinished, self.concurrency, self.cores = unfinished, concurrency, cores
+
+    def __call__(self) -> int:
+        running = max(1, min(self.concurrency, self.unfinished.value))
+        return max(1, self.cores // running)
+
+
+_POOL_SHARE: _CoreShare | None = None  # set in a pool worker whose kernels follow the share
+
+
+def _init_worker(share: _CoreShare | None) -> None:
+    """A pool worker's start: its kernels follow ``share`` (None: ``$NUMBA_NUM_THREADS`` as set)."""
+    global _POOL_SHARE
+    _POOL_SHARE = share
+    if share is not None:
+        from atlas_pipeline.cores import kernel_threads, use_core_share
+
+        use_core_share(share)
+        kernel_threads()  # before any kernel: the stages before the first rasterizer call too
+
+
 def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
     """``atlas-gs run`` of one partition in a pool process: (exit code, its stdout)."""
     import contextlib
 
-    share = os.environ.get(NUMBA_THREADS_ENV)
-    numba = sys.modules.get("numba")
-    if share and numba is not None:  # a forked worker: numba read its thread count in the parent
-        numba.set_num_threads(min(int(share), numba.config.NUMBA_NUM_THREADS))
     root = logging.getLogger()
     for inherited in [h for h in root.handlers if isinstance(h, _CliHandler)]:
         root.removeHandler(inherited)  # a forked worker's copy of the parent's: every line twice
     out = _Captured(tty)
     with _CliOutput(args.verbose, prefix=f"{args.dataset}: "), contextlib.redirect_stdout(out):
         try:
+            if _POOL_SHARE is not None:
+                from atlas_pipeline.cores import kernel_threads
+
+                kernel_threads()  # this run's share from its start
             code = int(cmd_run(args) or 0)
         except AtlasError as exc:
             logger.error("%s", exc)
             code = EXIT_ERROR
+        finally:
+            if _POOL_SHARE is not None:
+                with _POOL_SHARE.unfinished.get_lock():
+                    _POOL_SHARE.unfinished.value -= 1
     return code, out.getvalue()
 
 
@@ -726,8 +757,9 @@ def longest_first(sizes: list[int]) -> list[int]:
 def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurrency: int) -> int:
     """Up to ``concurrency`` partitions at a time, each an ordinary Dagster run (recorded in
     ``$DAGSTER_HOME``) in a worker process of a bounded pool; results printed in partition order.
-    Each worker's numba gets its share of the cores (unless ``$NUMBA_NUM_THREADS`` is set), so
-    parallel runs do not oversubscribe them. The largest recordings start first (:func:`longest_first`)."""
+    Each worker's kernels get its share of the cores, re-read as runs end (:class:`_CoreShare`;
+    unless ``$NUMBA_NUM_THREADS`` is set), so parallel runs do not oversubscribe them and the
+    last ones use the cores the others left. The largest recordings start first (:func:`longest_first`)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
@@ -736,26 +768,24 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     jobs = [argparse.Namespace(**{**vars(args), "all": False, "dataset": p, "concurrency": 1}) for p in partitions]
     registry = load_registry()
     order = longest_first([recording_bytes(registry[p]) for p in partitions])
-    saved = os.environ.get(NUMBA_THREADS_ENV)
-    if saved is None:  # the workers inherit the environment they start with
-        os.environ[NUMBA_THREADS_ENV] = str(max(1, (os.cpu_count() or 1) // concurrency))
     # The library's modules are not imported here first: the workers import what their stages
     # need at the same time, on both cores, where importing them here would run alone (four
     # partitions finished 0.5-1 s sooner without it, timed with benchmarks/bench_parallel.py's runs).
-    start_method = worker_start_method()
+    context = multiprocessing.get_context(worker_start_method())
+    # Each worker's kernels use the cores divided among the runs still going (unless the user set
+    # $NUMBA_NUM_THREADS): no oversubscription while the pool is full, no idle core at its end.
+    share = (None if os.environ.get(NUMBA_THREADS_ENV) else
+             _CoreShare(context.Value("i", len(jobs)), concurrency, os.cpu_count() or 1))
     worst = 0
-    try:
-        with ProcessPoolExecutor(max_workers=concurrency, mp_context=multiprocessing.get_context(start_method)) as pool:
-            futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
-            for f in (futures[k] for k in range(len(jobs))):  # results in partition order
-                code, text = f.result()
-                if text:
-                    sys.stdout.write(text)
-                    sys.stdout.flush()
-                worst = max(worst, code)
-    finally:
-        if saved is None:
-            os.environ.pop(NUMBA_THREADS_ENV, None)
+    with ProcessPoolExecutor(max_workers=concurrency, mp_context=context, initializer=_init_worker,
+                             initargs=(share,)) as pool:
+        futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
+        for f in (futures[k] for k in range(len(jobs))):  # results in partition order
+            code, text = f.result()
+            if text:
+                sys.stdout.write(text)
+                sys.stdout.flush()
+            worst = max(worst, code)
     return worst
 
 

@@ -81,11 +81,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field as dataclass_field
 from typing import Callable
 
-import numba
 import numpy as np
 from numba import njit, prange
 
 from atlas_pipeline.gaussian_world import raster
+from atlas_pipeline.cores import kernel_threads
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
 from atlas_pipeline.gaussian_world.raster import (
     ALPHA_MAX, ALPHA_MIN, AUX_A, AUX_B, AUX_CXX, AUX_CXY, AUX_CYY, AUX_P, AUX_SLOPE_U, AUX_SLOPE_V, AUX_TXZ, AUX_TYZ,
@@ -858,7 +858,7 @@ class _StageClock:
 
 def _n_workers(n_tiles: int) -> int:
     # two tile streams per thread balance busy and empty regions; the results do not depend on it
-    return max(1, min(n_tiles, 2 * numba.get_num_threads()))
+    return max(1, min(n_tiles, 2 * kernel_threads()))
 
 
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,

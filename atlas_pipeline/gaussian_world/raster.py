@@ -52,9 +52,10 @@ import logging
 import math
 from typing import NamedTuple
 
-import numba
 import numpy as np
 from numba import njit, prange
+
+from atlas_pipeline.cores import kernel_threads
 
 logger = logging.getLogger(__name__)
 
@@ -1170,7 +1171,7 @@ def composite_tiles(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Stage 6: ``(rgb [H, W, 3] uint8, depth_m, alpha, depth_median_m [H, W] float32)``, threaded
     over tiles (compiled)."""
-    n_workers = min(splats.n_tiles, max(1, numba.get_num_threads()))
+    n_workers = min(splats.n_tiles, kernel_threads())
     return _composite_kernel(
         splats.tile_start, splats.tile_ids, splats.feat, splats.box, splats.width, splats.height,
         splats.tiles_x, splats.n_tiles, np.asarray(background, np.float32), n_workers,
@@ -1192,6 +1193,6 @@ def composite_tile_batch(
     height, width = rgb.shape[:2]
     n_tiles = len(tile_start) - 1
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    n_workers = max(1, min(n_tiles, numba.get_num_threads()))
+    n_workers = max(1, min(n_tiles, kernel_threads()))
     _composite_batch_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, int(t0), n_tiles,
                             np.asarray(background, np.float32), n_workers, rgb, depth_out, alpha_out, median_out)

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
+from atlas_pipeline.cores import kernel_threads
 from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp, so3_log
 from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
@@ -415,6 +416,7 @@ class RGBDTracker:
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
+        kernel_threads()  # this process's share of the cores now (a pool of runs may change it)
         # One model view per frame, at the initial pose; every level projects into it.
         view = model.model_view(T, self.camera, self.model_level)
         w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
