@@ -771,21 +771,33 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     # The library's modules are not imported here first: the workers import what their stages
     # need at the same time, on both cores, where importing them here would run alone (four
     # partitions finished 0.5-1 s sooner without it, timed with benchmarks/bench_parallel.py's runs).
+    from assets.definitions import executor_name
+
     context = multiprocessing.get_context(worker_start_method())
+    cores = os.cpu_count() or 1
+    user_set = bool(os.environ.get(NUMBA_THREADS_ENV))
+    in_process = executor_name(getattr(args, "executor", None)) == "in_process"
     # Each worker's kernels use the cores divided among the runs still going (unless the user set
     # $NUMBA_NUM_THREADS): no oversubscription while the pool is full, no idle core at its end.
-    share = (None if os.environ.get(NUMBA_THREADS_ENV) else
-             _CoreShare(context.Value("i", len(jobs)), concurrency, os.cpu_count() or 1))
+    share = _CoreShare(context.Value("i", len(jobs)), concurrency, cores) if in_process and not user_set else None
+    # Steps run in other processes (--executor multiprocess) read a fixed share from the environment.
+    fixed = not in_process and not user_set
+    if fixed:
+        os.environ[NUMBA_THREADS_ENV] = str(max(1, cores // concurrency))
     worst = 0
-    with ProcessPoolExecutor(max_workers=concurrency, mp_context=context, initializer=_init_worker,
-                             initargs=(share,)) as pool:
-        futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
-        for f in (futures[k] for k in range(len(jobs))):  # results in partition order
-            code, text = f.result()
-            if text:
-                sys.stdout.write(text)
-                sys.stdout.flush()
-            worst = max(worst, code)
+    try:
+        with ProcessPoolExecutor(max_workers=concurrency, mp_context=context, initializer=_init_worker,
+                                 initargs=(share,)) as pool:
+            futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
+            for f in (futures[k] for k in range(len(jobs))):  # results in partition order
+                code, text = f.result()
+                if text:
+                    sys.stdout.write(text)
+                    sys.stdout.flush()
+                worst = max(worst, code)
+    finally:
+        if fixed:
+            os.environ.pop(NUMBA_THREADS_ENV, None)
     return worst
 
 
