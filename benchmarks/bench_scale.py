@@ -11,10 +11,12 @@ an earlier stage may still be resident, so a stage's peak is an upper bound on i
     python benchmarks/bench_scale.py                       # N = 100 500 2000
     python benchmarks/bench_scale.py --frames 60 240 --json scale.json
     python benchmarks/bench_scale.py --graph --frames 1200   # atlas-gs run through Dagster: every asset
+    python benchmarks/bench_scale.py --frames 1200 --set mapping.optimization_epochs=0   # no fit
 
 The table gives, per N: seconds and peak RSS (MB) per stage, the whole run's peak, seconds per
-frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged),
-and the held-out PSNR (full frame / within mapped pixels).
+frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged), the
+Gaussians the keyframes merged into and those after the fit, and the held-out PSNR (full frame /
+within mapped pixels).
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ class RssSampler(threading.Thread):
         self._stop.set()
 
 
-def child(n_frames: int, data_dir: str, profile: str) -> dict:
+def child(n_frames: int, data_dir: str, profile: str, overrides: dict | None = None) -> dict:
     """Every stage once on the synthetic room at ``n_frames`` (run inside a fresh process)."""
     sys.path.insert(0, str(ROOT))
     os.environ["ATLAS_DATA_DIR"] = data_dir
@@ -77,7 +79,7 @@ def child(n_frames: int, data_dir: str, profile: str) -> dict:
     from atlas_pipeline.transition_log.transitions import log_transitions
 
     quiet = lambda *_: None  # noqa: E731
-    cfg = load_profile(profile)
+    cfg = load_profile(profile).with_overrides(overrides or {}, "--set")
     base = load_registry()["synthetic"]
     entry = dataclasses.replace(base, name=f"synthetic-{n_frames}", path=Path(data_dir) / f"synthetic-{n_frames}",
                                 params={**base.params, "n_frames": n_frames})
@@ -104,6 +106,7 @@ def child(n_frames: int, data_dir: str, profile: str) -> dict:
     import resource
 
     out.update(n_keyframes=int(len(keyframes.indices)), n_gaussians=int(len(world.field)),
+               n_merged=int(world.history[-1]) if len(world.history) else None,  # before the fit
                peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
                psnr_db=ev.summary.get("mean_psnr_db"), psnr_masked_db=ev.summary.get("mean_psnr_masked_db"),
                ate_m=report.summary.get("ate_rmse_m"))
@@ -161,14 +164,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", nargs="+", type=int, default=list(DEFAULT_FRAMES))
     ap.add_argument("--profile", default="default")
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for every N (as atlas-gs --set), e.g. mapping.optimization_epochs=0")
+    ap.add_argument("--overrides", help=argparse.SUPPRESS)  # the child's: --set as JSON
     ap.add_argument("--graph", action="store_true",
                     help="instead: atlas-gs run through Dagster (every asset) per N: wall, CPU, peak RSS")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
-        print(json.dumps(child(args.child, args.data, args.profile)))
+        print(json.dumps(child(args.child, args.data, args.profile, json.loads(args.overrides or "{}"))))
         return 0
+    from atlas_pipeline.config import parse_set_overrides
+
+    overrides = parse_set_overrides(args.set)
+    if args.graph and overrides:
+        raise SystemExit("--set applies to the library stages, not to --graph")
 
     if args.graph:
         with tempfile.TemporaryDirectory(prefix="atlas-bench-scale-") as data:
@@ -190,26 +201,29 @@ def main(argv: list[str] | None = None) -> int:
         for n in args.frames:
             generate(n, data)
             proc = subprocess.run([sys.executable, __file__, "--child", str(n), "--data", data,
-                                   "--profile", args.profile], capture_output=True, text=True, cwd=ROOT)
+                                   "--profile", args.profile, "--overrides", json.dumps(overrides)],
+                                  capture_output=True, text=True, cwd=ROOT)
             if proc.returncode != 0:
                 print(f"N={n}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
                 return 1
             rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    print(f"synthetic room, profile {args.profile}; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    print(f"synthetic room, profile {args.profile}"
+          + "".join(f", {k}={v}" for k, v in overrides.items())
+          + f"; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
     print("seconds / peak RSS MB per stage:")
     print(f"{'frames':>7} " + " ".join(f"{s[:14]:>16}" for s in STAGES))
     for r in rows:
         print(f"{r['n_frames']:>7} " + " ".join(
             f"{r['stages'][s]['seconds']:>8.1f}/{r['stages'][s]['peak_rss_mb']:<7d}" for s in STAGES))
     base = None
-    print(f"\n{'frames':>7} {'keyframes':>9} {'Gaussians':>10} {'total s':>8} {'s/frame':>8} {'ratio':>6} "
+    print(f"\n{'frames':>7} {'keyframes':>9} {'merged':>8} {'Gaussians':>10} {'total s':>8} {'s/frame':>8} {'ratio':>6} "
           f"{'peak MB':>8} {'PSNR':>6} {'masked':>7} {'ATE cm':>7}")
     for r in rows:
         total = sum(st["seconds"] for st in r["stages"].values())
         per = total / r["n_frames"]
         base = base or per
         f = lambda v, d=2: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731
-        print(f"{r['n_frames']:>7} {r['n_keyframes']:>9} {r['n_gaussians']:>10} {total:>8.1f} {per:>8.3f} "
+        print(f"{r['n_frames']:>7} {r['n_keyframes']:>9} {r.get('n_merged') or 'n/a':>8} {r['n_gaussians']:>10} {total:>8.1f} {per:>8.3f} "
               f"{per / base:>6.2f} {r['peak_rss_mb']:>8} {f(r['psnr_db']):>6} {f(r['psnr_masked_db']):>7} "
               f"{f(None if r['ate_m'] is None else r['ate_m'] * 100):>7}")
     if args.json:
