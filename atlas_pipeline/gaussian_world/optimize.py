@@ -84,8 +84,8 @@ from typing import Callable
 import numpy as np
 from numba import njit, prange
 
-from atlas_pipeline.gaussian_world import raster
 from atlas_pipeline.cores import kernel_threads
+from atlas_pipeline.gaussian_world import raster
 from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
 from atlas_pipeline.gaussian_world.raster import (
     ALPHA_MAX, ALPHA_MIN, AUX_A, AUX_B, AUX_CXX, AUX_CXY, AUX_CYY, AUX_P, AUX_SLOPE_U, AUX_SLOPE_V, AUX_TXZ, AUX_TYZ,
