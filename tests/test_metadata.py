@@ -90,7 +90,7 @@ def test_cli_and_benchmarks_share_the_parser():
     from assets import cli
 
     assert cli.parse_set_overrides is parse_set_overrides
-    for name in ("bench_tracking", "bench_robustness", "bench_photometric"):
+    for name in ("bench_tracking", "bench_robustness", "bench_photometric", "bench_scale"):
         src = (cli.project_root() / "benchmarks" / f"{name}.py").read_text()
         assert "parse_set_overrides" in src and "yaml.safe_load" not in src, name
     assert "yaml" not in inspect.getsource(cli._overrides)
