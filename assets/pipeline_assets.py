@@ -190,7 +190,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         return versioned(context, kf, {"n_keyframes": int(len(kf.indices)), "pose_source": kf.pose_source,
                                        "keyframe_indices": MetadataValue.json([int(i) for i in kf.indices])})
 
-    @stage("gaussian_world", "11", "Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 "
+    @stage("gaussian_world", "12", "Gaussian world: anisotropic Gaussians merged per voxel from the keyframes (stable uint64 "
                                   "ids), then fitted to the keyframe images and depths (positions, scales, rotations, "
                                   "opacities, colours).", check=GAUSSIANS_VALID)
     def gaussian_world(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,

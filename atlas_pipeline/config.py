@@ -174,6 +174,10 @@ class MappingConfig:
     # Clone / split Gaussians whose mean view-space (NDC) position gradient exceeds this.
     optimization_densify_grad_threshold: float = _setting(2e-4, POSITIVE)
     optimization_prune_opacity: float = _setting(0.005, UNIT_INTERVAL)  # remove Gaussians below this opacity
+    # Adam steps only the Gaussians each keyframe draws, each on its own step count (selective
+    # Adam); false: every Gaussian every step (3DGS), which moves unseen ones on their momentum,
+    # more the longer the path (optimize.OptimizationSettings.selective_adam).
+    optimization_selective_adam: bool = True
     # Tracked poses (pose_source estimated): loops to earlier keyframes verified by the tracker,
     # then a pose graph of the keyframes (atlas_pipeline/mapping/loop_closure.py).
     loop_closure: bool = True

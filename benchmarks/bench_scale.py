@@ -16,7 +16,10 @@ an earlier stage may still be resident, so a stage's peak is an upper bound on i
 The table gives, per N: seconds and peak RSS (MB) per stage, the whole run's peak, seconds per
 frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged), the
 Gaussians the keyframes merged into and those after the fit, and the held-out PSNR (full frame /
-within mapped pixels).
+within mapped pixels). A longer path sees other parts of the room, so its held-out views differ
+from a shorter one's: every N's world is therefore also rendered at the first N's held-out views
+that are not its own keyframes ("first N's views": the path is a function of time, so those frames
+are the same images), which compares the worlds on identical views.
 """
 
 from __future__ import annotations
@@ -62,8 +65,10 @@ class RssSampler(threading.Thread):
         self._stop.set()
 
 
-def child(n_frames: int, data_dir: str, profile: str, overrides: dict | None = None) -> dict:
-    """Every stage once on the synthetic room at ``n_frames`` (run inside a fresh process)."""
+def child(n_frames: int, data_dir: str, profile: str, overrides: dict | None = None,
+          common_frames: list[int] | None = None) -> dict:
+    """Every stage once on the synthetic room at ``n_frames`` (run inside a fresh process);
+    ``common_frames``: the first N's held-out views, rendered in this world too (not timed)."""
     sys.path.insert(0, str(ROOT))
     os.environ["ATLAS_DATA_DIR"] = data_dir
     import dataclasses
@@ -71,7 +76,7 @@ def child(n_frames: int, data_dir: str, profile: str, overrides: dict | None = N
 
     logging.basicConfig(level=logging.WARNING)
     from atlas_pipeline.config import load_profile
-    from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
+    from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering, evaluate_views
     from atlas_pipeline.localization.localizer import localize
     from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
     from atlas_pipeline.perception.rgbd import fuse
@@ -105,11 +110,21 @@ def child(n_frames: int, data_dir: str, profile: str, overrides: dict | None = N
     sampler.stop()
     import resource
 
+    import numpy as np
+
+    common = ev  # the first N's own held-out views
+    if common_frames is not None:
+        frames = np.setdiff1d(np.asarray(common_frames, np.int64), world.keyframe_indices)
+        common = evaluate_views(world.field, manifest, report.T_world_cam, frames, "estimated", world.map_id,
+                                (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
+
     out.update(n_keyframes=int(len(keyframes.indices)), n_gaussians=int(len(world.field)),
                n_merged=int(world.history[-1]) if len(world.history) else None,  # before the fit
                peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
                psnr_db=ev.summary.get("mean_psnr_db"), psnr_masked_db=ev.summary.get("mean_psnr_masked_db"),
-               ate_m=report.summary.get("ate_rmse_m"))
+               ate_m=report.summary.get("ate_rmse_m"), eval_frames=[int(i) for i in ev.frames],
+               common_n_views=len(common.frames), common_psnr_db=common.summary.get("mean_psnr_db"),
+               common_psnr_masked_db=common.summary.get("mean_psnr_masked_db"))
     return out
 
 
@@ -170,10 +185,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--graph", action="store_true",
                     help="instead: atlas-gs run through Dagster (every asset) per N: wall, CPU, peak RSS")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--common-frames", help=argparse.SUPPRESS)  # the child's: the first N's views, JSON
     ap.add_argument("--data", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
-        print(json.dumps(child(args.child, args.data, args.profile, json.loads(args.overrides or "{}"))))
+        print(json.dumps(child(args.child, args.data, args.profile, json.loads(args.overrides or "{}"),
+                               json.loads(args.common_frames) if args.common_frames else None)))
         return 0
     from atlas_pipeline.config import parse_set_overrides
 
@@ -200,8 +217,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="atlas-bench-scale-") as data:
         for n in args.frames:
             generate(n, data)
+            common = ["--common-frames", json.dumps(rows[0]["eval_frames"])] if rows else []
             proc = subprocess.run([sys.executable, __file__, "--child", str(n), "--data", data,
-                                   "--profile", args.profile, "--overrides", json.dumps(overrides)],
+                                   "--profile", args.profile, "--overrides", json.dumps(overrides), *common],
                                   capture_output=True, text=True, cwd=ROOT)
             if proc.returncode != 0:
                 print(f"N={n}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
@@ -217,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['stages'][s]['seconds']:>8.1f}/{r['stages'][s]['peak_rss_mb']:<7d}" for s in STAGES))
     base = None
     print(f"\n{'frames':>7} {'keyframes':>9} {'merged':>8} {'Gaussians':>10} {'total s':>8} {'s/frame':>8} {'ratio':>6} "
-          f"{'peak MB':>8} {'PSNR':>6} {'masked':>7} {'ATE cm':>7}")
+          f"{'peak MB':>8} {'PSNR':>6} {'masked':>7} {'ATE cm':>7}  first N's views: {'n':>4} {'PSNR':>6} {'masked':>7}")
     for r in rows:
         total = sum(st["seconds"] for st in r["stages"].values())
         per = total / r["n_frames"]
@@ -225,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
         f = lambda v, d=2: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731
         print(f"{r['n_frames']:>7} {r['n_keyframes']:>9} {r.get('n_merged') or 'n/a':>8} {r['n_gaussians']:>10} {total:>8.1f} {per:>8.3f} "
               f"{per / base:>6.2f} {r['peak_rss_mb']:>8} {f(r['psnr_db']):>6} {f(r['psnr_masked_db']):>7} "
-              f"{f(None if r['ate_m'] is None else r['ate_m'] * 100):>7}")
+              f"{f(None if r['ate_m'] is None else r['ate_m'] * 100):>7}  {'':>16} {r['common_n_views']:>4} "
+              f"{f(r['common_psnr_db']):>6} {f(r['common_psnr_masked_db']):>7}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
     return 0

@@ -399,3 +399,95 @@ def test_profile_sets_the_normal_offset_bound():
     assert OptimizationSettings.from_mapping(load_profile("default").mapping).normal_offset_max_scales == 0.0
     with pytest.raises(ConfigError, match="normal_offset_max_scales"):
         load_profile("default").with_overrides({"mapping.optimization_normal_offset_max_scales": -1})
+
+
+def _adam_state(n: int, seed: int):
+    """Random fit state of ``n`` Gaussians for ``_adam_step``: (gparam, m1, m2, params...)."""
+    rng = np.random.default_rng(seed)
+    P = opt._N_PARAM
+    gparam = rng.normal(0, 1e-3, (P, n)).astype(np.float32)
+    m1 = rng.normal(0, 1e-4, (P, n)).astype(np.float32)
+    m2 = rng.uniform(1e-8, 1e-6, (P, n)).astype(np.float32)
+    pos = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    log_s = rng.uniform(-4, -3, (n, 3)).astype(np.float32)
+    q = rng.normal(size=(n, 4))
+    quat = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    logit = rng.normal(0, 1, n).astype(np.float32)
+    col = rng.uniform(0.2, 0.8, (n, 3)).astype(np.float32)
+    return [gparam, m1, m2, pos, log_s, quat, logit, col, np.exp(log_s), 1 / (1 + np.exp(-logit))]
+
+
+def _step(state, t, seen, n_steps, lr=None):
+    gparam, m1, m2, pos, log_s, quat, logit, col, scl, opa = state
+    lr = np.full(opt._N_PARAM, 1e-3) if lr is None else lr
+    ibc1, ibc2 = opt._bias_corrections(0.9, t), opt._bias_corrections(0.999, t)
+    opt._adam_step(gparam, m1, m2, lr, 0.9, 0.999, ibc1, ibc2, t, 1e-15, np.log(1e-4), np.log(0.1), pos, log_s, quat,
+                   logit, col, scl, opa, seen, n_steps)
+
+
+def test_selective_adam_leaves_unseen_gaussians_alone():
+    """Selective Adam (the default): Gaussians the view did not draw keep their parameters and
+    moments bit for bit; the drawn ones count a step and move."""
+    n = 3 * opt._ADAM_BLOCK + 17  # several blocks and a partial one
+    state = _adam_state(n, 0)
+    before = [a.copy() for a in state]
+    seen = (np.random.default_rng(1).random(n) < 0.3).astype(np.uint8)
+    n_steps = np.zeros(n, np.int32)
+    _step(state, 500, seen, n_steps)
+    off, on = seen == 0, seen == 1
+    for a, b in zip(state[1:], before[1:]):  # moments and parameters
+        axis_rows = a.shape[0] == opt._N_PARAM and a.ndim == 2
+        sel_off = (slice(None), off) if axis_rows else off
+        assert np.array_equal(a[sel_off], b[sel_off])
+    assert np.array_equal(n_steps, seen.astype(np.int32))
+    assert not np.allclose(state[3][on], before[3][on])  # positions moved
+
+
+def test_selective_adam_corrects_bias_by_each_gaussians_own_steps():
+    """A Gaussian's first step is the same whenever in the fit it comes (its own count), and is
+    Adam's first step: -lr times the gradient's sign for zero moments."""
+    n = 40
+    state = _adam_state(n, 2)
+    state[1][:] = 0.0
+    state[2][:] = 0.0
+    pos0 = state[3].copy()
+    lr = np.full(opt._N_PARAM, 1e-3)
+    _step(state, 5000, np.ones(n, np.uint8), np.zeros(n, np.int32), lr)  # a late global step
+    expected = pos0 - 1e-3 * np.sign(state[0][opt._P_POS:opt._P_POS + 3].T)
+    np.testing.assert_allclose(state[3], expected, atol=1e-6)
+
+
+def test_dense_adam_is_standard_adam_with_the_fits_step():
+    """Dense (empty seen): every Gaussian steps with the bias correction of the fit's step, unseen
+    ones (zero gradient) moving on their momentum: the NumPy Adam update."""
+    n = 50
+    state = _adam_state(n, 3)
+    g, m1, m2, pos = (a.astype(np.float64) for a in state[:4])
+    g[:, ::2] = 0.0  # half the Gaussians unseen this step
+    state[0][:, ::2] = 0.0
+    t, b1, b2 = 7, 0.9, 0.999
+    m1n, m2n = b1 * m1 + (1 - b1) * g, b2 * m2 + (1 - b2) * g * g
+    step = -1e-3 * (m1n / (1 - b1 ** t)) / (np.sqrt(m2n / (1 - b2 ** t)) + 1e-15)
+    _step(state, t, np.zeros(0, np.uint8), np.zeros(0, np.int32))
+    np.testing.assert_allclose(state[3], pos + step[opt._P_POS:opt._P_POS + 3].T, rtol=1e-4, atol=1e-7)
+    assert not np.allclose(state[3][::2], pos[::2])  # unseen ones moved on their momentum
+
+
+def test_a_gaussian_no_keyframe_draws_leaves_the_fit_as_it_came(small_manifest, small_world):
+    """In the fit, a Gaussian outside every keyframe's view never steps: it leaves the fit as it
+    came, with selective Adam as with dense (zero gradient, zero moments)."""
+    train = [0, 6]
+    targets = _views(small_world, small_manifest, train)
+    behind = small_manifest.T_world_cam_gt[0][:3, 3] - 50.0 * small_manifest.T_world_cam_gt[0][:3, 2]
+    far = GaussianField(np.vstack([small_world.positions, behind[None]]),
+                        np.vstack([small_world.scales, [[0.05, 0.05, 0.05]]]),
+                        np.vstack([small_world.rotations_xyzw, [[0, 0, 0, 1.0]]]),
+                        np.vstack([small_world.colors, [[200, 10, 10]]]),
+                        np.concatenate([small_world.opacities, [0.9]]),
+                        np.concatenate([small_world.ids, [np.uint64(123456789)]]))
+    res = optimize_gaussians(far, [t[0] for t in targets], [t[1] for t in targets],
+                             [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
+                             OptimizationSettings(epochs=2, scale=0.5, densify_interval=0), log=lambda _: None)
+    k = int(np.flatnonzero(res.field.ids == np.uint64(123456789))[0])
+    np.testing.assert_allclose(res.field.positions[k], behind, atol=1e-5)
+    assert res.field.colors[k].tolist() == [200, 10, 10]

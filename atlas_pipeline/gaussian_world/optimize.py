@@ -179,6 +179,13 @@ class OptimizationSettings:
         densify_scale_m: a Gaussian with all scales at most this is cloned, a larger one split.
         densify_max_growth: the densified field holds at most this times the starting count.
         prune_opacity: Gaussians below this opacity are removed at each round (3DGS: 0.005).
+        selective_adam: Adam steps only the Gaussians the view draws, each with the bias correction
+            of its own step count (gsplat's ``SelectiveAdam``, after Mallick et al.'s Taming 3DGS).
+            Dense Adam (False, 3DGS) also moves every unseen Gaussian on its momentum: a Gaussian
+            seen in a fraction f of the steps then travels about 1/sqrt(f) step sizes per view that
+            sees it, so the longer the path (the smaller each Gaussian's f), the larger its
+            effective step and the noisier the fit. Selective, its updates depend only on the
+            views that see it, and each step costs the Gaussians in view, not all of them.
 
     The step sizes are larger than 3DGS's (which runs 30,000 steps): here a few hundred steps start
     from a field already close to the images. They were tuned on TUM fr3/teddy
@@ -225,6 +232,7 @@ class OptimizationSettings:
     densify_scale_m: float = 0.02
     densify_max_growth: float = 1.3
     prune_opacity: float = 0.005
+    selective_adam: bool = True
 
     @classmethod
     def legacy(cls, **overrides) -> "OptimizationSettings":
@@ -232,7 +240,7 @@ class OptimizationSettings:
         no densification or pruning (``overrides`` replace any field)."""
         return cls(**{"epochs": 30, "max_steps": 600, "min_steps_per_view": 0, "scale": 0.5, "coarse_factor": 1,
                       "coarse_max_steps": 0,
-                      "plateau_patience": 0, "densify_interval": 0, **overrides})
+                      "plateau_patience": 0, "densify_interval": 0, "selective_adam": False, **overrides})
 
     @classmethod
     def from_mapping(cls, mc) -> "OptimizationSettings":
@@ -246,7 +254,7 @@ class OptimizationSettings:
                    densify_interval=mc.optimization_densify_interval,
                    densify_until_step=mc.optimization_densify_until_step,
                    densify_grad_threshold=mc.optimization_densify_grad_threshold,
-                   prune_opacity=mc.optimization_prune_opacity)
+                   prune_opacity=mc.optimization_prune_opacity, selective_adam=mc.optimization_selective_adam)
 
 
 def stretch_schedule(s: OptimizationSettings, n_views: int) -> OptimizationSettings:
@@ -765,28 +773,47 @@ _ADAM_BLOCK = 2048  # Gaussians per block of the fused Adam pass
 
 
 @njit(cache=True, parallel=True)
-def _adam_step(gparam, m1, m2, lr, b1, b2, bc1, bc2, eps, lo, hi, pos, log_s, quat, logit, col, scl, opa):
-    """One Adam step of every Gaussian (3DGS: moments per element, eps 1e-15; unseen Gaussians keep
-    moving on their momentum) with step sizes ``lr [_N_PARAM]`` (per gradient row); then the clamps
-    (log scales to ``[lo, hi]``, logits to +-12, colours to [0, 1]), the rotation update
-    ``q <- q exp(w)`` and the derived ``scl = exp(log_s)``, ``opa = sigmoid(logit)``. In place.
+def _adam_step(gparam, m1, m2, lr, b1, b2, ibc1_t, ibc2_t, t_all, eps, lo, hi, pos, log_s, quat, logit, col, scl,
+               opa, seen, n_steps):
+    """One Adam step (moments per element, eps 1e-15) with step sizes ``lr [_N_PARAM]`` (per
+    gradient row); then the clamps (log scales to ``[lo, hi]``, logits to +-12, colours to
+    [0, 1]), the rotation update ``q <- q exp(w)`` and the derived ``scl = exp(log_s)``,
+    ``opa = sigmoid(logit)``. In place.
+
+    ``ibc1_t``, ``ibc2_t`` ``[T + 1]`` float32: ``1 / (1 - b ** t)`` for each step count ``t``
+    (:func:`_bias_corrections`). ``seen [N]`` uint8, ``n_steps [N]`` int32 (empty arrays: dense):
+    selective Adam, only the Gaussians the view draws (``seen``) step, each with the bias
+    correction of its own step count ``n_steps`` (counted up here); the others keep their
+    parameters and moments. Dense (3DGS): every Gaussian steps, with the bias correction of the
+    fit's step ``t_all``, and unseen Gaussians keep moving on their momentum.
 
     ``gparam``, ``m1``, ``m2`` are ``[_N_PARAM, N]`` float32 (one row per scalar parameter), so the
     moment update runs along contiguous rows in float32 SIMD; blocks of ``_ADAM_BLOCK`` Gaussians
     run in parallel, each then applies its steps Gaussian by Gaussian."""
     n = pos.shape[0]
+    selective = seen.shape[0] == n
     n_blocks = (n + _ADAM_BLOCK - 1) // _ADAM_BLOCK
     fb1 = np.float32(b1)
     fb2 = np.float32(b2)
     c1 = np.float32(1.0 - b1)
     c2 = np.float32(1.0 - b2)
-    ibc1 = np.float32(1.0 / bc1)
-    ibc2 = np.float32(1.0 / bc2)
     feps = np.float32(eps)
     for blk in prange(n_blocks):
         i0 = blk * _ADAM_BLOCK
         i1 = min(n, i0 + _ADAM_BLOCK)
         d = np.empty((_N_PARAM, i1 - i0), dtype=np.float32)
+        on = np.ones(i1 - i0, dtype=np.bool_)
+        ibc1 = np.empty(i1 - i0, dtype=np.float32)  # 1 / the bias corrections, per Gaussian
+        ibc2 = np.empty(i1 - i0, dtype=np.float32)
+        for j in range(i1 - i0):
+            t = t_all
+            if selective:
+                on[j] = seen[i0 + j] != 0
+                if on[j]:
+                    n_steps[i0 + j] += 1
+                t = n_steps[i0 + j]
+            ibc1[j] = ibc1_t[t]
+            ibc2[j] = ibc2_t[t]
         for c in range(_N_PARAM):
             step = np.float32(-lr[c])
             g = gparam[c, i0:i1]
@@ -794,13 +821,17 @@ def _adam_step(gparam, m1, m2, lr, b1, b2, bc1, bc2, eps, lo, hi, pos, log_s, qu
             vv = m2[c, i0:i1]
             dc = d[c]
             for j in range(i1 - i0):
+                if not on[j]:
+                    continue
                 gj = g[j]
                 mj = fb1 * mm[j] + c1 * gj
                 vj = fb2 * vv[j] + c2 * gj * gj
                 mm[j] = mj
                 vv[j] = vj
-                dc[j] = step * (mj * ibc1) / (np.sqrt(vj * ibc2) + feps)
+                dc[j] = step * (mj * ibc1[j]) / (np.sqrt(vj * ibc2[j]) + feps)
         for j in range(i1 - i0):
+            if not on[j]:
+                continue
             i = i0 + j
             for c in range(3):
                 pos[i, c] += d[_P_POS + c, j]
@@ -835,6 +866,13 @@ def _adam_step(gparam, m1, m2, lr, b1, b2, bc1, bc2, eps, lo, hi, pos, log_s, qu
             opa[i] = 1.0 / (1.0 + math.exp(-np.float64(logit[i])))
 
 
+def _bias_corrections(beta: float, n_steps: int) -> np.ndarray:
+    """``[n_steps + 1]`` float32 ``1 / (1 - beta ** t)`` for ``t = 0 .. n_steps`` (``t = 0`` as 1:
+    never read for a Gaussian that steps, which counts its step first)."""
+    t = np.maximum(np.arange(n_steps + 1), 1).astype(np.float64)
+    return (1.0 / (1.0 - beta ** t)).astype(np.float32)
+
+
 # --------------------------------------------------------------------------------------------
 # One view: loss and parameter gradients
 # --------------------------------------------------------------------------------------------
@@ -864,13 +902,13 @@ def _n_workers(n_tiles: int) -> int:
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,
                     w_cover: float, bg: np.ndarray, near_m: float, gparam: np.ndarray, vs_sum: np.ndarray,
                     vs_cnt: np.ndarray, clock: _StageClock, depth_w: np.ndarray | None = None,
-                    band: np.ndarray | None = None) -> float:
+                    band: np.ndarray | None = None, seen: np.ndarray | None = None) -> float:
     """Loss of one view (``image [h, w, 3]``, ``depth [h, w]`` float32 at the view's size, its
     per-pixel depth-term weights ``depth_w [h, w]`` float32, None = 1, and the depth band
     ``band [h, w]`` (m) behind each reading within which a Gaussian counts as the measured surface
     for the coverage term, None = any depth) and the gradient of every
-    parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does not draw). The state
-    arrays are float32."""
+    parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does not draw); ``seen
+    [N]`` uint8, if given, is set to 1 for the Gaussians the view draws. The state arrays are float32."""
     width, height = view.width, view.height
     npix = float(width * height)
     sp = raster.prepare_splats(pos, scl, quat, col, opa, view, near_m, keep_aux=True)
@@ -878,6 +916,8 @@ def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, d
         clock.lap("projection")
         return float(w_rgb * np.abs(bg.astype(np.float64) - image).sum() / npix)  # no depth to compare
     tile_slot, gauss_start = raster.pair_slots(sp.box, sp.tile_start, sp.tiles_x)
+    if seen is not None:
+        seen[sp.order] = 1
     clock.lap("projection")
     nw = _n_workers(sp.n_tiles)
     if depth_w is None:
@@ -1092,6 +1132,7 @@ class _FitState:
             self.anchor_b = (s.normal_offset_max_scales * sc.max(axis=1, keepdims=True)).astype(np.float32)
         self.m1 = np.zeros((_N_PARAM, n), np.float32)  # Adam moments, one row per scalar parameter
         self.m2 = np.zeros((_N_PARAM, n), np.float32)
+        self.n_steps = np.zeros(n, np.int32)  # Adam steps each Gaussian has taken (selective Adam)
         self.refresh()
         self.reset_stats()
         child = self.ids[(self.ids & CHILD_ID_BIT) != 0] & ~CHILD_ID_BIT
@@ -1108,7 +1149,7 @@ class _FitState:
         self.vs_sum = np.zeros(len(self))
         self.vs_cnt = np.zeros(len(self), np.int32)
 
-    _ROWS = ("pos", "log_s", "quat", "logit", "col", "ids", "anchor", "anchor_n", "anchor_b")
+    _ROWS = ("pos", "log_s", "quat", "logit", "col", "ids", "anchor", "anchor_n", "anchor_b", "n_steps")
     _MOMENTS = ("m1", "m2")  # [_N_PARAM, N]: Gaussians along axis 1
 
     def take(self, rows: np.ndarray) -> None:
@@ -1119,10 +1160,12 @@ class _FitState:
         self.refresh()
 
     def append(self, rows: np.ndarray, ids: np.ndarray) -> None:
-        """Copies of ``rows`` with new ``ids`` and zero moments (3DGS: new Gaussians start fresh)."""
+        """Copies of ``rows`` with new ``ids``, zero moments and no steps taken (3DGS: new
+        Gaussians start fresh)."""
         for name in self._ROWS:
             a = getattr(self, name)
-            setattr(self, name, np.ascontiguousarray(np.concatenate([a, ids if name == "ids" else a[rows]])))
+            new = ids if name == "ids" else np.zeros_like(a[rows]) if name == "n_steps" else a[rows]
+            setattr(self, name, np.ascontiguousarray(np.concatenate([a, new])))
         for name in self._MOMENTS:
             a = getattr(self, name)
             setattr(self, name, np.ascontiguousarray(np.concatenate([a, np.zeros((_N_PARAM, len(rows)), a.dtype)],
@@ -1170,6 +1213,7 @@ def _densify_and_prune(st: _FitState, s: OptimizationSettings, n_start: int,
         st.log_s[split] = np.log(sd / _SPLIT_SCALE_DIV)
         st.m1[:, split] = 0.0
         st.m2[:, split] = 0.0
+        st.n_steps[split] = 0
     new_rows = np.concatenate([clone, split])
     if len(new_rows):
         ids = CHILD_ID_BIT | (np.uint64(st.next_child) + np.arange(len(new_rows), dtype=np.uint64))
@@ -1253,6 +1297,7 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     lr0 = np.repeat([s.lr_position_m, s.lr_log_scale, s.lr_rotation_rad, s.lr_opacity_logit, s.lr_color],
                     [3, 3, 3, 1, 3])  # per gradient row (_P_*)
     b1, b2, eps = 0.9, 0.999, 1e-15
+    ibc1_t, ibc2_t = _bias_corrections(b1, n_cap), _bias_corrections(b2, n_cap)  # no count passes the step cap
     bg = np.zeros(3)
     rng = np.random.default_rng(s.seed)  # keyframe order
     rng_split = np.random.default_rng([s.seed, 1])  # samples of split Gaussians
@@ -1276,12 +1321,14 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             clock.start()
             view = raster.view_from_pose(poses[v], lv.K, lv.width, lv.height)
             gparam = np.zeros((_N_PARAM, len(st)), np.float32)
+            seen = np.zeros(len(st) if s.selective_adam else 0, np.uint8)
             loss = _view_gradients(st.pos, st.scl, st.quat, st.col, st.opa, view, lv.images[v], lv.depths[v], 1.0,
                                    s.depth_weight, s.coverage_weight, bg, raster.NEAR_M, gparam, st.vs_sum,
-                                   st.vs_cnt, clock, lv.depth_w[v], None if lv.bands is None else lv.bands[v])
+                                   st.vs_cnt, clock, lv.depth_w[v], None if lv.bands is None else lv.bands[v],
+                                   seen if s.selective_adam else None)
             t = step + 1
-            _adam_step(gparam, st.m1, st.m2, lr0 * decay, b1, b2, 1.0 - b1 ** t, 1.0 - b2 ** t, eps, lo, hi,
-                       st.pos, st.log_s, st.quat, st.logit, st.col, st.scl, st.opa)
+            _adam_step(gparam, st.m1, st.m2, lr0 * decay, b1, b2, ibc1_t, ibc2_t, t, eps, lo, hi, st.pos, st.log_s,
+                       st.quat, st.logit, st.col, st.scl, st.opa, seen, st.n_steps)
             if s.normal_offset_max_scales > 0:
                 st.hold_to_surface()
             clock.lap("adam")
