@@ -17,9 +17,9 @@ The table gives, per N: seconds and peak RSS (MB) per stage, the whole run's pea
 frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged), the
 Gaussians the keyframes merged into and those after the fit, and the held-out PSNR (full frame /
 within mapped pixels). A longer path sees other parts of the room, so its held-out views differ
-from a shorter one's: every N's world is therefore also rendered at the first N's held-out views
+from a shorter one's: every N's world is therefore also rendered at the smallest N's held-out views
 that are not its own keyframes ("first N's views": the path is a function of time, so those frames
-are the same images), which compares the worlds on identical views.
+are the same images), which compares the worlds on identical views. The Ns run smallest first.
 """
 
 from __future__ import annotations
@@ -215,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="atlas-bench-scale-") as data:
-        for n in args.frames:
+        for n in sorted(args.frames):  # the smallest first: its held-out views are rendered in every world
             generate(n, data)
             common = ["--common-frames", json.dumps(rows[0]["eval_frames"])] if rows else []
             proc = subprocess.run([sys.executable, __file__, "--child", str(n), "--data", data,
