@@ -788,7 +788,7 @@ def _adam_step(gparam, m1, m2, lr, b1, b2, ibc1_t, ibc2_t, t_all, eps, lo, hi, p
     fit's step ``t_all``, and unseen Gaussians keep moving on their momentum.
 
     ``gparam``, ``m1``, ``m2`` are ``[_N_PARAM, N]`` float32 (one row per scalar parameter), so the
-    moment update runs along contiguous rows in float32 SIMD; blocks of ``_ADAM_BLOCK`` Gaussians
+    moment update runs along contiguous float32 rows; blocks of ``_ADAM_BLOCK`` Gaussians
     run in parallel, each then applies its steps Gaussian by Gaussian."""
     n = pos.shape[0]
     selective = seen.shape[0] == n
