@@ -41,6 +41,7 @@ LEGACY_FIT = {
     "mapping.optimization_coarse_max_steps": "0",
     "mapping.optimization_plateau_patience": "0",
     "mapping.optimization_densify_interval": "0",
+    "mapping.optimization_selective_adam": "false",  # legacy(): dense Adam, as the first fit
 }
 
 
