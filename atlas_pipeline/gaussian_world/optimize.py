@@ -1160,17 +1160,23 @@ class _FitState:
         self.refresh()
 
     def append(self, rows: np.ndarray, ids: np.ndarray) -> None:
-        """Copies of ``rows`` with new ``ids``, zero moments and no steps taken (3DGS: new
-        Gaussians start fresh)."""
+        """Copies of ``rows`` with new ``ids`` and a fresh optimizer state (3DGS: new Gaussians
+        start fresh)."""
+        n = len(self)
         for name in self._ROWS:
             a = getattr(self, name)
-            new = ids if name == "ids" else np.zeros_like(a[rows]) if name == "n_steps" else a[rows]
-            setattr(self, name, np.ascontiguousarray(np.concatenate([a, new])))
+            setattr(self, name, np.ascontiguousarray(np.concatenate([a, ids if name == "ids" else a[rows]])))
         for name in self._MOMENTS:
             a = getattr(self, name)
-            setattr(self, name, np.ascontiguousarray(np.concatenate([a, np.zeros((_N_PARAM, len(rows)), a.dtype)],
-                                                                    axis=1)))
+            setattr(self, name, np.ascontiguousarray(np.concatenate([a, a[:, rows]], axis=1)))
+        self.restart_optimizer(np.arange(n, len(self)))
         self.refresh()
+
+    def restart_optimizer(self, rows: np.ndarray) -> None:
+        """Zero moments and no steps taken for ``rows`` (new and split Gaussians)."""
+        for name in self._MOMENTS:
+            getattr(self, name)[:, rows] = 0.0
+        self.n_steps[rows] = 0
 
     def hold_to_surface(self) -> None:
         """Clamp each centre's offset from its start along its starting normal to ``anchor_b``."""
@@ -1211,9 +1217,7 @@ def _densify_and_prune(st: _FitState, s: OptimizationSettings, n_start: int,
         samples = st.pos[split].astype(np.float64)[None] + np.einsum("sij,ksj->ksi", R, sd[None] * z)
         st.pos[split] = samples[0]
         st.log_s[split] = np.log(sd / _SPLIT_SCALE_DIV)
-        st.m1[:, split] = 0.0
-        st.m2[:, split] = 0.0
-        st.n_steps[split] = 0
+        st.restart_optimizer(split)
     new_rows = np.concatenate([clone, split])
     if len(new_rows):
         ids = CHILD_ID_BIT | (np.uint64(st.next_child) + np.arange(len(new_rows), dtype=np.uint64))
