@@ -60,16 +60,18 @@ def children_cpu_s() -> float:
 
 
 CPU_S: dict[str, float] = {}  # tag -> CPU seconds of that ``atlas-gs run`` command
+SPAN: dict[str, tuple[float, float]] = {}  # tag -> (start, end) of that command, seconds since the epoch
 
 
 def run_all(env: dict[str, str], tag: str, work: Path, extra: list[str]) -> tuple[float, list[dict]]:
     env = {**env, "ATLAS_ARTIFACTS_DIR": str(work / f"artifacts-{tag}"), "DAGSTER_HOME": str(work / f"home-{tag}")}
     Path(env["DAGSTER_HOME"]).mkdir()
-    cpu0, t0 = children_cpu_s(), time.perf_counter()
+    cpu0, t0, epoch0 = children_cpu_s(), time.perf_counter(), time.time()
     out = subprocess.run([sys.executable, "-m", "assets.cli", "run", "--all", "--json", *extra], env=env, cwd=ROOT,
                          capture_output=True, text=True)
     wall = time.perf_counter() - t0
     CPU_S[tag] = children_cpu_s() - cpu0
+    SPAN[tag] = (epoch0, epoch0 + wall)
     dec, docs, i, text = json.JSONDecoder(), [], 0, out.stdout
     while i < len(text):
         if text[i].isspace():
@@ -82,13 +84,20 @@ def run_all(env: dict[str, str], tag: str, work: Path, extra: list[str]) -> tupl
     return wall, docs
 
 
-def run_durations(work: Path, tag: str) -> list[float]:
-    """Seconds each partition's Dagster run took (start to end, from the instance's run records)."""
+def run_spans(work: Path, tag: str) -> list[tuple[float, float]]:
+    """(start, end) of each partition's Dagster run, seconds since the epoch (the instance's run records)."""
     from dagster import DagsterInstance
 
     home = work / f"home-{tag}"
     with DagsterInstance.from_config(str(home)) as inst:
-        return [r.end_time - r.start_time for r in inst.get_run_records() if r.start_time and r.end_time]
+        return [(r.start_time, r.end_time) for r in inst.get_run_records() if r.start_time and r.end_time]
+
+
+def outside_runs(tag: str, spans: list[tuple[float, float]]) -> tuple[float, float]:
+    """Seconds of the command before its first run started (its start: imports, the instance, the
+    pool) and after its last run ended (its shutdown)."""
+    t0, t1 = SPAN[tag]
+    return min(s for s, _ in spans) - t0, t1 - max(e for _, e in spans)
 
 
 def digest(art: Path, partition: str) -> dict:
@@ -131,19 +140,23 @@ def main() -> int:
 
         pairs = []
         run_s: dict[str, list[float]] = {"serial": [], "parallel": []}
+        edges: dict[str, tuple[float, float]] = {}
         for i in range(max(1, args.repeat)):
             tag = "" if i == 0 else f"-{i}"
             serial_run = run_all(env, "serial" + tag, work, ["--concurrency", "1"])
             parallel_run = run_all(env, "parallel" + tag, work, ["--concurrency", str(args.concurrency)])
             pairs.append((serial_run, parallel_run))
-            run_s["serial"] += run_durations(work, "serial" + tag)
-            run_s["parallel"] += run_durations(work, "parallel" + tag)
+            for mode in ("serial", "parallel"):
+                spans = run_spans(work, mode + tag)
+                run_s[mode] += [e - s for s, e in spans]
+                edges[mode + tag] = outside_runs(mode + tag, spans)
         # The pair whose ratio is the median (the lower middle one for an even count).
         ratios = [p[1][0] / p[0][0] for p in pairs]
         median = sorted(range(len(pairs)), key=ratios.__getitem__)[(len(pairs) - 1) // 2]
         (s_wall, s_docs), (p_wall, p_docs) = pairs[median]
         median_tag = "" if median == 0 else f"-{median}"
         cpu = {m: CPU_S[m + median_tag] for m in ("serial", "parallel")}
+        start_s, end_s = edges["parallel" + median_tag]
         rows = [("serial", s_wall, s_docs), (f"parallel (concurrency {args.concurrency})", p_wall, p_docs)]
 
         from distributed import LocalCluster
@@ -166,6 +179,10 @@ def main() -> int:
 
     serial = rows[0][1]
     med = {k: float(np.median(v)) if v else float("nan") for k, v in run_s.items()}
+    cores = os.cpu_count() or 1
+    # The parallel run's floor: its start and shutdown as measured (one process, one core busy),
+    # every other CPU second spread over all the cores with none idle.
+    floor_s = start_s + end_s + max(0.0, cpu["parallel"] - start_s - end_s) / cores
     result = {"partitions": args.partitions, "frames": args.frames, "cores": os.cpu_count(),
               "median_partition_run_s": {k: round(v, 2) for k, v in med.items()},
               "pairs": [{"serial_s": round(a[0], 2), "parallel_s": round(b[0], 2), "ratio": round(b[0] / a[0], 3),
@@ -175,6 +192,8 @@ def main() -> int:
               # more than one busy (the kernels' threads, the encoder's)
               "cpu_s": {m: round(v, 1) for m, v in cpu.items()},
               "cores_busy": {"serial": round(cpu["serial"] / s_wall, 2), "parallel": round(cpu["parallel"] / p_wall, 2)},
+              "parallel_start_s": round(start_s, 2), "parallel_shutdown_s": round(end_s, 2),
+              "parallel_floor_s": round(floor_s, 2), "parallel_floor_ratio": round(floor_s / s_wall, 3),
               "dask_cluster_start_s": round(cluster_s, 2), "dask_identical_to_serial": identical,
               "modes": [{"mode": m, "wall_s": round(w, 2), "ratio_to_serial": round(w / serial, 3),
                          "succeeded": sum(bool(d.get("success")) for d in docs)} for m, w, docs in rows]}
@@ -198,6 +217,9 @@ def main() -> int:
               f"average), parallel {cpu['parallel']:.1f} ({cpu['parallel'] / p_wall:.2f}); on {os.cpu_count()} cores the "
               f"parallel run cannot take less than {cpu['parallel'] / (os.cpu_count() or 1):.1f} s "
               f"({cpu['parallel'] / (os.cpu_count() or 1) / s_wall:.2f}x serial)")
+        print(f"The parallel command's start (to its first run) took {start_s:.2f} s and its shutdown (after its "
+              f"last run) {end_s:.2f} s; with those on one core and every other CPU second spread over {cores} cores, "
+              f"it cannot take less than {floor_s:.1f} s ({floor_s / s_wall:.2f}x serial)")
         print(f"One partition's Dagster run (median of all): {med['serial']:.2f} s in the serial runs, "
               f"{med['parallel']:.2f} s two at a time ({med['parallel'] / med['serial']:.2f}x); the rest of the wall "
               "time is the command's start and shutdown.")
