@@ -80,6 +80,49 @@ def test_projection_matches_reference(seed, dtype):
     assert np.sum((x_over_z > lim_x_pos) | (x_over_z < -lim_x_neg)) >= 3
 
 
+def test_projection_off_image_test_keeps_every_drawn_gaussian():
+    """The projection skips Gaussians whose footprint bound lies outside the image before their
+    covariance: wide Gaussians centred just outside the image, whose footprints reach into it,
+    must still match the reference (which projects every Gaussian in full)."""
+    rng = np.random.default_rng(7)
+    n = 3000
+    z = rng.uniform(0.3, 4.0, n)
+    # centres up to 40 px outside each image edge, in camera coordinates
+    u = np.where(rng.random(n) < 0.5, rng.uniform(-40.0, 0.0, n), rng.uniform(W - 1.0, W + 39.0, n))
+    v = rng.uniform(-40.0, H + 39.0, n)
+    swap = rng.random(n) < 0.5  # half outside the top or bottom edge instead
+    u[swap], v[swap] = rng.uniform(-40.0, W + 39.0, swap.sum()), np.where(
+        rng.random(swap.sum()) < 0.5, rng.uniform(-40.0, 0.0, swap.sum()), rng.uniform(H - 1.0, H + 39.0, swap.sum()))
+    p_cam = np.c_[(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z]
+    pos = p_cam @ T_WC[:3, :3].T + T_WC[:3, 3]
+    scales = np.exp(rng.uniform(np.log(0.002), np.log(0.2), (n, 3)))
+    quats = rng.normal(size=(n, 4))
+    g = (pos, scales, quats, rng.uniform(0, 255, (n, 3)), rng.uniform(0.05, 1.0, n))
+    fast = rc.project_gaussians(*g, _view(), rc.NEAR_M)
+    ref = project_reference(*g, T_WC, K, W, H, rc.NEAR_M)
+    np.testing.assert_array_equal(fast.valid, ref.valid)
+    np.testing.assert_array_equal(fast.box[fast.valid], ref.box[ref.valid])
+    assert 100 < fast.valid.sum() < n - 100  # both: centres outside whose footprints reach in, and not
+
+
+@pytest.mark.parametrize("keep_aux", [False, True])
+def test_projection_into_reused_buffers(keep_aux):
+    """Buffers kept from another view's projection (stale rows) give the same drawn rows."""
+    g = _scene(400, 0)
+    fresh = rc.project_gaussians(*g, _view(), rc.NEAR_M, keep_aux)
+    buf = rc.ProjectionBuffers(400, keep_aux=keep_aux)
+    other = rc.view_from_pose(look_at(np.array([0.0, 0.0, -1.0]), np.array([0.5, 0.0, 2.0]), up=(0.0, -1.0, 0.0)),
+                              K, W, H)
+    rc.project_gaussians(*g, other, rc.NEAR_M, keep_aux, buf)  # fills rows this view does not draw
+    again = rc.project_gaussians(*g, _view(), rc.NEAR_M, keep_aux, buf)
+    v = fresh.valid
+    np.testing.assert_array_equal(again.valid, v)
+    for name in ("depth", "feat", "box") + (("aux",) if keep_aux else ()):
+        np.testing.assert_array_equal(getattr(again, name)[v], getattr(fresh, name)[v])
+    with pytest.raises(ValueError, match="400"):
+        rc.project_gaussians(*(a[:10] for a in g), _view(), rc.NEAR_M, keep_aux, buf)
+
+
 def test_depth_sort_matches_stable_argsort():
     rng = np.random.default_rng(4)
     n = 5000

@@ -899,19 +899,37 @@ def _n_workers(n_tiles: int) -> int:
     return max(1, min(n_tiles, 2 * kernel_threads()))
 
 
+class _StepBuffers:
+    """Per-step arrays of a fit over ``n`` Gaussians, kept from step to step while the count does
+    not change (a densify round changes it): the projection's outputs, each Gaussian's rank in the
+    view's depth order ``rank [N]`` int64, its gradient ``gparam [_N_PARAM, N]`` float32 and
+    ``seen [N]`` uint8 (selective Adam). Fresh arrays at every step cost page faults and zeroing
+    in proportion to the whole world, not to what the view draws."""
+
+    def __init__(self, n: int, selective: bool):
+        self.n = n
+        self.projection = raster.ProjectionBuffers(n, keep_aux=True)
+        self.rank = np.empty(n, np.int64)
+        self.gparam = np.zeros((_N_PARAM, n), np.float32)
+        self.seen = np.zeros(n if selective else 0, np.uint8)
+
+
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,
                     w_cover: float, bg: np.ndarray, near_m: float, gparam: np.ndarray, vs_sum: np.ndarray,
                     vs_cnt: np.ndarray, clock: _StageClock, depth_w: np.ndarray | None = None,
-                    band: np.ndarray | None = None, seen: np.ndarray | None = None) -> float:
+                    band: np.ndarray | None = None, seen: np.ndarray | None = None,
+                    buffers: _StepBuffers | None = None) -> float:
     """Loss of one view (``image [h, w, 3]``, ``depth [h, w]`` float32 at the view's size, its
     per-pixel depth-term weights ``depth_w [h, w]`` float32, None = 1, and the depth band
     ``band [h, w]`` (m) behind each reading within which a Gaussian counts as the measured surface
     for the coverage term, None = any depth) and the gradient of every
     parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does not draw); ``seen
-    [N]`` uint8, if given, is set to 1 for the Gaussians the view draws. The state arrays are float32."""
+    [N]`` uint8, if given, is set to 1 for the Gaussians the view draws. The state arrays are float32.
+    ``buffers``: the projection's and the rank's arrays, reused from step to step (None: fresh)."""
     width, height = view.width, view.height
     npix = float(width * height)
-    sp = raster.prepare_splats(pos, scl, quat, col, opa, view, near_m, keep_aux=True)
+    sp = raster.prepare_splats(pos, scl, quat, col, opa, view, near_m, keep_aux=True,
+                               buffers=None if buffers is None else buffers.projection)
     if sp is None:
         clock.lap("projection")
         return float(w_rgb * np.abs(bg.astype(np.float64) - image).sum() / npix)  # no depth to compare
@@ -930,7 +948,11 @@ def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, d
     clock.lap("forward")
     pair_grad = _backward_tiles(sp.tile_start, sp.tile_ids, tile_slot, k_end, sp.feat, sp.order, sp.aux, sp.box,
                                 width, height, sp.tiles_x, sp.n_tiles, dout, nw)
-    rank = np.full(len(pos), -1, np.int64)
+    if buffers is None:
+        rank = np.full(len(pos), -1, np.int64)
+    else:
+        rank = buffers.rank
+        rank.fill(-1)
     rank[sp.order] = np.arange(len(sp.order))
     _param_grads(rank, gauss_start, pair_grad, sp.aux, scl, quat, opa, view.R_cam_world, view.fx, view.fy,
                  view.cx, view.cy, float(width), float(height), gparam, vs_sum, vs_cnt)
@@ -1313,6 +1335,7 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     n_cloned = n_split = n_pruned = 0
     level_i = 0
     best, stale, level_passes = math.inf, 0, 0
+    buffers: _StepBuffers | None = None  # made at the first step, again when densification changes the count
     stop_reason = STOP_STEP_CAP if n_cap < s.epochs * n_views else STOP_EPOCHS
     while len(passes) < s.epochs and len(losses) < n_cap:
         lv = levels[level_i]
@@ -1324,12 +1347,15 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
                 decay *= s.coarse_lr_scale
             clock.start()
             view = raster.view_from_pose(poses[v], lv.K, lv.width, lv.height)
-            gparam = np.zeros((_N_PARAM, len(st)), np.float32)
-            seen = np.zeros(len(st) if s.selective_adam else 0, np.uint8)
+            if buffers is None or buffers.n != len(st):
+                buffers = _StepBuffers(len(st), s.selective_adam)
+            gparam, seen = buffers.gparam, buffers.seen
+            gparam.fill(0.0)  # rows of Gaussians the view does not draw: no gradient
+            seen.fill(0)
             loss = _view_gradients(st.pos, st.scl, st.quat, st.col, st.opa, view, lv.images[v], lv.depths[v], 1.0,
                                    s.depth_weight, s.coverage_weight, bg, raster.NEAR_M, gparam, st.vs_sum,
                                    st.vs_cnt, clock, lv.depth_w[v], None if lv.bands is None else lv.bands[v],
-                                   seen if s.selective_adam else None)
+                                   seen if s.selective_adam else None, buffers)
             t = step + 1
             _adam_step(gparam, st.m1, st.m2, lr0 * decay, b1, b2, ibc1_t, ibc2_t, t, eps, lo, hi, st.pos, st.log_s,
                        st.quat, st.logit, st.col, st.scl, st.opa, seen, st.n_steps)
