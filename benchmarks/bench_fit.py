@@ -3,6 +3,7 @@
     python benchmarks/bench_fit.py                        # synthetic, and TUM teddy when present
     python benchmarks/bench_fit.py --datasets synthetic --variants legacy new
     python benchmarks/bench_fit.py --set mapping.optimization_plateau_patience=3 --json fit.json
+    python benchmarks/bench_fit.py --datasets synthetic --variants new --synthetic-frames 400   # a long path
 
 For each dataset the default profile builds the world from ground-truth poses (fusion, keyframes,
 voxel Gaussians, colour refinement: not timed), then fits it to the keyframes three ways:
@@ -173,6 +174,18 @@ def _fmt_row(label: str, r: dict) -> str:
             + f" {r['cpu_s']:8.1f} {r['psnr_db']:7.2f} {r['psnr_masked_db']:7.2f} {r['n_gaussians']:9,d}")
 
 
+def _synthetic(n_frames: int):
+    """The built-in synthetic room with ``n_frames`` frames (generated once into the temp folder)."""
+    import dataclasses
+
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+
+    spec = dataclasses.replace(SyntheticSpec(), n_frames=n_frames)
+    root = generate_synthetic_dataset(Path(tempfile.gettempdir()) / f"atlas_bench_synthetic_{n_frames}", spec)
+    return load_tum_sequence(root, spec.camera(), f"synthetic-{n_frames}")
+
+
 def main(argv: list[str] | None = None) -> int:
     import numba
     import yaml
@@ -186,6 +199,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--view-stride", type=int, default=2, help="evaluate every n-th held-out frame")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every variant, e.g. mapping.optimization_densify_interval=0")
+    ap.add_argument("--synthetic-frames", type=int, default=None, metavar="N",
+                    help="the synthetic room with N frames instead of the built-in 60 (a longer path "
+                         "through the same room: more keyframes, more Gaussians per step)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     overrides = {"mapping.pose_source": "ground_truth"}
@@ -205,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}; CPU seconds = process time, all threads")
     results: dict = {}
     for name in args.datasets:
-        manifest = _load(name)
+        manifest = _load(name) if name != "synthetic" or not args.synthetic_frames else _synthetic(args.synthetic_frames)
         if manifest is None:
             print(f"{name}: skipped (TUM frames not found at ../shared/data/tum_fr3_teddy_100)")
             continue

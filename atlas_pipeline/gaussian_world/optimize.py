@@ -901,17 +901,15 @@ def _n_workers(n_tiles: int) -> int:
 
 class _StepBuffers:
     """Per-step arrays of a fit over ``n`` Gaussians, kept from step to step while the count does
-    not change (a densify round changes it): the projection's outputs, each Gaussian's rank in the
-    view's depth order ``rank [N]`` int64, its gradient ``gparam [_N_PARAM, N]`` float32 and
-    ``seen [N]`` uint8 (selective Adam). Fresh arrays at every step cost page faults and zeroing
-    in proportion to the whole world, not to what the view draws."""
+    not change (a densify round changes it): the projection's outputs and each Gaussian's rank in
+    the view's depth order ``rank [N]`` int64. The projection writes every drawn row, about 300
+    bytes a Gaussian with the backward pass's intermediates, and fresh arrays at every step cost
+    page faults in proportion to the whole world, not to what the view draws."""
 
-    def __init__(self, n: int, selective: bool):
+    def __init__(self, n: int):
         self.n = n
         self.projection = raster.ProjectionBuffers(n, keep_aux=True)
         self.rank = np.empty(n, np.int64)
-        self.gparam = np.zeros((_N_PARAM, n), np.float32)
-        self.seen = np.zeros(n if selective else 0, np.uint8)
 
 
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,
@@ -1348,10 +1346,12 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
             clock.start()
             view = raster.view_from_pose(poses[v], lv.K, lv.width, lv.height)
             if buffers is None or buffers.n != len(st):
-                buffers = _StepBuffers(len(st), s.selective_adam)
-            gparam, seen = buffers.gparam, buffers.seen
-            gparam.fill(0.0)  # rows of Gaussians the view does not draw: no gradient
-            seen.fill(0)
+                buffers = _StepBuffers(len(st))
+            # Fresh zeros, not a buffer filled again: untouched pages of a fresh array cost nothing,
+            # and only the drawn Gaussians' rows are written (a fill of the whole world every step
+            # cost the forward and backward passes 5 % at 400 frames: benchmarks/bench_fit.py).
+            gparam = np.zeros((_N_PARAM, len(st)), np.float32)
+            seen = np.zeros(len(st) if s.selective_adam else 0, np.uint8)
             loss = _view_gradients(st.pos, st.scl, st.quat, st.col, st.opa, view, lv.images[v], lv.depths[v], 1.0,
                                    s.depth_weight, s.coverage_weight, bg, raster.NEAR_M, gparam, st.vs_sum,
                                    st.vs_cnt, clock, lv.depth_w[v], None if lv.bands is None else lv.bands[v],
