@@ -105,24 +105,6 @@ def test_projection_off_image_test_keeps_every_drawn_gaussian():
     assert 100 < fast.valid.sum() < n - 100  # both: centres outside whose footprints reach in, and not
 
 
-@pytest.mark.parametrize("keep_aux", [False, True])
-def test_projection_into_reused_buffers(keep_aux):
-    """Buffers kept from another view's projection (stale rows) give the same drawn rows."""
-    g = _scene(400, 0)
-    fresh = rc.project_gaussians(*g, _view(), rc.NEAR_M, keep_aux)
-    buf = rc.ProjectionBuffers(400, keep_aux=keep_aux)
-    other = rc.view_from_pose(look_at(np.array([0.0, 0.0, -1.0]), np.array([0.5, 0.0, 2.0]), up=(0.0, -1.0, 0.0)),
-                              K, W, H)
-    rc.project_gaussians(*g, other, rc.NEAR_M, keep_aux, buf)  # fills rows this view does not draw
-    again = rc.project_gaussians(*g, _view(), rc.NEAR_M, keep_aux, buf)
-    v = fresh.valid
-    np.testing.assert_array_equal(again.valid, v)
-    for name in ("depth", "feat", "box") + (("aux",) if keep_aux else ()):
-        np.testing.assert_array_equal(getattr(again, name)[v], getattr(fresh, name)[v])
-    with pytest.raises(ValueError, match="400"):
-        rc.project_gaussians(*(a[:10] for a in g), _view(), rc.NEAR_M, keep_aux, buf)
-
-
 def test_depth_sort_matches_stable_argsort():
     rng = np.random.default_rng(4)
     n = 5000

@@ -899,35 +899,19 @@ def _n_workers(n_tiles: int) -> int:
     return max(1, min(n_tiles, 2 * kernel_threads()))
 
 
-class _StepBuffers:
-    """Per-step arrays of a fit over ``n`` Gaussians, kept from step to step while the count does
-    not change (a densify round changes it): the projection's outputs and each Gaussian's rank in
-    the view's depth order ``rank [N]`` int64. The projection writes every drawn row, about 300
-    bytes a Gaussian with the backward pass's intermediates, and fresh arrays at every step cost
-    page faults in proportion to the whole world, not to what the view draws."""
-
-    def __init__(self, n: int):
-        self.n = n
-        self.projection = raster.ProjectionBuffers(n, keep_aux=True)
-        self.rank = np.empty(n, np.int64)
-
-
 def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, depth, w_rgb: float, w_depth: float,
                     w_cover: float, bg: np.ndarray, near_m: float, gparam: np.ndarray, vs_sum: np.ndarray,
                     vs_cnt: np.ndarray, clock: _StageClock, depth_w: np.ndarray | None = None,
-                    band: np.ndarray | None = None, seen: np.ndarray | None = None,
-                    buffers: _StepBuffers | None = None) -> float:
+                    band: np.ndarray | None = None, seen: np.ndarray | None = None) -> float:
     """Loss of one view (``image [h, w, 3]``, ``depth [h, w]`` float32 at the view's size, its
     per-pixel depth-term weights ``depth_w [h, w]`` float32, None = 1, and the depth band
     ``band [h, w]`` (m) behind each reading within which a Gaussian counts as the measured surface
     for the coverage term, None = any depth) and the gradient of every
     parameter into ``gparam [_N_PARAM, N]`` (zero for Gaussians the view does not draw); ``seen
-    [N]`` uint8, if given, is set to 1 for the Gaussians the view draws. The state arrays are float32.
-    ``buffers``: the projection's and the rank's arrays, reused from step to step (None: fresh)."""
+    [N]`` uint8, if given, is set to 1 for the Gaussians the view draws. The state arrays are float32."""
     width, height = view.width, view.height
     npix = float(width * height)
-    sp = raster.prepare_splats(pos, scl, quat, col, opa, view, near_m, keep_aux=True,
-                               buffers=None if buffers is None else buffers.projection)
+    sp = raster.prepare_splats(pos, scl, quat, col, opa, view, near_m, keep_aux=True)
     if sp is None:
         clock.lap("projection")
         return float(w_rgb * np.abs(bg.astype(np.float64) - image).sum() / npix)  # no depth to compare
@@ -946,11 +930,7 @@ def _view_gradients(pos, scl, quat, col, opa, view: raster.PinholeView, image, d
     clock.lap("forward")
     pair_grad = _backward_tiles(sp.tile_start, sp.tile_ids, tile_slot, k_end, sp.feat, sp.order, sp.aux, sp.box,
                                 width, height, sp.tiles_x, sp.n_tiles, dout, nw)
-    if buffers is None:
-        rank = np.full(len(pos), -1, np.int64)
-    else:
-        rank = buffers.rank
-        rank.fill(-1)
+    rank = np.full(len(pos), -1, np.int64)
     rank[sp.order] = np.arange(len(sp.order))
     _param_grads(rank, gauss_start, pair_grad, sp.aux, scl, quat, opa, view.R_cam_world, view.fx, view.fy,
                  view.cx, view.cy, float(width), float(height), gparam, vs_sum, vs_cnt)
@@ -1333,7 +1313,6 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     n_cloned = n_split = n_pruned = 0
     level_i = 0
     best, stale, level_passes = math.inf, 0, 0
-    buffers: _StepBuffers | None = None  # made at the first step, again when densification changes the count
     stop_reason = STOP_STEP_CAP if n_cap < s.epochs * n_views else STOP_EPOCHS
     while len(passes) < s.epochs and len(losses) < n_cap:
         lv = levels[level_i]
@@ -1345,17 +1324,12 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
                 decay *= s.coarse_lr_scale
             clock.start()
             view = raster.view_from_pose(poses[v], lv.K, lv.width, lv.height)
-            if buffers is None or buffers.n != len(st):
-                buffers = _StepBuffers(len(st))
-            # Fresh zeros, not a buffer filled again: untouched pages of a fresh array cost nothing,
-            # and only the drawn Gaussians' rows are written (a fill of the whole world every step
-            # cost the forward and backward passes 5 % at 400 frames: benchmarks/bench_fit.py).
             gparam = np.zeros((_N_PARAM, len(st)), np.float32)
             seen = np.zeros(len(st) if s.selective_adam else 0, np.uint8)
             loss = _view_gradients(st.pos, st.scl, st.quat, st.col, st.opa, view, lv.images[v], lv.depths[v], 1.0,
                                    s.depth_weight, s.coverage_weight, bg, raster.NEAR_M, gparam, st.vs_sum,
                                    st.vs_cnt, clock, lv.depth_w[v], None if lv.bands is None else lv.bands[v],
-                                   seen if s.selective_adam else None, buffers)
+                                   seen if s.selective_adam else None)
             t = step + 1
             _adam_step(gparam, st.m1, st.m2, lr0 * decay, b1, b2, ibc1_t, ibc2_t, t, eps, lo, hi, st.pos, st.log_s,
                        st.quat, st.logit, st.col, st.scl, st.opa, seen, st.n_steps)

@@ -90,7 +90,7 @@ DEPTH_MIN_ALPHA = 0.5  # depth is reported only where the rendered surface is mo
 SIGMA_EXTENT = 3.0  # a Gaussian's footprint: the square of half-side 3 sqrt(lambda_max(cov2d))
 POWER_MIN = -6.0  # exp(-6) = 0.0025 < ALPHA_MIN: beyond it no opacity <= 1 gives a visible alpha
 BOX_SLACK_PX = 1e-3  # widening of the alpha-cut box, so rounding never drops a visible pixel
-CULL_SLACK_PX = 2.0  # margin of the off-image test in the projection: covers the box's ceil (1 px) and rounding
+CULL_SLACK_PX = 2.0  # margin of the projection's off-image test: covers the box's ceil (1 px) and rounding
 MEDIAN_DEPTH_T = 0.5  # the median depth is read where the transmittance crosses this
 NEAR_M = 0.05  # default near plane (metres)
 # Bounded-memory rendering (``project_visible`` ... ``composite_tile_batch``):
@@ -472,29 +472,29 @@ class Projection(NamedTuple):
 
 
 @njit(cache=True, parallel=True)
-def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, height, near, aux, valid, depth, feat,
-                    box):
+def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, height, near, aux):
     """``Projection`` fields of ``pos``, ``scl`` ``[N, 3]``, ``quat`` ``[N, 4]``, ``col`` ``[N, 3]``,
     ``opa`` ``[N]`` (float32 or float64), ``Rcw`` ``[3, 3]``, ``tcw`` ``[3]``; the ``AUX_*``
     intermediates of each drawn Gaussian into ``aux`` ``[N, N_AUX]`` float64 when it has N rows
-    (``[0, N_AUX]``: not kept). Outputs ``valid [N]`` bool (every row written), ``depth [N]``
-    float64, ``feat [N, N_FEAT]`` float32, ``box [N, 4]`` int32 and ``aux``: only the rows of drawn
-    Gaussians are written, so buffers reused from another view hold stale values in the others.
+    (``[0, N_AUX]``: not kept).
 
     The box is the ``SIGMA_EXTENT``-sigma square cut to the bounding box of the ellipse
     ``d^T conic d <= 2 ln(opacity / ALPHA_MIN)``, outside of which ``alpha < ALPHA_MIN`` anyway, so
     the cut saves tiles without changing the image.
     """
     n = pos.shape[0]
+    valid = np.zeros(n, dtype=np.bool_)
+    depth = np.zeros(n, dtype=np.float64)
+    feat = np.zeros((n, N_FEAT), dtype=np.float32)
+    box = np.zeros((n, 4), dtype=np.int32)
     lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamp_limits(fx, fy, cx, cy, width, height)
-    # |J|_F^2 * z^2 at the clamped x / z, y / z: bounds the pixel footprint of a Gaussian from its
+    # |J|_F^2 z^2 with x / z, y / z at their clamps: bounds a Gaussian's pixel footprint from its
     # largest scale alone (below), before its rotation and covariance are computed
     lim_x = max(lim_x_pos, lim_x_neg)
     lim_y = max(lim_y_pos, lim_y_neg)
     jac_f2 = fx * fx * (1.0 + lim_x * lim_x) + fy * fy * (1.0 + lim_y * lim_y)
     keep_aux = aux.shape[0] == n
     for i in prange(n):
-        valid[i] = False  # the buffers may be reused: only the rows of drawn Gaussians are written
         o = np.float64(opa[i])
         if o * COLOR_LEVELS < 1.0:  # can never reach alpha >= ALPHA_MIN
             continue
@@ -506,7 +506,7 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
         # Off the image: lambda_max(cov2d) <= |J|^2 s_max^2 + LOW_PASS_PX2 (|P| = |J|, W a
         # rotation; |M| = s_max), so the box below lies within reach_px of (u, v) and is empty
         # when (u, v) is farther than that outside the image. Most Gaussians in front of the
-        # camera are outside its field of view; this skips their covariance, not a drawn pixel.
+        # camera are outside its field of view; this skips their covariance, never a drawn pixel.
         s_max = max(np.float64(scl[i, 0]), max(np.float64(scl[i, 1]), np.float64(scl[i, 2])))
         reach_px = SIGMA_EXTENT * math.sqrt(jac_f2 * s_max * s_max / (z * z) + LOW_PASS_PX2) + CULL_SLACK_PX
         if u + reach_px < 0.0 or u - reach_px > width - 1.0 or v + reach_px < 0.0 or v - reach_px > height - 1.0:
@@ -578,21 +578,6 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
     return valid, depth, feat, box, aux
 
 
-class ProjectionBuffers:
-    """Output arrays of :func:`project_gaussians` for ``n`` Gaussians, kept from view to view: a
-    fit projects every Gaussian at every step, and fresh arrays (about 300 bytes a Gaussian with
-    the backward pass's intermediates) cost page faults and zeroing in proportion to the whole
-    world, not to what the view draws."""
-
-    def __init__(self, n: int, keep_aux: bool = True):
-        self.n = n
-        self.valid = np.zeros(n, np.bool_)  # [N]
-        self.depth = np.zeros(n)  # [N] float64
-        self.feat = np.zeros((n, N_FEAT), np.float32)  # [N, N_FEAT]
-        self.box = np.zeros((n, 4), np.int32)  # [N, 4]
-        self.aux = np.zeros((n if keep_aux else 0, N_AUX))  # [N, N_AUX] float64
-
-
 def project_gaussians(
     positions: np.ndarray,  # [N, 3] world (metres)
     scales: np.ndarray,  # [N, 3] standard deviations (metres)
@@ -602,24 +587,13 @@ def project_gaussians(
     view: PinholeView,
     near_m: float = NEAR_M,
     keep_aux: bool = False,
-    buffers: ProjectionBuffers | None = None,
 ) -> Projection:
     """Stage 3: project every Gaussian (compiled, threaded). Arrays all float32 or all float64.
-    ``keep_aux``: also return each drawn Gaussian's ``AUX_*`` intermediates (for a backward pass).
-    ``buffers``: write into these (one view after another of the same Gaussians, as the fit
-    does) instead of fresh arrays; the result's rows of Gaussians not drawn are then stale."""
-    n = len(positions)
-    if buffers is not None and buffers.n != n:
-        raise ValueError(f"projection buffers for {buffers.n} Gaussians, given {n}")
-    if buffers is None:  # fresh: rows of Gaussians not drawn read as zeros
-        out = (np.zeros(n, np.bool_), np.zeros(n), np.zeros((n, N_FEAT), np.float32), np.zeros((n, 4), np.int32))
-        aux = np.empty((n if keep_aux else 0, N_AUX))
-    else:
-        out = (buffers.valid, buffers.depth, buffers.feat, buffers.box)
-        aux = buffers.aux if keep_aux else np.empty((0, N_AUX))
+    ``keep_aux``: also return each drawn Gaussian's ``AUX_*`` intermediates (for a backward pass)."""
+    aux = np.empty((len(positions) if keep_aux else 0, N_AUX))
     return Projection(*_project_kernel(
         positions, scales, rotations_xyzw, colors, opacities, view.R_cam_world, view.centre_world,
-        view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, aux, *out))
+        view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, aux))
 
 
 # --------------------------------------------------------------------------------------------
@@ -816,12 +790,10 @@ def prepare_splats(
     view: PinholeView,
     near_m: float = NEAR_M,
     keep_aux: bool = False,
-    buffers: ProjectionBuffers | None = None,
 ) -> SplatTiles | None:
     """Stages 3-5: project, sort and bin; None when the view draws no Gaussian. ``keep_aux``: the
-    projection intermediates ride along (``SplatTiles.aux``, input row order: only the drawn rows,
-    ``order``, are meaningful). ``buffers``: :func:`project_gaussians`'s."""
-    proj = project_gaussians(positions, scales, rotations_xyzw, colors, opacities, view, near_m, keep_aux, buffers)
+    projection intermediates ride along (``SplatTiles.aux``, input row order)."""
+    proj = project_gaussians(positions, scales, rotations_xyzw, colors, opacities, view, near_m, keep_aux)
     order = sort_by_depth(proj.valid, proj.depth)
     if order.size == 0:
         return None
@@ -889,16 +861,12 @@ def project_visible(
     box = np.empty((n, 4), np.int32)
     depth = np.empty(n, np.float64)
     no_aux = np.empty((0, N_AUX))
-    step = max(1, int(chunk))
-    buf = ProjectionBuffers(min(n, step), keep_aux=False)  # reused chunk after chunk
     m = 0
-    for i in range(0, n, step):
-        c = slice(i, i + step)
-        k = len(positions[c])
+    for i in range(0, n, max(1, int(chunk))):
+        c = slice(i, i + chunk)
         valid, d, f, b, _ = _project_kernel(
             positions[c], scales[c], rotations_xyzw[c], colors[c], opacities[c], view.R_cam_world,
-            view.centre_world, view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, no_aux,
-            buf.valid[:k], buf.depth[:k], buf.feat[:k], buf.box[:k])
+            view.centre_world, view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, no_aux)
         m = _compact_rows(valid, d, f, b, depth, feat, box, m)
     return VisibleSplats(_shrink_rows(feat, m), _shrink_rows(box, m), _shrink_rows(depth, m))
 
