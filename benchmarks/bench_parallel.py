@@ -95,8 +95,10 @@ def run_spans(work: Path, tag: str) -> list[tuple[float, float]]:
 
 def outside_runs(tag: str, spans: list[tuple[float, float]]) -> tuple[float, float]:
     """Seconds of the command before its first run started (its start: imports, the instance, the
-    pool) and after its last run ended (its shutdown)."""
+    pool) and after its last run ended (its shutdown); NaN when no run ended (the command failed)."""
     t0, t1 = SPAN[tag]
+    if not spans:
+        return float("nan"), float("nan")
     return min(s for s, _ in spans) - t0, t1 - max(e for _, e in spans)
 
 
