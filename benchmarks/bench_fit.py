@@ -174,18 +174,6 @@ def _fmt_row(label: str, r: dict) -> str:
             + f" {r['cpu_s']:8.1f} {r['psnr_db']:7.2f} {r['psnr_masked_db']:7.2f} {r['n_gaussians']:9,d}")
 
 
-def _synthetic(n_frames: int):
-    """The built-in synthetic room with ``n_frames`` frames (generated once into the temp folder)."""
-    import dataclasses
-
-    from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
-    from atlas_pipeline.sensors.tum import load_tum_sequence
-
-    spec = dataclasses.replace(SyntheticSpec(), n_frames=n_frames)
-    root = generate_synthetic_dataset(Path(tempfile.gettempdir()) / f"atlas_bench_synthetic_{n_frames}", spec)
-    return load_tum_sequence(root, spec.camera(), f"synthetic-{n_frames}")
-
-
 def main(argv: list[str] | None = None) -> int:
     import numba
     import yaml
@@ -221,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}; CPU seconds = process time, all threads")
     results: dict = {}
     for name in args.datasets:
-        manifest = _load(name) if name != "synthetic" or not args.synthetic_frames else _synthetic(args.synthetic_frames)
+        manifest = _load(name, synthetic_frames=args.synthetic_frames)
         if manifest is None:
             print(f"{name}: skipped (TUM frames not found at ../shared/data/tum_fr3_teddy_100)")
             continue

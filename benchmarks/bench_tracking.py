@@ -46,7 +46,11 @@ from benchmarks.common import run_slam as bench_slam  # noqa: E402
 TEDDY = ROOT.parent / "shared" / "data" / "tum_fr3_teddy_100"
 
 
-def _load(name: str, n_frames: int | None = None):
+def _load(name: str, n_frames: int | None = None, synthetic_frames: int | None = None):
+    """``name``'s frames (the first ``n_frames``); ``synthetic_frames``: the synthetic room generated
+    with that many frames instead of the built-in 60 (a longer path through the same room)."""
+    import dataclasses
+
     from atlas_pipeline.sensors.camera import TUM_CAMERAS
     from atlas_pipeline.sensors.tum import load_tum_sequence
 
@@ -57,10 +61,13 @@ def _load(name: str, n_frames: int | None = None):
     from atlas_pipeline.sensors.synthetic import SyntheticSpec, generate_synthetic_dataset
 
     spec = SyntheticSpec()  # the built-in default partition: 60 frames, 640x480
+    suffix = ""
+    if synthetic_frames:
+        spec, suffix = dataclasses.replace(spec, n_frames=synthetic_frames), f"_{synthetic_frames}"
     # Reused when its marker holds this spec and generator version, else generated again (a folder
     # from an older generator once stood in: depth stamped 3 ms after the colour it was rendered with).
-    root = generate_synthetic_dataset(Path(tempfile.gettempdir()) / "atlas_bench_synthetic", spec)
-    return load_tum_sequence(root, spec.camera(), "synthetic", n_frames)
+    root = generate_synthetic_dataset(Path(tempfile.gettempdir()) / f"atlas_bench_synthetic{suffix}", spec)
+    return load_tum_sequence(root, spec.camera(), "synthetic" + suffix.replace("_", "-"), n_frames)
 
 
 def bench_localization(manifest, frames, cfg, builder, keyframe_poses) -> dict:

@@ -179,8 +179,9 @@ class OptimizationSettings:
         densify_scale_m: a Gaussian with all scales at most this is cloned, a larger one split.
         densify_max_growth: the densified field holds at most this times the starting count.
         prune_opacity: Gaussians below this opacity are removed at each round (3DGS: 0.005).
-        selective_adam: Adam steps only the Gaussians the view draws, each with the bias correction
-            of its own step count (gsplat's ``SelectiveAdam``, after Mallick et al.'s Taming 3DGS).
+        selective_adam: Adam steps only the Gaussians the view draws (as gsplat's ``SelectiveAdam``,
+            after Mallick et al.'s Taming 3DGS), each with the bias correction of its own step count
+            (gsplat's kernel has none; the step sizes here are set for corrected Adam).
             Dense Adam (False, 3DGS) also moves every unseen Gaussian on its momentum: a Gaussian
             seen in a fraction f of the steps then travels about 1/sqrt(f) step sizes per view that
             sees it, so the longer the path (the smaller each Gaussian's f), the larger its

@@ -507,14 +507,14 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
         # rotation; |M| = s_max), so the box below lies within reach_px of (u, v) and is empty
         # when (u, v) is farther than that outside the image. Most Gaussians in front of the
         # camera are outside its field of view; this skips their covariance, never a drawn pixel.
-        s_max = max(np.float64(scl[i, 0]), max(np.float64(scl[i, 1]), np.float64(scl[i, 2])))
+        sx = np.float64(scl[i, 0])
+        sy = np.float64(scl[i, 1])
+        sz = np.float64(scl[i, 2])
+        s_max = max(sx, max(sy, sz))
         reach_px = SIGMA_EXTENT * math.sqrt(jac_f2 * s_max * s_max / (z * z) + LOW_PASS_PX2) + CULL_SLACK_PX
         if u + reach_px < 0.0 or u - reach_px > width - 1.0 or v + reach_px < 0.0 or v - reach_px > height - 1.0:
             continue
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotmat_from_quat(quat, i)
-        sx = np.float64(scl[i, 0])
-        sy = np.float64(scl[i, 1])
-        sz = np.float64(scl[i, 2])
         # cov2d = P Sigma P^T = (P M)(P M)^T with M = R S, P = J W
         p00, p01, p02, p10, p11, p12, txz, tyz = projection_rows(
             Rcw, fx, fy, x, y, z, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
