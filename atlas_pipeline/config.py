@@ -44,6 +44,8 @@ __all__ = [
     "configs_dir",
     "load_profile",
     "load_yaml_file",
+    "parse_yaml",
+    "UniqueKeyLoader",
     "section_hash",
 ]
 
@@ -538,8 +540,47 @@ def _packaged_configs() -> Path:
     return _EXTRACTED_CONFIGS
 
 
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping of a YAML document names the same key twice (``problem_mark``: the second one)."""
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """The safe loader, refusing a key that a mapping repeats.
+
+    PyYAML's own loaders keep the last of two equal keys without a word, so a profile or registry
+    edited in two places silently loses the first value. Keys brought in by a merge (``<<: *base``)
+    may still be overridden: only keys written in the mapping itself count.
+    """
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            first_line: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    earlier = first_line.get(key)
+                except TypeError:  # an unhashable key: the base class says so
+                    continue
+                if earlier is not None:
+                    raise DuplicateKeyError(
+                        "while constructing a mapping", node.start_mark,
+                        f"duplicate key {_show(key)} (first on line {earlier}); YAML would keep only the last value",
+                        key_node.start_mark)
+                first_line[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str) -> Any:
+    """``yaml.safe_load`` of ``text`` that refuses duplicate keys (:class:`UniqueKeyLoader`)."""
+    return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def load_yaml_file(path: Path) -> Any:
-    """Parse a YAML file with the safe loader; errors name the file and line."""
+    """Parse a YAML file with the safe loader; errors name the file and line. A key repeated in
+    one mapping is an error naming the file, the line of the repeat and the key (not the last
+    value silently winning)."""
     try:
         size = path.stat().st_size
         if size > MAX_YAML_BYTES:
@@ -553,10 +594,12 @@ def load_yaml_file(path: Path) -> Any:
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     try:
-        return yaml.safe_load(text)
+        return parse_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        if isinstance(exc, DuplicateKeyError):
+            raise ConfigError(f"{where}: {exc.problem}") from None
         raise ConfigError(f"{where}: invalid YAML ({getattr(exc, 'problem', exc)})") from exc
     except RecursionError:
         raise ConfigError(f"{path}: YAML nested too deeply") from None
@@ -607,7 +650,7 @@ def parse_set_overrides(items: list[str] | tuple[str, ...] | None, option: str =
             raise ConfigError(f"{option} expects key=value, got {item!r}")
         k, v = item.split("=", 1)
         try:
-            overrides[k.strip()] = yaml.safe_load(v)
+            overrides[k.strip()] = parse_yaml(v)
         except yaml.YAMLError as exc:
             raise ConfigError(f"{option} {item!r}: the value is not valid YAML ({getattr(exc, 'problem', exc)})") from None
     return overrides
