@@ -80,23 +80,39 @@ class Range:
         lo, lo_open = (self.gt, True) if self.gt is not None else (self.ge, False)
         hi, hi_open = (self.lt, True) if self.lt is not None else (self.le, False)
         if lo is not None and hi is not None:
-            return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+            return f"in {'(' if lo_open else '['}{_bound(lo)}, {_bound(hi)}{')' if hi_open else ']'}"
         if lo is not None:
-            return f"{'>' if lo_open else '>='} {lo:g}"
+            return f"{'>' if lo_open else '>='} {_bound(lo)}"
         if hi is not None:
-            return f"{'<' if hi_open else '<='} {hi:g}"
+            return f"{'<' if hi_open else '<='} {_bound(hi)}"
         return ""
+
+
+def _bound(v: float) -> str:
+    """A bound in words: whole numbers in full (``100000``, not ``1e+05``), others as ``%g``."""
+    return str(int(v)) if float(v).is_integer() else f"{v:g}"
 
 
 POSITIVE = Range(gt=0)
 NON_NEGATIVE = Range(ge=0)
 UNIT_INTERVAL = Range(ge=0, le=1)  # shares and fractions
 SCALE_AT_MOST_ONE = Range(gt=0, le=1)  # image scale factors that only shrink
-AT_LEAST_ONE = Range(ge=1)
 MIN_FRAMES = 2  # a sequence needs two frames for one motion
 MAX_FINEST_LEVEL = 3  # 1/8 resolution: coarser leaves too few pixels to track on
 MAX_PYRAMID_LEVELS = 6  # finest_level + number of levels tracked
 MAX_VIDEO_SCALE = 4.0  # renders beyond 4x the sensor size only cost time
+# Upper bounds of every count: far above any useful value, low enough that a typo (1e9 for 90) is
+# an error naming the field at load time, not hours of work or tens of GB later.
+MAX_FRAMES = 1_000_000  # frames (views, keyframes) of one recording: 9 hours at 30 Hz
+MAX_PIXEL_STRIDE = 64  # back-projecting every 64th pixel leaves 10x7 points of a 640x480 image
+MAX_REFINEMENT_ITERATIONS = 1_000  # colour-only passes over the keyframes (default 0)
+MAX_EPOCHS = 10_000  # passes of the keyframe fit over its keyframes (default 30)
+MAX_FIT_STEPS = 100_000  # steps of the keyframe fit, one keyframe each: about a day of CPU (default 300)
+MAX_STEPS_PER_KEYFRAME = 1_000  # (default 10)
+MAX_COARSE_FACTOR = 16  # the coarse level at 1/16 of the fit's scale: 20 pixels across at 640 x 0.5
+MAX_GN_ITERATIONS = 100  # Gauss-Newton iterations of one pyramid level (default 12, 8, 5)
+MAX_VIDEO_FRAMES = 10_000  # frames of one orbit video: 11 minutes at 15 fps (default 90)
+MAX_VIDEO_FPS = 240.0
 RANGE_KEY = "range"  # the dataclass field metadata key holding a field's Range
 
 
@@ -107,7 +123,7 @@ def _setting(default: Any, range_: Range | None = None) -> Any:
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    max_frames: int | None = _setting(None, Range(ge=MIN_FRAMES))  # keep the first N frames; None = all
+    max_frames: int | None = _setting(None, Range(ge=MIN_FRAMES, le=MAX_FRAMES))  # keep the first N frames; None = all
 
 
 @dataclass(frozen=True)
@@ -116,7 +132,7 @@ class FusionConfig:
     # (mapping.max_depth_m): tracking against 8 m of noisy depth broke.
     min_depth_m: float = _setting(0.1, NON_NEGATIVE)
     max_depth_m: float = _setting(4.0, POSITIVE)
-    stride: int = _setting(2, AT_LEAST_ONE)  # back-project every ``stride``-th pixel in u and v
+    stride: int = _setting(2, Range(ge=1, le=MAX_PIXEL_STRIDE))  # back-project every ``stride``-th pixel in u and v
 
 
 @dataclass(frozen=True)
@@ -141,16 +157,16 @@ class MappingConfig:
     keyframe_rotation_deg: float = _setting(8.0, NON_NEGATIVE)
     # Colour-only fit before the full one; 0 = none (the full fit fits colours too: 3 cost ~35
     # CPU-s on synthetic for 0.03 dB, benchmarks/bench_photometric.py).
-    colour_refinement_iterations: int = _setting(0, NON_NEGATIVE)
+    colour_refinement_iterations: int = _setting(0, Range(ge=0, le=MAX_REFINEMENT_ITERATIONS))
     colour_refinement_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit
     # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off.
-    optimization_epochs: int = _setting(30, NON_NEGATIVE)
+    optimization_epochs: int = _setting(30, Range(ge=0, le=MAX_EPOCHS))
     # Cap on its steps (one keyframe each), whatever the keyframe count.
-    optimization_max_steps: int = _setting(300, AT_LEAST_ONE)
+    optimization_max_steps: int = _setting(300, Range(ge=1, le=MAX_FIT_STEPS))
     # ...but at least this many per keyframe: longer sequences get proportionally more steps (and
     # a proportionally longer schedule), so the fit's cost is linear in keyframes and its quality
     # does not fall with length; 0 = the fixed cap.
-    optimization_min_steps_per_keyframe: int = _setting(10, NON_NEGATIVE)
+    optimization_min_steps_per_keyframe: int = _setting(10, Range(ge=0, le=MAX_STEPS_PER_KEYFRAME))
     optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
     optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
     # How far the fit may move a Gaussian off its surface (along its starting normal), in its
@@ -163,16 +179,16 @@ class MappingConfig:
     colour_delay_compensation: bool = False
     # Its schedule (gaussian_world/optimize.py; measured by benchmarks/bench_fit.py). First passes at
     # 1/factor of optimization_scale (2: a quarter of the image side at scale 0.5); 1 = none.
-    optimization_coarse_factor: int = _setting(2, AT_LEAST_ONE)
-    optimization_coarse_max_steps: int = _setting(160, NON_NEGATIVE)  # cap on those steps (whole passes); 0 = none
+    optimization_coarse_factor: int = _setting(2, Range(ge=1, le=MAX_COARSE_FACTOR))
+    optimization_coarse_max_steps: int = _setting(160, Range(ge=0, le=MAX_FIT_STEPS))  # cap on those steps (whole passes); 0 = none
     optimization_coarse_lr_scale: float = _setting(4.0, POSITIVE)  # every step size times this at the coarse level
     # Passes in a row whose mean loss does not beat the best by plateau_rel_tol (relative) end the
     # coarse level, then the fit; 0 = never stop early.
-    optimization_plateau_patience: int = _setting(3, NON_NEGATIVE)
+    optimization_plateau_patience: int = _setting(3, Range(ge=0, le=MAX_EPOCHS))
     optimization_plateau_rel_tol: float = _setting(0.005, UNIT_INTERVAL)
     # Densify and prune (3DGS) every this many steps, up to densify_until_step; 0 = never.
-    optimization_densify_interval: int = _setting(50, NON_NEGATIVE)
-    optimization_densify_until_step: int = _setting(160, NON_NEGATIVE)
+    optimization_densify_interval: int = _setting(50, Range(ge=0, le=MAX_FIT_STEPS))
+    optimization_densify_until_step: int = _setting(160, Range(ge=0, le=MAX_FIT_STEPS))
     # Clone / split Gaussians whose mean view-space (NDC) position gradient exceeds this.
     optimization_densify_grad_threshold: float = _setting(2e-4, POSITIVE)
     optimization_prune_opacity: float = _setting(0.005, UNIT_INTERVAL)  # remove Gaussians below this opacity
@@ -183,17 +199,17 @@ class MappingConfig:
     # Tracked poses (pose_source estimated): loops to earlier keyframes verified by the tracker,
     # then a pose graph of the keyframes (atlas_pipeline/mapping/loop_closure.py).
     loop_closure: bool = True
-    loop_min_keyframe_gap: int = _setting(10, AT_LEAST_ONE)  # a loop's keyframes are at least this many keyframes apart
+    loop_min_keyframe_gap: int = _setting(10, Range(ge=1, le=MAX_FRAMES))  # a loop's keyframes are at least this many keyframes apart
     loop_search_radius_m: float = _setting(0.3, POSITIVE)  # candidates: camera centres within this distance
     # Tracked poses: after this many lost frames in a row a new map is started and merged with the
     # old one when the place is recognised (ORB-SLAM3's Atlas); 0 = stay lost until relocalized.
-    new_map_after_lost_frames: int = _setting(5, NON_NEGATIVE)
+    new_map_after_lost_frames: int = _setting(5, Range(ge=0, le=MAX_FRAMES))
 
 
 @dataclass(frozen=True)
 class LocalizationConfig:
     # Gauss-Newton iterations per pyramid level, coarse to fine (each >= 0; one > 0: named check).
-    iterations: tuple[int, ...] = _setting((12, 8, 5), NON_NEGATIVE)
+    iterations: tuple[int, ...] = _setting((12, 8, 5), Range(ge=0, le=MAX_GN_ITERATIONS))
     # Finest pyramid level used: 0 = full resolution, 1 = half, ...
     finest_level: int = _setting(1, Range(ge=0, le=MAX_FINEST_LEVEL))
     # Association gate at the coarsest level (halves per level) ...
@@ -222,8 +238,8 @@ class TransitionsConfig:
 
 @dataclass(frozen=True)
 class VideoConfig:
-    fps: float = _setting(15.0, POSITIVE)
-    orbit_frames: int = _setting(90, AT_LEAST_ONE)
+    fps: float = _setting(15.0, Range(gt=0, le=MAX_VIDEO_FPS))
+    orbit_frames: int = _setting(90, Range(ge=1, le=MAX_VIDEO_FRAMES))
     orbit_height_m: float = _setting(1.0)  # above the world centre; any finite height (below it: negative)
     orbit_radius_scale: float = _setting(1.2, POSITIVE)
     scale: float = _setting(1.0, Range(gt=0, le=MAX_VIDEO_SCALE))
@@ -231,8 +247,8 @@ class VideoConfig:
 
 @dataclass(frozen=True)
 class EvaluationConfig:
-    view_stride: int = _setting(2, AT_LEAST_ONE)  # evaluate every n-th held-out (non-keyframe) frame
-    max_views: int | None = _setting(None, AT_LEAST_ONE)  # cap on the number of views; None = all selected
+    view_stride: int = _setting(2, Range(ge=1, le=MAX_FRAMES))  # evaluate every n-th held-out (non-keyframe) frame
+    max_views: int | None = _setting(None, Range(ge=1, le=MAX_FRAMES))  # cap on the number of views; None = all selected
 
 
 @dataclass(frozen=True)
