@@ -244,7 +244,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         yield out
         yield check_ate(artifact(context, out).summary, cfg.localization.max_ate_m)
 
-    @stage("transitions", "2", "State-action-state transitions, one row per consecutive frame pair (Parquet).",
+    @stage("transitions", "3", "State-action-state transitions, one row per consecutive frame pair (Parquet).",
            check=TRANSITIONS_SCHEMA_OK)
     def transitions(context: AssetExecutionContext, atlas: AtlasConfig, localization_report: LocalizationReport,
                     gaussian_world: GaussianWorld):

@@ -234,6 +234,10 @@ class LocalizationConfig:
 @dataclass(frozen=True)
 class TransitionsConfig:
     pose_source: Literal["estimated", "ground_truth"] = "estimated"
+    # Frames further apart than this (s) do not follow each other: the row between them is not
+    # valid (reason ``gap``) and ends the run of transitions, instead of a velocity averaged over
+    # the gap. 1 s: 30 frames of a 30 Hz sensor; TUM's dropped frames leave gaps of a few 0.1 s.
+    max_gap_s: float = _setting(1.0, POSITIVE)
 
 
 @dataclass(frozen=True)

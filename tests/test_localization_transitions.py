@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from atlas_pipeline.config import load_profile
+from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.geometry import pose_from_tq, so3_exp
 from atlas_pipeline.localization.localizer import localize
 from atlas_pipeline.localization.metrics import ate_rmse
@@ -150,6 +151,12 @@ CASES = {
                         ["ok", "after_lost;dt_not_positive", "before_lost"]),
     "ground_truth_has_no_status": (None, np.array([0.0, 0.1, 0.2, 0.2]), [1], 0,
                                    ["after_pose_unknown", "before_pose_unknown", "dt_not_positive"]),
+    # Issue 28: a long gap (transitions.max_gap_s, default 1 s) ends a run, never an averaged velocity.
+    "gap_of_a_minute": ([A, TR, TR, TR], np.array([0.0, 0.1, 60.1, 60.2]), [], 0, ["ok", "gap", "ok"]),
+    "gap_just_over_the_bound": ([A, TR, TR, TR], np.array([0.0, 1.0001, 1.1, 2.2]), [], 0, ["gap", "ok", "gap"]),
+    "gap_at_the_bound_is_kept": ([A, TR, TR, TR], np.array([0.0, 1.0, 1.1, 1.2]), [], 0, ["ok", "ok", "ok"]),
+    "gap_and_lost": ([A, TR, LO, TR], np.array([0.0, 0.1, 5.0, 5.1]), [], 0, ["ok", "after_lost;gap", "before_lost"]),
+    "gap_in_ground_truth": (None, np.array([0.0, 30.0, 30.1, 30.2]), [], 0, ["gap", "ok", "ok"]),
 }
 ACTION_DELTA = [c for c in TRANSITIONS_SCHEMA.names if c.startswith(("action_", "delta_"))]
 
@@ -232,3 +239,29 @@ def test_reading_a_table_without_valid_reason_is_refused(tmp_path):
     pq.write_table(old, tmp_path / "old.parquet")
     with pytest.raises(ArtifactError, match="valid_reason"):
         read_transitions(tmp_path / "old.parquet")
+
+
+@pytest.mark.parametrize("max_gap_s, reasons", [
+    (0.5, ["ok", "gap", "gap"]),
+    (3.0, ["ok", "ok", "gap"]),
+    (10.0, ["ok", "ok", "ok"]),
+])
+def test_the_gap_bound_is_the_transitions_config(max_gap_s, reasons):
+    cfg = load_profile("default").with_overrides({"transitions.pose_source": "ground_truth",
+                                                  "transitions.max_gap_s": max_gap_s})
+    ts = np.array([0.0, 0.1, 2.1, 7.1])
+    df = build_transitions("p", "m", 1, ts, _trajectory(), "ground_truth",
+                           max_gap_s=cfg.transitions.max_gap_s).to_pandas()
+    assert df["valid_reason"].tolist() == reasons
+    assert df.loc[~df["valid"], ACTION_DELTA].isna().all().all()
+
+
+@pytest.mark.parametrize("value, message", [
+    (0, "--set: transitions.max_gap_s must be a finite number > 0, got 0"),
+    (-1.0, "--set: transitions.max_gap_s must be a finite number > 0, got -1.0"),
+    ("1s", "--set: transitions.max_gap_s must be a finite number > 0, got '1s'"),
+])
+def test_the_gap_bound_is_validated(value, message):
+    with pytest.raises(ConfigError) as err:
+        load_profile("default").with_overrides({"transitions.max_gap_s": value}, "--set")
+    assert str(err.value) == message

@@ -24,6 +24,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from atlas_pipeline.config import TransitionsConfig
 from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.geometry import invert_se3, so3_log, tq_from_pose
 from atlas_pipeline.io_utils import atomic_path
@@ -49,6 +50,7 @@ STATUS_UNKNOWN = "unknown"  # ground-truth poses have no tracking status
 _TRACKING_STATUSES = (STATUS_ANCHOR, STATUS_TRACKED, STATUS_RELOCALIZED, STATUS_LOST, STATUS_NOT_ATTEMPTED)
 
 REASON_OK = "ok"
+DEFAULT_MAX_GAP_S = TransitionsConfig().max_gap_s  # transitions.max_gap_s of the default profile
 REASON_SEPARATOR = ";"
 # Why a row is not valid, in the order they are listed in ``valid_reason`` (each is independent).
 VALID_REASONS = {
@@ -60,6 +62,9 @@ VALID_REASONS = {
     "before_pose_unknown": "the pose before is unknown: not finite, or the frame was never processed (not_attempted)",
     "after_pose_unknown": "the pose after is unknown: not finite, or the frame was never processed (not_attempted)",
     "dt_not_positive": "dt_s <= 0 or not finite: no velocity can be derived",
+    "gap": ("dt_s is longer than transitions.max_gap_s: the frames do not follow each other (frames missing "
+            "in between, a paused recording), and a velocity averaged over the gap is no action; the row ends "
+            "a run of transitions"),
 }
 
 
@@ -100,7 +105,7 @@ TRANSITIONS_SCHEMA = pa.schema(
         b"delta_frame": b"delta_*: relative pose T_before^-1 T_after; NaN unless valid",
         b"status": ("status_before/after: tracking status of the frame (" + ", ".join(_TRACKING_STATUSES)
                     + f"); {STATUS_UNKNOWN} for pose_source ground_truth").encode(),
-        b"valid": b"true when both poses are finite estimates that follow each other and dt_s > 0; "
+        b"valid": b"true when both poses are finite estimates that follow each other and 0 < dt_s <= max_gap_s; "
                   b"only valid rows carry an action and a delta",
         b"valid_reason": (f"'{REASON_OK}' or the reasons the row is not valid, joined by '{REASON_SEPARATOR}':"
                           ).encode() + _reasons_doc(),
@@ -123,6 +128,7 @@ def build_transitions(
     pose_source: str,
     status: list[str] | None = None,
     anchor_index: int = 0,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
 ) -> pa.Table:
     """Transitions table from a trajectory.
 
@@ -135,11 +141,13 @@ def build_transitions(
             none (they were not tracked).
         anchor_index: the frame tracking started from; frames before it were tracked backwards, so
             for them the jump of a relocalization lies between a frame and the one after it.
+        max_gap_s: frames further apart (``dt_s``) do not follow each other (``transitions.max_gap_s``).
 
     Returns:
         A table with :data:`TRANSITIONS_SCHEMA`, ``N - 1`` rows. ``valid`` is False (and
         ``valid_reason`` says why) when either frame is lost, the frame tracked second was
-        relocalized, either pose is not finite, or ``dt_s`` is not > 0; the action and delta
+        relocalized, either pose is not finite, ``dt_s`` is not > 0 or exceeds ``max_gap_s``
+        (reason ``gap``: the row ends a run of transitions); the action and delta
         columns of such a row are NaN, as are the pose columns of a lost frame.
     """
     ts = np.asarray(timestamps_s, np.float64)
@@ -151,6 +159,8 @@ def build_transitions(
         raise ValueError("need at least 2 frames for a transition")
     if not 0 <= anchor_index < n:
         raise ValueError(f"anchor_index {anchor_index} outside 0..{n - 1}")
+    if not (np.isfinite(max_gap_s) and max_gap_s > 0):
+        raise ValueError(f"max_gap_s must be a finite number > 0, got {max_gap_s!r}")
     if pose_source not in POSE_SOURCES:
         raise ValueError(f"pose_source must be one of {list(POSE_SOURCES)}, got {pose_source!r}")
     if status is not None and pose_source == "ground_truth":
@@ -180,6 +190,7 @@ def build_transitions(
         "before_pose_unknown": ~finite[:-1],
         "after_pose_unknown": ~finite[1:],
         "dt_not_positive": ~(np.isfinite(dt) & (dt > 0)),
+        "gap": np.isfinite(dt) & (dt > max_gap_s),
     }
     valid = ~np.logical_or.reduce(list(flags.values()))  # [N-1]
 
@@ -259,12 +270,13 @@ def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int
     and relocalization jumps are not motions); ground-truth rows have none (status ``unknown``,
     validity from pose finiteness and time only).
     """
-    source = cfg.transitions.pose_source
+    source, max_gap_s = cfg.transitions.pose_source, cfg.transitions.max_gap_s
     poses = report.pose_source_poses(source)  # [N, 4, 4] T_world_cam
     if source == "ground_truth" and not np.isfinite(poses).all(axis=(1, 2)).any():
         raise DatasetError(partition, "transitions.pose_source is ground_truth but the dataset has no ground truth")
     if source == "estimated":
         # Frames before the anchor were tracked backwards from it (see localize_sequence).
         return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source,
-                                 list(report.status), int(report.summary.get("anchor_index", 0)))
-    return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source)
+                                 list(report.status), int(report.summary.get("anchor_index", 0)), max_gap_s)
+    return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source,
+                             max_gap_s=max_gap_s)
