@@ -145,3 +145,76 @@ def test_a_huge_count_fails_before_any_work(isolated, caplog, item, message):
     assert main(["build", "--input", "synth-small", "--output", str(out), "--set", item]) == 2
     assert message in caplog.text
     assert not out.exists() and not (isolated / "data").exists()  # nothing generated, nothing written
+
+
+# ---- timestamps that are not seconds ---------------------------------------------------------------
+
+@pytest.fixture
+def tum_copy(small_synthetic, tmp_path):
+    import shutil
+
+    dst = tmp_path / "seq"
+    shutil.copytree(small_synthetic, dst)
+    return dst
+
+
+def _rescale(path, factor: float, offset: float = 0.0) -> None:
+    """Write ``path``'s timestamps (first column) as ``t * factor + offset``, as a recorder in another unit would."""
+    out = []
+    for line in path.read_text().splitlines():
+        if line.startswith("#") or not line.strip():
+            out.append(line)
+            continue
+        t, rest = line.split(" ", 1)
+        out.append(f"{float(t) * factor + offset:.3f} {rest}")
+    path.write_text("\n".join(out) + "\n")
+
+
+def _load_tum(root):
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+    from tests.conftest import SMALL_SYNTH
+
+    return load_tum_sequence(root, SyntheticSpec(**SMALL_SYNTH).camera(), "x")
+
+
+# (files rescaled, factor, offset, file named, line named or None, unit named)
+UNIT_CASES = {
+    "rgb_in_ns": (["rgb.txt"], 1e9, 0.0, "rgb.txt", None, "nanoseconds"),
+    "depth_in_ns": (["depth.txt"], 1e9, 0.0, "depth.txt", None, "nanoseconds"),
+    "groundtruth_in_ns": (["groundtruth.txt"], 1e9, 0.0, "groundtruth.txt", None, "nanoseconds"),
+    # Both streams in ns: the unit is named, not "no depth frame within 20 ms".
+    "rgb_and_depth_in_ns": (["rgb.txt", "depth.txt"], 1e9, 0.0, "rgb.txt", None, "nanoseconds"),
+    "all_in_ns_since_the_epoch": (["rgb.txt", "depth.txt", "groundtruth.txt"], 1e9, 1.3e18, "rgb.txt", None,
+                                  "nanoseconds"),
+    "depth_in_us": (["depth.txt"], 1e6, 0.0, "depth.txt", None, "microseconds"),
+    "rgb_in_ms": (["rgb.txt"], 1e3, 0.0, "rgb.txt", None, "milliseconds"),
+    # Motion capture at 100 Hz in ms since the epoch: 10 "s" apart passes, the magnitude does not.
+    "groundtruth_in_ms_since_the_epoch": (["groundtruth.txt"], 1e3, 1.3e12, "groundtruth.txt", 4, "milliseconds"),
+}
+
+
+@pytest.mark.parametrize("case", list(UNIT_CASES))
+def test_timestamps_that_cannot_be_seconds_name_the_file_and_the_likely_unit(tum_copy, case):
+    from atlas_pipeline.errors import DatasetError
+
+    files, factor, offset, named, line, unit = UNIT_CASES[case]
+    for name in files:
+        _rescale(tum_copy / name, factor, offset)
+    with pytest.raises(DatasetError) as err:
+        _load_tum(tum_copy)
+    msg = str(err.value)
+    where = f"{tum_copy / named}:{line}: " if line is not None else f"{tum_copy / named}: "
+    assert msg.startswith(where), msg
+    assert f"look like {unit}" in msg and "TUM list files give seconds" in msg, msg
+    assert "within 20 ms" not in msg
+    assert err.value.path == tum_copy / named and err.value.line == line
+
+
+@pytest.mark.parametrize("factor, offset", [(1.0, 0.0), (1.0, 1.3e9), (0.5, 0.0)],
+                         ids=["synthetic", "seconds_since_the_epoch", "twice_the_rate"])
+def test_timestamps_in_seconds_still_load(tum_copy, factor, offset):
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        _rescale(tum_copy / name, factor, offset)
+    m = _load_tum(tum_copy)
+    assert m.n_frames >= 2 and m.has_gt.all()

@@ -6,7 +6,11 @@ Layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
     depth.txt        timestamp filename      (16-bit PNG, depth_m = value / depth_scale, 0 = none)
     groundtruth.txt  timestamp tx ty tz qx qy qz qw   (camera-to-world, optional)
 
-Comment lines start with ``#``. RGB and depth frames are paired by nearest timestamp within 20 ms
+Comment lines start with ``#``. Timestamps are seconds (TUM: since the Unix epoch). Their unit is
+checked from the data (:func:`check_timestamps_are_seconds`): stamps that cannot be seconds, such
+as nanoseconds since the epoch or frames 33,000 "s" apart, are an error naming the file and the
+likely unit, never converted (a guessed factor would silently be wrong for some other unit).
+RGB and depth frames are paired by nearest timestamp within 20 ms
 (as TUM's ``associate.py``). A frame's time is its depth image's (the pose estimated from it;
 the colour time is kept beside it), and ground truth there is interpolated between the two
 neighbouring motion-capture samples, or taken from the nearest one within 20 ms at the ends.
@@ -40,11 +44,20 @@ MAX_LIST_LINE_BYTES = 4096
 # Depth frames within +-max_dt of one RGB frame: a 100 Hz sensor puts 4-5 there; far more means
 # the timestamps are not seconds (and association would consider every pair).
 MAX_DEPTH_FRAMES_PER_RGB_WINDOW = 64
+# Seconds since 1970 reach 1e11 in the year 5138; the same epoch in ms, us and ns is 1.7e12, 1.7e15
+# and 1.7e18, so a larger stamp is not seconds.
+MAX_TIMESTAMP_S = 1e11
+# Cameras and motion capture sample at 1 Hz - 1 kHz, frames 1 ms - 1 s apart; a median spacing
+# above 10 "s" is milliseconds (33 at 30 Hz), microseconds (33,000) or nanoseconds (3.3e7).
+MAX_MEDIAN_SPACING_S = 10.0
+# (unit, seconds per unit, smallest stamp of an epoch in it / smallest spacing of a 1 kHz sensor in it)
+_UNITS = (("nanoseconds", 1e-9, 1e17, 1e6), ("microseconds", 1e-6, 1e14, 1e3), ("milliseconds", 1e-3, 1e11, 1.0))
 
 __all__ = [
     "FrameManifest",
     "read_list_file",
     "increasing_timestamps",
+    "check_timestamps_are_seconds",
     "read_groundtruth",
     "associate",
     "lookup_groundtruth",
@@ -108,8 +121,45 @@ def read_list_file(path: Path, n_fields: int) -> list[tuple[int, list[str]]]:
     return rows
 
 
+def _likely_unit(value: float, spacing: bool) -> tuple[str, float]:
+    """``(unit name, seconds per unit)`` a stamp (``spacing`` False) or a frame spacing (True) that
+    is too large for seconds most likely has."""
+    for name, factor, epoch, gap in _UNITS:
+        if value >= (gap if spacing else epoch):
+            return name, factor
+    return _UNITS[-1][0], _UNITS[-1][1]
+
+
+def check_timestamps_are_seconds(path: Path, rows: list[tuple[int, list[str]]], ts: np.ndarray) -> None:
+    """Refuse timestamps ``ts`` ``[N]`` (of ``rows``, sorted by time) that cannot be seconds.
+
+    Units are checked from the data, not converted: a median spacing of consecutive stamps above
+    ``MAX_MEDIAN_SPACING_S`` (10 s: frames of a 30 Hz camera are 3.3e7 ns apart; the spacing tells
+    the unit best), or a stamp above ``MAX_TIMESTAMP_S`` (1e11 s, the year 5138: milliseconds,
+    microseconds or nanoseconds since the epoch) is a ``DatasetError`` naming the file (and the
+    line of the first stamp too large), the likely unit and the factor to seconds. Without the
+    check nanosecond stamps pass as seconds and association fails with "no depth frame within
+    20 ms", or ground truth matches no frame.
+    """
+    if len(ts) >= 2:
+        spacing = float(np.median(np.diff(ts)))
+        if spacing > MAX_MEDIAN_SPACING_S:
+            unit, factor = _likely_unit(spacing, spacing=True)
+            raise DatasetError(path, f"timestamps are a median {spacing:.6g} apart, too far for seconds (frames "
+                                     f"of a 1-1000 Hz sensor are 0.001-1 s apart): they look like {unit}; TUM "
+                                     f"list files give seconds (multiply by {factor:g})")
+    big = np.flatnonzero(np.abs(ts) > MAX_TIMESTAMP_S)
+    if len(big):
+        line, parts = rows[int(big[0])]
+        unit, factor = _likely_unit(abs(float(ts[big[0]])), spacing=False)
+        raise DatasetError(path, f"timestamp {parts[0][:40]} is too large for seconds (more than {MAX_TIMESTAMP_S:g}, "
+                                 f"the year 5138): the timestamps look like {unit} since the epoch; TUM list files "
+                                 f"give seconds (multiply by {factor:g})", line)
+
+
 def increasing_timestamps(path: Path, rows: list[tuple[int, list[str]]]) -> np.ndarray:
-    """Timestamps ``[N]`` of :func:`read_list_file` rows, which must strictly increase.
+    """Timestamps ``[N]`` of :func:`read_list_file` rows, which must strictly increase and be
+    seconds (:func:`check_timestamps_are_seconds`).
 
     TUM's rgb.txt and depth.txt are in capture order; a timestamp that repeats or goes back means
     an edited or concatenated list, and association would silently drop or swap frames.
@@ -125,6 +175,7 @@ def increasing_timestamps(path: Path, rows: list[tuple[int, list[str]]]) -> np.n
         raise DatasetError(
             path, f"timestamp {cur[0][:40]} is not after the previous one (line {prev_line}: {prev[0][:40]}); "
                   "TUM lists must be in increasing time order", line)
+    check_timestamps_are_seconds(path, rows, ts)
     return ts
 
 
@@ -133,7 +184,7 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     Rows are sorted by time (motion-capture exports are not always in order), but two rows with
     the same timestamp are an error naming both lines; a non-numeric value or a zero quaternion
-    names its line.
+    names its line; timestamps must be seconds (:func:`check_timestamps_are_seconds`).
     """
     rows = read_list_file(path, 8)
     ts = np.empty(len(rows))
@@ -156,6 +207,7 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
         first, second = rows[order[same[0]]], rows[order[same[0] + 1]]
         raise DatasetError(path, f"timestamp {second[1][0][:40]} repeats line {first[0]}; ground truth "
                                  "needs one pose per time", second[0])
+    check_timestamps_are_seconds(path, [rows[k] for k in order], ts)
     return ts, pose_from_tq(tq[:, :3], tq[:, 3:])
 
 
