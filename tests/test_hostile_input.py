@@ -218,3 +218,63 @@ def test_timestamps_in_seconds_still_load(tum_copy, factor, offset):
         _rescale(tum_copy / name, factor, offset)
     m = _load_tum(tum_copy)
     assert m.n_frames >= 2 and m.has_gt.all()
+
+
+# ---- a list entry that is not a regular file ---------------------------------------------------
+
+def _replace_entry(root, list_name: str, index: int, what: str) -> tuple[str, int]:
+    """Turn the image of data row ``index`` of ``list_name`` into ``what``; ``(its name, list line)``."""
+    import os
+
+    lines = (root / list_name).read_text().splitlines()
+    data = [k for k, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")]
+    lineno = data[index] + 1
+    name = lines[data[index]].split()[1]
+    target = root / name
+    target.unlink()
+    if what == "directory":
+        target.mkdir()
+    elif what == "fifo":
+        os.mkfifo(target)
+    elif what == "link_to_directory":
+        (root / "elsewhere").mkdir()
+        target.symlink_to(root / "elsewhere")
+    elif what != "missing":
+        raise AssertionError(what)
+    return name, lineno
+
+
+@pytest.mark.parametrize("list_name, kind, what, problem", [
+    ("rgb.txt", "rgb", "directory", "is a directory"),
+    ("rgb.txt", "rgb", "fifo", "is not a regular file (a FIFO)"),
+    ("rgb.txt", "rgb", "link_to_directory", "is a directory"),
+    ("rgb.txt", "rgb", "missing", "not found"),
+    ("depth.txt", "depth", "directory", "is a directory"),
+    ("depth.txt", "depth", "fifo", "is not a regular file (a FIFO)"),
+])
+def test_a_list_entry_that_is_not_a_file_says_what_it_is(tum_copy, list_name, kind, what, problem):
+    from atlas_pipeline.errors import DatasetError
+
+    name, lineno = _replace_entry(tum_copy, list_name, 2, what)
+    with pytest.raises(DatasetError) as err:
+        _load_tum(tum_copy)  # returns: a FIFO is never opened (it would block)
+    assert str(err.value) == f"{tum_copy / list_name}:{lineno}: {kind} image {name!r} {problem}"
+
+
+@pytest.mark.parametrize("list_name, what, problem", [
+    ("rgb.txt", "directory", "list file is a directory"),
+    ("depth.txt", "fifo", "list file is not a regular file (a FIFO)"),
+])
+def test_a_list_file_that_is_not_a_file_says_what_it_is(tum_copy, list_name, what, problem):
+    import os
+
+    from atlas_pipeline.errors import DatasetError
+
+    (tum_copy / list_name).unlink()
+    if what == "directory":
+        (tum_copy / list_name).mkdir()
+    else:
+        os.mkfifo(tum_copy / list_name)
+    with pytest.raises(DatasetError) as err:
+        _load_tum(tum_copy)
+    assert str(err.value) == f"{tum_copy / list_name}: {problem}"

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -97,8 +98,9 @@ def read_list_file(path: Path, n_fields: int) -> list[tuple[int, list[str]]]:
         DatasetError: missing or unreadable file, a line that is too long or not UTF-8, a line
             with a wrong number of fields, or a timestamp that is not a finite number.
     """
-    if not path.is_file():
-        raise DatasetError(path, "list file not found")
+    problem = file_problem(path)
+    if problem is not None:
+        raise DatasetError(path, f"list file {problem}")
     rows: list[tuple[int, list[str]]] = []
     for lineno, raw in _iter_lines(path):
         line = raw.strip()
@@ -444,8 +446,11 @@ def check_tum_layout(root: Path) -> None:
     if not root.is_dir():
         raise DatasetError(root, "dataset folder not found")
     for name in ("rgb.txt", "depth.txt"):
-        if not (root / name).is_file():
+        problem = file_problem(root / name)
+        if problem == "not found":
             raise DatasetError(root / name, "list file not found (expected TUM RGB-D layout)")
+        if problem is not None:
+            raise DatasetError(root / name, f"list file {problem}")
 
 
 def _is_file(path: Path) -> bool:
@@ -454,6 +459,26 @@ def _is_file(path: Path) -> bool:
         return path.is_file()
     except OSError:
         return False
+
+
+def file_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be read as a file, in words (None: it is a regular file): ``not found``,
+    ``is a directory``, ``is not a regular file (a FIFO)`` ... A FIFO or device named in a list
+    would block or stream forever if opened, and calling a directory "not found" sends the user
+    looking for a file that is there."""
+    try:
+        mode = path.stat().st_mode  # follows links: what opening it would read
+    except FileNotFoundError:
+        return "not found"
+    except OSError as exc:  # name too long, a link loop, no permission on the folder
+        return f"cannot be looked up ({exc.strerror or exc})"
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "is a directory"
+    what = ("a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a file")
+    return f"is not a regular file ({what})"
 
 
 def _safe_member(root: Path, rel: str, list_path: Path, lineno: int) -> Path:
@@ -477,8 +502,9 @@ def load_tum_sequence(
     """Read a TUM-layout folder into a :class:`FrameManifest`, checking every image header.
 
     Before any image is opened, rgb.txt and depth.txt must be in strictly increasing time order
-    (:func:`increasing_timestamps`). Every listed image must exist with the camera's size (header
-    only): 8-bit colour PNG or JPEG for RGB, 16-bit single-channel PNG for depth; the first
+    (:func:`increasing_timestamps`). Every listed image must be a regular file (one that is
+    missing, a directory or a FIFO is named as such, :func:`file_problem`) with the camera's size
+    (header only): 8-bit colour PNG or JPEG for RGB, 16-bit single-channel PNG for depth; the first
     offending file is named with its list line.
     """
     root = Path(root)
@@ -510,8 +536,9 @@ def load_tum_sequence(
             lineno, parts = rows[idx]
             list_path = root / list_name
             path = _safe_member(root, parts[1], list_path, lineno)
-            if not _is_file(path):
-                raise DatasetError(list_path, f"{kind} image {parts[1]!r} not found", lineno)
+            problem = file_problem(path)
+            if problem is not None:
+                raise DatasetError(list_path, f"{kind} image {parts[1]!r} {problem}", lineno)
             if kind == "rgb":
                 check_rgb_header(path, camera.width, camera.height, list_path, lineno)
             else:
