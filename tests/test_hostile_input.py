@@ -278,3 +278,43 @@ def test_a_list_file_that_is_not_a_file_says_what_it_is(tum_copy, list_name, wha
     with pytest.raises(DatasetError) as err:
         _load_tum(tum_copy)
     assert str(err.value) == f"{tum_copy / list_name}: {problem}"
+
+
+# ---- PLY imports ---------------------------------------------------------------------------------
+
+PLY_BASE = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+PLY_TAIL = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def _ply(path, n: int, n_rest: int = 0, extra_header: str = ""):
+    """A 3DGS PLY of ``n`` unit Gaussians with ``n_rest`` ``f_rest_*`` properties (as the reference writes)."""
+    import numpy as np
+
+    props = PLY_BASE + [f"f_rest_{i}" for i in range(n_rest)] + PLY_TAIL
+    header = ("ply\nformat binary_little_endian 1.0\n" + extra_header + f"element vertex {n}\n"
+              + "".join(f"property float {p}\n" for p in props) + "end_header\n")
+    vals = np.zeros((n, len(props)), np.float32)
+    vals[:, 0] = np.arange(n)
+    vals[:, props.index("scale_0"):props.index("scale_2") + 1] = np.log(0.01)
+    vals[:, props.index("rot_0")] = 1.0
+    path.write_bytes(header.encode() + vals.tobytes())
+    return path
+
+
+@pytest.mark.parametrize("n_rest, extra_header", [(0, ""), (45, ""), (0, "comment made by a viewer\n")],
+                         ids=["plain", "with_sh", "with_comment"])
+def test_importing_a_ply_of_no_vertices_names_the_file(isolated, caplog, n_rest, extra_header):
+    from assets.cli import main
+    from atlas_pipeline.errors import BundleFormatError
+    from atlas_pipeline.scene_memory.ply import read_gaussian_ply
+
+    src = _ply(isolated / "empty.ply", 0, n_rest, extra_header)
+    with pytest.raises(BundleFormatError) as err:
+        read_gaussian_ply(src)
+    assert str(err.value).startswith(f"{src}: header declares 0 vertices")
+    assert len(read_gaussian_ply(src, allow_empty=True)) == 0  # the round-trip check's reading
+    out = isolated / "world"
+    assert main(["import-ply", str(src), "--output", str(out)]) == 2
+    assert f"{src}: header declares 0 vertices: the file holds no Gaussians" in caplog.text
+    assert "Traceback" not in caplog.text and "TypeError" not in caplog.text
+    assert not out.exists()

@@ -200,11 +200,13 @@ def _finite_float32(path: Path, v: np.ndarray, names: list[str]) -> np.ndarray:
     return out
 
 
-def read_gaussian_ply(path: str | Path) -> GaussianField:
+def read_gaussian_ply(path: str | Path, allow_empty: bool = False) -> GaussianField:
     """Read a 3DGS-layout PLY into a :class:`GaussianField`.
 
     The vertex count is checked against the file size before any array is allocated, and every
-    value must be finite (also once stored as float32). ``red green blue`` are used when they are
+    value must be finite (also once stored as float32). A file of 0 vertices holds no world (it
+    can be neither localized in nor saved as a bundle): a ``BundleFormatError`` naming the file,
+    unless ``allow_empty`` (the encoding round-trip check of an empty field). ``red green blue`` are used when they are
     ``uchar``, else colours come from ``f_dc_*``; ``id_hi id_lo`` when they are ``uint``. The
     vertices are read and decoded ``_CHUNK`` at a time into the field's arrays.
     """
@@ -215,6 +217,9 @@ def read_gaussian_ply(path: str | Path) -> GaussianField:
         size = path.stat().st_size
         with open(path, "rb") as f:
             count, dtype, data_start = _parse_header(path, f)
+            if count == 0 and not allow_empty:
+                raise BundleFormatError(path, "header declares 0 vertices: the file holds no Gaussians, "
+                                              "so there is no world to read")
             need = count * dtype.itemsize  # Python ints: a count of 10**19 cannot overflow here
             if size - data_start < need:
                 raise BundleFormatError(
