@@ -318,3 +318,20 @@ def test_importing_a_ply_of_no_vertices_names_the_file(isolated, caplog, n_rest,
     assert f"{src}: header declares 0 vertices: the file holds no Gaussians" in caplog.text
     assert "Traceback" not in caplog.text and "TypeError" not in caplog.text
     assert not out.exists()
+
+
+@pytest.mark.parametrize("n_rest, degree", [(45, "degree 3"), (24, "degree 2"), (9, "degree 1"),
+                                            (10, "no whole degree"), (0, None)])
+def test_spherical_harmonics_dropped_on_import_are_a_visible_warning(isolated, capsys, n_rest, degree):
+    from assets.cli import main
+
+    src = _ply(isolated / "splats.ply", 5, n_rest)
+    out = isolated / "world"
+    assert main(["import-ply", str(src), "--output", str(out)]) == 0  # no -v
+    err = capsys.readouterr().err
+    if degree is None:
+        assert "f_rest" not in err
+        return
+    assert (f"warning: {src}: {n_rest} f_rest_* properties (spherical harmonics of {degree}" in err
+            and "are dropped" in err), err
+    assert err.count("f_rest_*") == 1  # once per file, not per chunk of vertices

@@ -13,7 +13,9 @@ Per vertex (binary little endian, float32 unless noted)::
     id_hi id_lo           uint32 halves of the stable uint64 id (PLY has no 64-bit integer type)
 
 Gaussian-splat viewers and gsplat read the 3DGS properties and ignore the extra ones. Reading
-accepts any PLY with at least the 3DGS properties (ids are assigned when absent).
+accepts any PLY with at least the 3DGS properties (ids are assigned when absent). Spherical
+harmonics beyond degree 0 (``f_rest_*``, 45 of them at the reference's degree 3) are not supported
+yet: they are dropped with a warning naming the file, their number and the SH degree.
 
 Both directions work in chunks of ``_CHUNK`` vertices, so a PLY of any size is written and read
 with the field plus a few MB: ``PLY_BYTES_PER_GAUSSIAN`` (79) bytes per vertex on disk; reading
@@ -24,6 +26,7 @@ sorted, one sorted copy of the ids.
 from __future__ import annotations
 
 import logging
+import math
 import re
 from pathlib import Path
 
@@ -186,6 +189,20 @@ def _parse_header(path: Path, f) -> tuple[int, np.dtype, int]:
     return count, np.dtype(props), end + len(b"end_header\n")
 
 
+def _warn_dropped_sh(path: Path, names: tuple[str, ...]) -> None:
+    """Warn (visible without -v) that the ``f_rest_*`` properties of ``path`` are not imported:
+    view-dependent colour is not supported yet, so only the degree-0 colour (``f_dc_*``) is kept."""
+    n_rest = sum(1 for p in names if p.startswith("f_rest_"))
+    if not n_rest:
+        return
+    # 3 colour channels x ((degree + 1)^2 - 1) coefficients beyond degree 0: 9, 24, 45 for 1, 2, 3
+    degree = round(math.sqrt(n_rest / 3 + 1) - 1)
+    whole = 3 * ((degree + 1) ** 2 - 1) == n_rest
+    logger.warning("%s: %d f_rest_* properties (spherical harmonics of %s) are dropped: only the degree-0 "
+                   "colour (f_dc_*) is imported, so view-dependent colour is lost", path, n_rest,
+                   f"degree {degree}" if whole else "no whole degree: 3 x ((degree + 1)^2 - 1) expected")
+
+
 def _finite_float32(path: Path, v: np.ndarray, names: list[str]) -> np.ndarray:
     """``[N, len(names)]`` float32 of the named properties; values that are not finite, or become
     infinite as float32 (a double 1e300), are refused naming the property."""
@@ -220,6 +237,7 @@ def read_gaussian_ply(path: str | Path, allow_empty: bool = False) -> GaussianFi
             if count == 0 and not allow_empty:
                 raise BundleFormatError(path, "header declares 0 vertices: the file holds no Gaussians, "
                                               "so there is no world to read")
+            _warn_dropped_sh(path, dtype.names)
             need = count * dtype.itemsize  # Python ints: a count of 10**19 cannot overflow here
             if size - data_start < need:
                 raise BundleFormatError(
