@@ -44,6 +44,9 @@ logger = logging.getLogger("atlas_gs.cli")
 
 EXIT_ERROR = 2  # a clear error (bad input, refused output, failed write): nothing half-done was left
 EXIT_INCOMPLETE = 3  # the command wrote its report but could not finish (e.g. frames not in this world)
+# The reader of stdout went away (`atlas-gs dataset list | head -1`): 128 + SIGPIPE, the status a
+# shell reports for any tool a closed pipe ended, and no message (the reader wanted no more).
+EXIT_BROKEN_PIPE = 141
 
 ASSET_ORDER = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report",
                "transitions", "demo_videos", "render_evaluation", "world_bundle"]
@@ -1155,14 +1158,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _stdout_closed() -> int:
+    """``EXIT_BROKEN_PIPE`` after stdout's reader went away, quietly (Python's recipe for SIGPIPE,
+    docs.python.org/3/library/signal.html#note-on-sigpipe): stdout is pointed at devnull, so
+    flushing what is left of it at exit cannot raise (and print "Broken pipe") again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # a stdout without a file descriptor (an in-process caller's)
+        pass
+    return EXIT_BROKEN_PIPE
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)  # --help prints here
+    except BrokenPipeError:
+        return _stdout_closed()
     with _CliOutput(args.verbose):
         try:
             return int(args.func(args) or 0)
         except AtlasError as exc:
             logger.error("%s", exc)
             return EXIT_ERROR
+        except BrokenPipeError:  # before OSError: a closed stdout is no error of the command's
+            return _stdout_closed()
         except OSError as exc:  # an OS error the library did not wrap: still name the path
             where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f) or "(no path given by the OS)"
             logger.error("%s: %s", where, exc.strerror or exc)
@@ -1177,7 +1198,10 @@ def command() -> int:
     import gc
 
     code = main()
-    sys.stdout.flush()
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        code = _stdout_closed()
     sys.stderr.flush()
     gc.freeze()
     return code

@@ -335,3 +335,46 @@ def test_spherical_harmonics_dropped_on_import_are_a_visible_warning(isolated, c
     assert (f"warning: {src}: {n_rest} f_rest_* properties (spherical harmonics of {degree}" in err
             and "are dropped" in err), err
     assert err.count("f_rest_*") == 1  # once per file, not per chunk of vertices
+
+
+# ---- the command line's output ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, codes", [
+    (["dataset", "list"], {141}),
+    (["dataset", "show", "synth-small"], {141}),
+    (["dataset", "list", "-v"], {141}),
+    (["--help"], {0, 141}),  # argparse itself ignores a failed write of its help, then exits 0
+], ids=lambda v: " ".join(v) if isinstance(v, list) else "")
+def test_a_closed_stdout_ends_the_command_quietly(isolated, argv, codes):
+    """``atlas-gs dataset list | head -1``: the reader is gone before the command writes."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from assets.cli import EXIT_BROKEN_PIPE
+
+    proc = subprocess.Popen([sys.executable, "-m", "assets.cli", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, cwd=Path(__file__).resolve().parents[1])
+    proc.stdout.close()  # as `head` exits: every write of the command meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert EXIT_BROKEN_PIPE == 141
+    assert proc.wait(timeout=300) in codes, err
+    assert "Broken pipe" not in err and "Traceback" not in err and "Exception ignored" not in err, err
+
+
+def test_head_of_dataset_list_in_a_shell(isolated):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    reg = isolated / "datasets.local.yaml"
+    # 3,000 lines (240 kB): more than a pipe holds, so the command is still writing when head leaves
+    entries = {f"synth-{i}": {"kind": "synthetic", "seed": i} for i in range(3000)}
+    reg.write_text(yaml.safe_dump({"datasets": entries}))
+    res = subprocess.run(["bash", "-o", "pipefail", "-c", f"{sys.executable} -m assets.cli dataset list | head -1"],
+                         capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert len(res.stdout.splitlines()) == 1
+    assert res.stderr == ""  # was "error: (no path given by the OS): Broken pipe", exit 2
+    assert res.returncode == 141  # pipefail: the command's status, as any tool's a closed pipe ended
