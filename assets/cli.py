@@ -558,7 +558,10 @@ def run_request(profile: str, overrides: dict[str, Any]) -> tuple[dict[str, Any]
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """Materialize the assets of one or more partitions through Dagster (all, or only stale ones)."""
+    """Materialize the assets of one or more partitions through Dagster (all, or only stale ones).
+
+    JSON output (``--json``, or stdout not a terminal) is one document: the partition's summary
+    object, or with ``--all`` a list of them in registry order (``[]`` when nothing was run)."""
     from assets.definitions import artifacts_root
     from assets.staleness import stale_assets, stale_selection
 
@@ -574,6 +577,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     run_config, tags = run_request(atlas.profile, overrides)
     run_config = {**run_config, "loggers": {"console": {}}}  # a logger runs only when the run config names it
     failed = 0
+    as_json, many = _json_output(args), bool(getattr(args, "all", False))
+    docs: list[dict[str, Any]] = []  # --all --json: every partition's summary, printed as one list
+
+    def report(summary: dict[str, Any], words: str) -> None:
+        if as_json and many:
+            docs.append(summary)
+        else:
+            _out(json.dumps(summary, indent=2) if as_json else words)
+
     for p in partitions:
         root = artifacts_root()
         selection = None
@@ -585,9 +597,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 current = {"partition": p, "stale": [], "ran": False}
                 if (root / "world_bundle" / p / "metadata.json").is_file():  # only a path that exists
                     current["world_bundle"] = str(root / "world_bundle" / p)
-                _out(json.dumps(current, indent=2) if _json_output(args) else
-                     f"{p}: all {len(ASSET_ORDER)} assets current, nothing to run"
-                     + (f"\n  world bundle  {current['world_bundle']}" if "world_bundle" in current else ""))
+                report(current, f"{p}: all {len(ASSET_ORDER)} assets current, nothing to run"
+                       + (f"\n  world bundle  {current['world_bundle']}" if "world_bundle" in current else ""))
                 continue
             selection = stale_selection(stale)
         try:
@@ -620,7 +631,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                     d = ev.event_specific_data
                     summary.setdefault("failed_checks", []).append(
                         f"{d.asset_key.to_user_string()}:{d.check_name}: {d.description or ''}".strip())
-        _out(json.dumps(summary, indent=2) if _json_output(args) else _run_words(summary))
+        report(summary, _run_words(summary))
+    if as_json and many:
+        _out(json.dumps(docs, indent=2))
     return 1 if failed else 0
 
 
@@ -788,20 +801,39 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     if fixed:
         os.environ[NUMBA_THREADS_ENV] = str(max(1, cores // concurrency))
     worst = 0
+    as_json = _json_output(args)
+    docs: list[dict[str, Any]] = []  # JSON: the workers' summaries, printed as one list (as a serial --all)
     try:
         with ProcessPoolExecutor(max_workers=concurrency, mp_context=context, initializer=_init_worker,
                                  initargs=(share,)) as pool:
             futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
-            for f in (futures[k] for k in range(len(jobs))):  # results in partition order
-                code, text = f.result()
-                if text:
+            for k in range(len(jobs)):  # results in partition order
+                code, text = futures[k].result()
+                if as_json:
+                    docs.append(_worker_summary(partitions[k], code, text))
+                elif text:
                     sys.stdout.write(text)
                     sys.stdout.flush()
                 worst = max(worst, code)
     finally:
         if fixed:
             os.environ.pop(NUMBA_THREADS_ENV, None)
+    if as_json:
+        _out(json.dumps(docs, indent=2))
     return worst
+
+
+def _worker_summary(partition: str, code: int, text: str) -> dict[str, Any]:
+    """A pool worker's JSON summary of its partition; one saying it failed when the worker printed
+    none (an error before its run, logged on stderr)."""
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        doc = None
+    if isinstance(doc, dict):
+        return doc
+    return {"partition": partition, "success": False, "exit_code": code,
+            "errors": ["no summary: see the log on stderr"], **({"output": text} if text.strip() else {})}
 
 
 def _json_output(args: argparse.Namespace) -> bool:

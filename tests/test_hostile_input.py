@@ -378,3 +378,70 @@ def test_head_of_dataset_list_in_a_shell(isolated):
     assert len(res.stdout.splitlines()) == 1
     assert res.stderr == ""  # was "error: (no path given by the OS): Broken pipe", exit 2
     assert res.returncode == 141  # pipefail: the command's status, as any tool's a closed pipe ended
+
+
+class _FakeResult:
+    """What cmd_run reads of a Dagster run's result (the run itself is not what these tests are about)."""
+
+    def __init__(self, partition: str):
+        self.success, self.run_id, self.all_events = True, f"run-{partition}", []
+
+
+class _InlinePool:
+    """ProcessPoolExecutor's interface, running each job here at once (so the fakes below apply)."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        f = Future()
+        f.set_result(fn(*args))
+        return f
+
+
+@pytest.mark.parametrize("argv, failing, expected", [
+    (["run", "--all", "--concurrency", "1", "--json"], None, ["par-a", "par-b", "par-c"]),
+    (["run", "--all", "--concurrency", "1"], None, ["par-a", "par-b", "par-c"]),  # stdout not a terminal: JSON
+    (["run", "--all", "--concurrency", "2", "--json"], None, ["par-a", "par-b", "par-c"]),  # the pool's path
+    (["run", "--all", "--concurrency", "3", "--json"], "par-b", ["par-a", "par-b", "par-c"]),
+    (["run", "par-b", "--json"], None, "par-b"),  # one partition: its object, as always
+])
+def test_run_prints_one_json_document(isolated, monkeypatch, capsys, argv, failing, expected):
+    import concurrent.futures
+    import json
+
+    import assets.cli as cli
+    from atlas_pipeline.errors import DatasetError
+    from tests.test_parallel import project_with_datasets
+
+    names = ["par-a", "par-b", "par-c"]
+    monkeypatch.setenv("ATLAS_PROJECT_ROOT", str(project_with_datasets(isolated / "project", names)))
+    monkeypatch.setenv("ATLAS_LOCAL_REGISTRY", str(isolated / "none.yaml"))
+
+    def fake_execute(args, job, defs, instance, p, *rest):
+        if p == failing:
+            raise DatasetError(p, "the frames are gone")
+        return _FakeResult(p)
+
+    monkeypatch.setattr(cli, "_execute_partition", fake_execute)
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", _InlinePool)
+    code = cli.main(argv)
+    out = capsys.readouterr().out
+    doc = json.loads(out)  # one document, whatever the path
+    if isinstance(expected, str):
+        assert code == 0 and doc["partition"] == expected and doc["run_id"] == f"run-{expected}"
+        return
+    assert isinstance(doc, list) and [d["partition"] for d in doc] == expected
+    for d in doc:
+        ok = d["partition"] != failing
+        assert d["success"] is ok
+        assert d.get("run_id") == (f"run-{d['partition']}" if ok else None)
+    assert code == (cli.EXIT_ERROR if failing else 0)
