@@ -1208,7 +1208,9 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)  # --help prints here
     except BrokenPipeError:
         return _stdout_closed()
-    with _CliOutput(args.verbose):
+    from assets.runs import signal_dispositions_kept
+
+    with _CliOutput(args.verbose), signal_dispositions_kept():  # a Dagster run changes them (assets.runs)
         try:
             return int(args.func(args) or 0)
         except AtlasError as exc:

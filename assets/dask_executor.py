@@ -19,6 +19,10 @@ logged "Sizeof calculation for object of type 'list' failed" for every step. An 
 is the length of its serialized form (what Dagster stores of it), registered with dask's ``sizeof``
 when a worker imports this module to run a step.
 
+A worker that ignores SIGTERM (inherited from the process that started the cluster, see
+:func:`assets.runs.signal_dispositions_kept`) makes every step wait a minute for Dagster's compute-log
+``tail`` processes, which then never exit: each run warns, naming the workers.
+
 Remove this module once dagster-dask handles both (then use ``dagster_dask.dask_executor``).
 """
 
@@ -62,6 +66,13 @@ class _Sealed:
         self.args = state
 
 
+def _ignores_sigterm() -> bool:
+    """On a worker: whether SIGTERM is ignored in its process (and so in every child it starts)."""
+    import signal
+
+    return signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+
+
 def _execute_step(dependencies: list[Any], sealed: _Sealed):
     """On a worker: dagster-dask's step function (``dependencies`` only orders the tasks)."""
     return query_on_dask_worker(dependencies, *sealed.args)
@@ -87,6 +98,12 @@ class AtlasDaskExecutor(DaskExecutor):
         instance_ref = plan_context.instance.get_ref()
         try:
             with dask.distributed.Client(cluster) as client:
+                deaf = sorted(w for w, ignored in client.run(_ignores_sigterm).items() if ignored)
+                if deaf:
+                    plan_context.log.warning(
+                        f"dask workers {', '.join(deaf)} ignore SIGTERM (inherited from the process that started "
+                        "them): each step waits 60 s for Dagster's compute-log tail processes, which are left "
+                        "running; start the cluster from a process that does not ignore SIGTERM")
                 futures: dict[str, Any] = {}
                 for level in execution_plan.get_steps_to_execute_by_level():
                     for step in level:

@@ -9,6 +9,9 @@ It runs when ``atlas-gs`` opens the instance and on every tick of the registry s
 
 With an executor whose steps run in long-lived worker processes (Dask), a worker is not the run's
 process: the process launching the run tags it (:func:`launcher_tags`) and workers tag nothing.
+
+A run in a process's main thread changes that process's signal handlers for good (see
+:func:`signal_dispositions_kept`); ``atlas-gs`` puts them back after every command.
 """
 
 from __future__ import annotations
@@ -16,8 +19,12 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import socket
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from dagster import DagsterInstance, DagsterRunStatus, RunsFilter
 
@@ -120,3 +127,31 @@ def reap_dead_runs(instance: DagsterInstance) -> list[str]:
                        run.run_id, run.job_name)
         reaped.append(run.run_id)
     return reaped
+
+
+_KEPT_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextmanager
+def signal_dispositions_kept() -> Iterator[None]:
+    """Put SIGINT's and SIGTERM's handlers back as they were once the block ends.
+
+    Every Dagster run executed in a process's main thread (``execute_in_process``, ``execute_job``)
+    sets SIGTERM to SIGINT's handler when it ends (``dagster._utils.interrupts``: SIGTERM is handled
+    like Ctrl-C, for Kubernetes). In a process whose SIGINT is ignored (started in the background
+    by a non-interactive shell, by CI or by a supervisor) that leaves SIGTERM *ignored*, and every
+    process started afterwards inherits that (an ignored signal stays ignored across ``exec``):
+    the workers of a Dask cluster started later, and in them Dagster's ``tail -F`` mirrors of each
+    step's compute log, which the step's teardown stops with SIGTERM and then waits 30 s for, once
+    for stdout and once for stderr: a minute after every step, and the tails left running for good.
+    Outside the main thread (where Dagster changes nothing) this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.getsignal(s) for s in _KEPT_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            if handler is not None and signal.getsignal(s) is not handler:  # None: set outside Python
+                signal.signal(s, handler)

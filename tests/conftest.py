@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,19 @@ def tum_folder(name: str) -> Path:
     if not (p / "rgb.txt").is_file():
         pytest.skip(f"real TUM RGB-D frames not available at {p} (only the project's CI machines have them)")
     return p
+
+
+@pytest.fixture(autouse=True)
+def _signal_handlers_restored():
+    """SIGINT's and SIGTERM's handlers as they were before the test: a Dagster run in the main
+    thread changes them for good (see ``assets.runs.signal_dispositions_kept``; ``atlas-gs`` puts
+    them back, a test running a job itself does not), and a SIGTERM left ignored is inherited by
+    every process a later test starts."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for s, handler in saved.items():
+        if handler is not None:
+            signal.signal(s, handler)
 
 
 @pytest.fixture

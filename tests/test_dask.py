@@ -3,6 +3,9 @@ started and stopped here) gives the same artifacts, byte for byte, as an in-proc
 
 import json
 import os
+import signal
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -19,9 +22,10 @@ ASSETS = ["raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localiz
 RUN_SPECIFIC = ("run_id", "created_at", "created_utc")  # provenance of a run, not content
 
 
-@pytest.fixture
-def dask_scheduler(isolated):
-    """A LocalCluster started after ``isolated`` set the environment (the workers inherit it)."""
+@contextmanager
+def _local_cluster():
+    """A LocalCluster's scheduler address (the workers inherit this process's environment and
+    signal handlers when it starts)."""
     from distributed import LocalCluster
 
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -30,6 +34,21 @@ def dask_scheduler(isolated):
         yield cluster.scheduler_address
     finally:
         cluster.close()
+
+
+def _tails_of(folder: Path) -> list[int]:
+    """Pids of running ``tail`` processes reading a file under ``folder`` (Dagster's compute-log
+    mirrors; Linux ``/proc``; empty elsewhere)."""
+    out = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            argv = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if argv and Path(argv[0].decode(errors="replace")).name == "tail" and \
+                any(str(folder).encode() in a for a in argv[1:]):
+            out.append(int(proc.name))
+    return out
 
 
 def _without_run_ids(value):
@@ -65,34 +84,54 @@ def test_executor_is_chosen_by_config_and_checked(isolated, monkeypatch):
 
 
 @pytest.mark.slow
-def test_dask_cluster_gives_byte_identical_artifacts(isolated, monkeypatch, dask_scheduler, capsys):
+def test_dask_cluster_gives_byte_identical_artifacts(isolated, monkeypatch, capsys):
+    """Run as from a non-interactive shell's background job (SIGINT ignored), the cluster started
+    after an in-process run, as in a long-lived process: Dagster's run left SIGTERM ignored, the
+    workers inherited it, and each Dask step waited 60 s for its compute-log tails (which stayed
+    running). The Dask run now ends within 45 s of the serial run and leaves no tail behind."""
     from dagster import DagsterEventType, DagsterInstance
+    from distributed import Client
 
+    from assets.dask_executor import _ignores_sigterm
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # both put back by conftest's _signal_handlers_restored
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    t0 = time.perf_counter()
     assert main(["run", "synth-small", "--json"]) == 0
+    serial_s = time.perf_counter() - t0
     local = json.loads(capsys.readouterr().out)
     assert local["success"]
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # as before the run (atlas-gs puts it back)
 
     # Another artifacts folder and instance; the same dataset folder and registry.
     monkeypatch.setenv("ATLAS_ARTIFACTS_DIR", str(isolated / "artifacts-dask"))
     monkeypatch.setenv("DAGSTER_HOME", str(isolated / "dagster_home_dask"))
     (isolated / "dagster_home_dask").mkdir()
-    argv = ["run", "synth-small", "--json", "--executor", "dask", "--dask-scheduler", dask_scheduler]
-    assert main(argv) == 0
-    on_dask = json.loads(capsys.readouterr().out)
-    assert on_dask["success"] and sorted(on_dask["recomputed"]) == sorted(ASSETS), on_dask
+    with _local_cluster() as address:
+        with Client(address) as client:
+            assert not any(client.run(_ignores_sigterm).values())
+        argv = ["run", "synth-small", "--json", "--executor", "dask", "--dask-scheduler", address]
+        t0 = time.perf_counter()
+        assert main(argv) == 0
+        dask_s = time.perf_counter() - t0
+        on_dask = json.loads(capsys.readouterr().out)
+        assert on_dask["success"] and sorted(on_dask["recomputed"]) == sorted(ASSETS), on_dask
+        # A minute per step made it 10 minutes; the workers' imports and first calls cost seconds.
+        assert dask_s < serial_s + 45, f"Dask run {dask_s:.1f} s, serial {serial_s:.1f} s"
 
-    # The steps ran in the workers, not here.
-    logs = DagsterInstance.get().all_logs(on_dask["run_id"], of_type=DagsterEventType.STEP_START)
-    pids = {e.dagster_event.pid for e in logs}
-    assert pids and os.getpid() not in pids
+        # The steps ran in the workers, not here.
+        logs = DagsterInstance.get().all_logs(on_dask["run_id"], of_type=DagsterEventType.STEP_START)
+        pids = {e.dagster_event.pid for e in logs}
+        assert pids and os.getpid() not in pids
 
-    assert _artifact_digest(isolated / "artifacts-dask", "synth-small") == \
-        _artifact_digest(isolated / "artifacts", "synth-small")
+        assert _artifact_digest(isolated / "artifacts-dask", "synth-small") == \
+            _artifact_digest(isolated / "artifacts", "synth-small")
 
-    # A second run on the cluster reuses every asset.
-    assert main(argv) == 0
-    again = json.loads(capsys.readouterr().out)
-    assert again["success"] and again["recomputed"] == [] and sorted(again["reused"]) == sorted(ASSETS)
+        # A second run on the cluster reuses every asset.
+        assert main(argv) == 0
+        again = json.loads(capsys.readouterr().out)
+        assert again["success"] and again["recomputed"] == [] and sorted(again["reused"]) == sorted(ASSETS)
+    assert _tails_of(isolated) == []  # every step's compute-log tail has exited
 
 
 def test_dask_sizes_step_results_without_walking_dagster_records():
