@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from atlas_pipeline.config import PipelineConfig, load_profile, parse_set_overrides, project_root
-from atlas_pipeline.errors import AtlasError, ConfigError
+from atlas_pipeline.errors import AtlasError, ConfigError, DatasetError
 from atlas_pipeline.io_utils import check_output_dir, check_output_file, check_writable
 from atlas_pipeline.geometry import pose_from_tq, tq_from_pose
 from atlas_pipeline.sensors.camera import TUM_CAMERAS
@@ -502,11 +502,11 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
 def _dagster_setup(args: argparse.Namespace):
     """DAGSTER_HOME, the definitions for the run's profile (``--profile``, else ``$ATLAS_PROFILE``,
     else ``default``), the validated ``--set`` overrides, the instance, the partitions to run
-    (registered datasets, added to the instance as dynamic partitions)."""
+    (registered datasets on disk: the definitions' partitions, read from the registry here)."""
     _default_dagster_home()
     from dagster import DagsterInstance
 
-    from assets.definitions import build_definitions, sync_dataset_partitions
+    from assets.definitions import build_definitions, loaded_partitions
     from assets.resources import atlas_config
     from assets.runs import reap_dead_runs
 
@@ -520,9 +520,16 @@ def _dagster_setup(args: argparse.Namespace):
     if getattr(args, "func", None) is cmd_run:  # `status` only reads; a run fetches what it needs first
         partitions = [p for p in partitions if _fetch(registry[p], skip_on_error=getattr(args, "all", False))]
     defs = build_definitions(profile=args.profile)
+    loaded = set(loaded_partitions(defs))
+    for p in [p for p in partitions if p not in loaded]:  # not on disk: a preset not fetched, files gone
+        missing = DatasetError(registry[p].path, f"dataset '{p}' is no partition: its files are not there" + (
+            f" (`atlas-gs dataset fetch {p}` or `atlas-gs run {p}` downloads them)" if registry[p].url else ""))
+        if not getattr(args, "all", False):
+            raise missing
+        logger.warning("%s left out: %s", p, missing)
+    partitions = [p for p in partitions if p in loaded]
     instance = DagsterInstance.get()
     reap_dead_runs(instance)  # runs left STARTED by a killed process are marked failed
-    sync_dataset_partitions(instance, partitions)
     return defs, instance, partitions, atlas, overrides
 
 
@@ -967,15 +974,9 @@ def cmd_dataset(args: argparse.Namespace) -> int:
             raise DatasetError(entry.path, f"dataset folder of '{entry.name}' not found and no url to download it from")
         was_there = dataset_on_disk(entry) and entry.path.exists()
         path = ensure_dataset_files(entry)  # generates a synthetic one, downloads a preset (progress bar)
-        _default_dagster_home()
-        from dagster import DagsterInstance
-
-        from assets.definitions import sync_dataset_partitions
-
-        with DagsterInstance.get() as instance:
-            added = sync_dataset_partitions(instance, [entry.name])
+        # On disk now: a partition of the definitions as they load from now on (assets.definitions).
         _out(json.dumps({"dataset": entry.name, "path": str(path), "fetched": not was_there,
-                         "partition_added": bool(added), "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
+                         "partition_added": dataset_on_disk(entry)}, indent=2))
         return 0
     if args.dataset_cmd == "add":
         path = Path(args.path).expanduser()
@@ -997,25 +998,22 @@ def cmd_dataset(args: argparse.Namespace) -> int:
                   "depth_topic": args.depth_topic}
         entry = register_local_dataset(args.name, path, camera, replace=args.replace, kind=kind,
                                        params={k: v for k, v in params.items() if v is not None})
-        _default_dagster_home()
-        from dagster import DagsterInstance
-
-        from assets.definitions import sync_dataset_partitions
-
-        with DagsterInstance.get() as instance:
-            sync_dataset_partitions(instance, [entry.name])
         _out(json.dumps({"registered": entry.describe(), "registry": str(local_registry_path()),
-                          "partition_added": entry.name, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
+                          "partition_added": entry.name}, indent=2))
         return 0
-    if args.dataset_cmd == "sync":
-        _default_dagster_home()
-        from dagster import DagsterInstance
+    if args.dataset_cmd == "sync":  # kept for scripts: the definitions read the registry as they load
+        from atlas_pipeline.sensors.registry import dataset_on_disk
 
-        from assets.definitions import sync_dataset_partitions
-
-        with DagsterInstance.get() as instance:
-            added = sync_dataset_partitions(instance, args.names or None)
-        _out(json.dumps({"partitions_added": added, "dagster_home": os.environ["DAGSTER_HOME"]}, indent=2))
+        reg = load_registry()
+        names = [validate_dataset_name(n) for n in (args.names or reg)]
+        unknown = [n for n in names if n not in reg]
+        if unknown:
+            raise ConfigError(f"dataset(s) {', '.join(unknown)} not registered; known: {', '.join(reg)}")
+        _out(json.dumps({
+            "partitions": [n for n in names if dataset_on_disk(reg[n])],
+            "not_partitions": {n: ("not fetched (`atlas-gs dataset fetch " + n + "`)" if reg[n].url else
+                                   f"no files at {reg[n].path}") for n in names if not dataset_on_disk(reg[n])},
+        }, indent=2))
         return 0
     if args.dataset_cmd == "show":
         reg = load_registry()
@@ -1144,12 +1142,13 @@ def build_parser() -> argparse.ArgumentParser:
     ds = sub.add_parser("dataset", help="list, show or register datasets (partitions)")
     dsub = ds.add_subparsers(dest="dataset_cmd", required=True)
     dsub.add_parser("list", help="registered datasets")
-    sy = dsub.add_parser("sync", help="add every registered dataset (or NAMES) as a partition of $DAGSTER_HOME's "
-                                      "instance (before `dagster asset materialize` in a fresh home)")
+    sy = dsub.add_parser("sync", help="which registered datasets (or NAMES) are partitions and why the others are "
+                                      "not; nothing to do before Dagster's own commands (the definitions read the "
+                                      "registry as they load)")
     sy.add_argument("names", nargs="*")
     sh = dsub.add_parser("show", help="one dataset's registry entry")
     sh.add_argument("name")
-    fe = dsub.add_parser("fetch", help="download a preset's frames (or generate a synthetic dataset) and add its "
+    fe = dsub.add_parser("fetch", help="download a preset's frames (or generate a synthetic dataset), making it a "
                                        "partition; a preset is not a partition before this (or its first run)")
     fe.add_argument("name")
     add = dsub.add_parser("add", help="register a recording (TUM, 7-Scenes, Replica, ScanNet folder or a "

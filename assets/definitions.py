@@ -1,20 +1,18 @@
 """The one Dagster ``Definitions`` of Atlas-GS (``dagster dev`` loads ``defs`` from here).
 
-Partitions are the registered datasets, kept as Dagster *dynamic* partitions named ``datasets``:
-registering a folder adds a partition without touching code. Three ways keep the instance's
-partitions in step with the registry (``configs/datasets.yaml`` + the local registry file):
+Partitions are the registered datasets a run can build offline (synthetic ones and those on disk),
+read from the registry (``configs/datasets.yaml`` + the local registry file) whenever the
+definitions load: a ``StaticPartitionsDefinition``, so Dagster's own commands work from a fresh
+``$DAGSTER_HOME`` with no step before them (``dagster asset materialize --select '*' --partition
+synthetic -m assets.definitions``), and the instance holds no partition list to keep in step.
+Registering a folder adds a partition without touching code: ``atlas-gs`` loads the definitions
+for every command, a running ``dagster dev`` once its code location reloads (the UI's *Reload*;
+the ``dataset_registry_sensor`` says when the registry has datasets the loaded code does not).
+A download preset (``url`` in the registry) becomes a partition once fetched, so the UI never
+offers runs that must fail.
 
-* ``atlas-gs dataset add`` / ``dataset fetch`` / ``run`` add them directly;
-* the ``dataset_registry_sensor`` (running by default under ``dagster dev``) adds every registered
-  dataset that is not a partition yet, so an entry written by hand or by the CLI shows in the UI;
-* the ``register_dataset`` job lets the UI's launchpad register a TUM-layout folder;
-* ``atlas-gs dataset sync`` adds them to a fresh ``$DAGSTER_HOME`` before ``dagster asset materialize``.
-
-Only datasets a run can build offline are partitions: synthetic ones and those on disk. A download
-preset (``url`` in the registry) becomes one once fetched, so the UI never offers runs that must fail.
-
-Loading this module reads the profile and the registry and writes nothing. The profile is
-``$ATLAS_PROFILE`` (default ``default``) unless :func:`build_definitions` names one.
+Loading this module reads the profile and the registry and writes nothing (it opens no instance).
+The profile is ``$ATLAS_PROFILE`` (default ``default``) unless :func:`build_definitions` names one.
 """
 
 
@@ -24,19 +22,18 @@ from pathlib import Path
 from typing import Any, Optional
 
 from dagster import (
-    AssetKey,
     AssetObservation,
-    AssetRecordsFilter,
     AssetSelection,
     Config,
     DagsterInstance,
     DefaultSensorStatus,
     Definitions,
-    DynamicPartitionsDefinition,
     OpExecutionContext,
+    SensorDefinition,
     SensorEvaluationContext,
     SensorResult,
     SkipReason,
+    StaticPartitionsDefinition,
     ExecutorDefinition,
     JobDefinition,
     define_asset_job,
@@ -59,20 +56,13 @@ from atlas_pipeline.sensors.registry import (
     camera_from_intrinsics,
     dataset_on_disk,
     load_registry,
-    needs_download,
     register_local_dataset,
     validate_dataset_name,
 )
 
 logger = logging.getLogger("atlas_gs.definitions")
 
-DATASETS = DynamicPartitionsDefinition(name="datasets")
-
-
-def dataset_partitions(names: list[str] | None = None) -> DynamicPartitionsDefinition:
-    """The dataset partitions (dynamic: their keys live in the Dagster instance). ``names`` is
-    accepted for compatibility and ignored; use :func:`sync_dataset_partitions`."""
-    return DATASETS
+RELOAD_HINT = "reload the code location (the UI's Reload) to see them; atlas-gs sees them now"
 
 
 def registered_partition_names() -> list[str]:
@@ -87,41 +77,15 @@ def available_partition_names() -> list[str]:
     return [validate_dataset_name(n) for n, e in load_registry().items() if dataset_on_disk(e)]
 
 
-def unfetched_partitions(instance: DagsterInstance) -> list[str]:
-    """Partitions of download presets whose frames are not on disk and that were never
-    materialized (added by an older atlas-gs): nothing is lost by removing them."""
-    have = set(instance.get_dynamic_partitions(DATASETS.name))
-    out = []
-    for name, entry in load_registry().items():
-        if name in have and needs_download(entry) and not instance.fetch_materializations(
-                AssetRecordsFilter(asset_key=AssetKey("raw_dataset"), asset_partitions=[name]), limit=1).records:
-            out.append(name)
-    return out
+def dataset_partitions(names: list[str] | None = None) -> StaticPartitionsDefinition:
+    """The dataset partitions: ``names``, else the registry's datasets a run can build offline now
+    (:func:`available_partition_names`)."""
+    return StaticPartitionsDefinition(list(names) if names is not None else available_partition_names())
 
 
-def sync_dataset_partitions(instance: DagsterInstance, names: list[str] | None = None) -> list[str]:
-    """Add every registered dataset (or each of ``names``) that a run can build offline and that is
-    not a partition yet; returns the added ones. Without ``names``, partitions of presets never
-    fetched nor materialized are removed. A name whose frames are not on disk is not added."""
-    registry = load_registry()
-    if names is None:
-        for name in unfetched_partitions(instance):
-            instance.delete_dynamic_partition(DATASETS.name, name)
-            logger.info("removed partition %s: not downloaded yet (`atlas-gs dataset fetch %s` adds it)", name, name)
-    wanted = [validate_dataset_name(n) for n in (names if names is not None else available_partition_names())]
-    have = set(instance.get_dynamic_partitions(DATASETS.name))
-    new = []
-    for n in wanted:
-        if n in have:
-            continue
-        if n in registry and not dataset_on_disk(registry[n]):
-            logger.info("%s is not on disk yet: not a partition until `atlas-gs dataset fetch %s`", n, n)
-            continue
-        new.append(n)
-    if new:
-        instance.add_dynamic_partitions(DATASETS.name, new)
-        logger.info("added dataset partitions: %s", ", ".join(new))
-    return new
+def loaded_partitions(defs: Definitions) -> list[str]:
+    """The partitions ``defs`` was built with (registry order)."""
+    return list(defs.resolve_job_def("atlas_gs_all").partitions_def.get_partition_keys())
 
 
 def changed_datasets(instance: DagsterInstance, names: list[str]) -> list[AssetObservation]:
@@ -138,25 +102,36 @@ def changed_datasets(instance: DagsterInstance, names: list[str]) -> list[AssetO
     return out
 
 
-@sensor(minimum_interval_seconds=30, default_status=DefaultSensorStatus.RUNNING,
-        description="Adds a dynamic partition for every dataset in the registry (configs/datasets.yaml and "
-                    "the local registry) that a run can build offline and that is not one yet (a download "
-                    "preset once `atlas-gs dataset fetch` put its frames on disk), removes partitions of presets "
-                    "never fetched nor materialized, and observes dataset_files of every dataset whose files changed.")
-def dataset_registry_sensor(context: SensorEvaluationContext):
-    reap_dead_runs(context.instance)  # runs whose process died are marked failed (assets.runs)
-    try:
-        names = available_partition_names()
-        gone = unfetched_partitions(context.instance)
-    except Exception as exc:  # a broken registry file: say which and what, do not crash the daemon
-        return SkipReason(f"dataset registry unreadable: {exc}")
-    have = set(context.instance.get_dynamic_partitions(DATASETS.name))
-    new = [n for n in names if n not in have]
-    observed = changed_datasets(context.instance, [n for n in names if n in have])
-    if not new and not gone and not observed:
-        return SkipReason(f"all {len(names)} datasets on disk are partitions, none changed on disk")
-    requests = ([DATASETS.build_add_request(new)] if new else []) + ([DATASETS.build_delete_request(gone)] if gone else [])
-    return SensorResult(dynamic_partitions_requests=requests, asset_events=observed)
+def registry_sensor(loaded: list[str]) -> SensorDefinition:
+    """The ``dataset_registry_sensor`` of definitions whose partitions are ``loaded``."""
+    loaded = list(loaded)
+
+    @sensor(name="dataset_registry_sensor", minimum_interval_seconds=30, default_status=DefaultSensorStatus.RUNNING,
+            description="Observes dataset_files of every dataset partition whose files changed on disk (the UI then "
+                        "shows raw_dataset stale), marks runs whose process died as failed, and says which datasets "
+                        "the registry (configs/datasets.yaml and the local registry) has or lost since the code "
+                        "location loaded: partitions are read from it when the definitions load (Reload to see them).")
+    def dataset_registry_sensor(context: SensorEvaluationContext):
+        reap_dead_runs(context.instance)  # runs whose process died are marked failed (assets.runs)
+        try:
+            names = available_partition_names()
+        except Exception as exc:  # a broken registry file: say which and what, do not crash the daemon
+            return SkipReason(f"dataset registry unreadable: {exc}")
+        new = [n for n in names if n not in loaded]
+        gone = [n for n in loaded if n not in names]
+        drift = "; ".join(part for part in (
+            f"not partitions until the code location reloads: {', '.join(new)}" if new else "",
+            f"no longer registered or on disk: {', '.join(gone)}" if gone else "") if part)
+        if drift:
+            drift = f"{drift} ({RELOAD_HINT})"
+        observed = changed_datasets(context.instance, [n for n in loaded if n in names])
+        if not observed:
+            return SkipReason(drift or f"all {len(loaded)} dataset partitions unchanged on disk")
+        if drift:
+            context.log.info(drift)
+        return SensorResult(asset_events=observed)
+
+    return dataset_registry_sensor
 
 
 class RegisterDatasetConfig(Config):
@@ -173,17 +148,17 @@ class RegisterDatasetConfig(Config):
     replace: bool = PField(False, description="re-point a name that is already registered")
 
 
-@op(description="Validate the name and the TUM layout, write the local registry, add the partition.")
+@op(description="Validate the name and the TUM layout, write the local registry.")
 def register_dataset_op(context: OpExecutionContext, config: RegisterDatasetConfig) -> None:
     camera = (camera_from_intrinsics(config.intrinsics, config.width, config.height, config.depth_scale, "intrinsics")
               if config.intrinsics else config.camera)
     entry = register_local_dataset(config.name, config.path, camera, replace=config.replace, kind=config.kind)
-    sync_dataset_partitions(context.instance, [entry.name])
-    context.log.info(f"registered dataset {entry.name} -> {entry.path}; partition added")
+    context.log.info(f"registered dataset {entry.name} -> {entry.path}: a partition once the code location "
+                     f"reloads (the UI's Reload; `atlas-gs run {entry.name}` runs it now)")
 
 
-@job(description="Register a TUM-layout folder as a dataset partition (launch from the UI's launchpad "
-                 "with name, path and camera).")
+@job(description="Register a TUM-layout folder as a dataset (launch from the UI's launchpad with name, path and "
+                 "camera); it is a partition once the code location reloads.")
 def register_dataset():
     register_dataset_op()
 
@@ -243,7 +218,8 @@ def build_definitions(artifacts_dir: str | Path | None = None, profile: str | No
                       overrides: dict[str, Any] | None = None, executor: str | None = None,
                       dask_scheduler: str | None = None) -> Definitions:
     """The definitions for one profile: ``profile`` if given, else ``$ATLAS_PROFILE``, else ``default``;
-    ``overrides`` (dotted keys) change the run defaults the launchpad shows; ``executor`` /
+    ``partition_names``: the partitions (default: the registry's datasets a run can build offline,
+    read now); ``overrides`` (dotted keys) change the run defaults the launchpad shows; ``executor`` /
     ``dask_scheduler``: see :func:`select_executor`. Writes nothing."""
     root = str(artifacts_dir if artifacts_dir is not None else artifacts_root())
     chosen = executor_name(executor)
@@ -255,10 +231,11 @@ def build_definitions(artifacts_dir: str | Path | None = None, profile: str | No
         executor_def=run_executor,
     )
     atlas = atlas_config(profile, overrides)
+    partitions = dataset_partitions(partition_names)
     return Definitions(
-        assets=build_pipeline_assets(dataset_partitions(partition_names), atlas.load()),
+        assets=build_pipeline_assets(partitions, atlas.load()),
         jobs=[everything, register_dataset],
-        sensors=[dataset_registry_sensor],
+        sensors=[registry_sensor(partitions.get_partition_keys())],
         # By default one process per run: the partition lock (ArtifactIOManager.lock_partition) is
         # held by the run's process, and the numba kernels use the cores themselves.
         executor=run_executor,

@@ -128,8 +128,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                                          "entry and the names, sizes and modification times of its files. A "
                                          "generated (synthetic) dataset is generated first.")
     def dataset_files(context):
-        names = ([context.partition_key] if context.has_partition_key else
-                 context.instance.get_dynamic_partitions(partitions_def.name))
+        names = [context.partition_key] if context.has_partition_key else partitions_def.get_partition_keys()
         for name in names:
             entry = dataset_entry(name)
             if entry.kind == "synthetic":  # defined by its spec: make the files the version describes

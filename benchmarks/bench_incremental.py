@@ -62,11 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     home = tmp / "dagster_home"
     home.mkdir()
     os.environ.update(DAGSTER_HOME=str(home), ATLAS_ARTIFACTS_DIR=str(tmp / "artifacts"),
-                      ATLAS_DATA_DIR=str(tmp / "data"), ATLAS_SYNC_PARTITIONS="0")
+                      ATLAS_DATA_DIR=str(tmp / "data"))
     from dagster import DagsterInstance
 
     from assets.cli import run_request
-    from assets.definitions import build_definitions, sync_dataset_partitions
+    from assets.definitions import build_definitions
     from assets.resources import atlas_config
     from assets.staleness import stale_assets
     from atlas_pipeline.sensors.registry import ensure_dataset_files, load_registry
@@ -75,8 +75,6 @@ def main(argv: list[str] | None = None) -> int:
     art = tmp / "artifacts"
     out: dict = {"partition": args.partition, "tmp": str(tmp)}
     with DagsterInstance.get() as instance:
-        sync_dataset_partitions(instance, [args.partition])
-
         defs = build_definitions(art)
 
         def run(overrides=None):

@@ -11,7 +11,7 @@ import pytest
 from dagster import DagsterInstance
 
 from assets.cli import run_request
-from assets.definitions import build_definitions, sync_dataset_partitions
+from assets.definitions import build_definitions, loaded_partitions
 from assets.resources import dataset_entry
 from atlas_pipeline.scene_memory.bundle import load_world_bundle
 
@@ -24,7 +24,6 @@ def _materialize(root: Path, partition: str, profile: str = "default", overrides
     """Run the job on ``partition`` in-process (``instance``: ephemeral unless given)."""
     defs = build_definitions(root / "artifacts", profile=profile)
     instance = instance or DagsterInstance.ephemeral()
-    sync_dataset_partitions(instance)
     run_config, tags = run_request(profile, overrides or {})
     return defs.resolve_job_def("atlas_gs_all").execute_in_process(
         partition_key=partition, instance=instance, run_config=run_config, tags=tags, raise_on_error=raise_on_error)
@@ -39,14 +38,7 @@ def test_library_does_not_import_dagster():
 
 
 def test_partitions_come_from_the_registry(isolated):
-    from dagster._core.definitions.partitions.context import partition_loading_context
-
-    defs = build_definitions(isolated / "artifacts")
-    instance = DagsterInstance.ephemeral()
-    assert sync_dataset_partitions(instance)[:1] == ["synthetic"]
-    assert sync_dataset_partitions(instance) == []  # idempotent
-    with partition_loading_context(dynamic_partitions_store=instance):
-        keys = defs.resolve_job_def("atlas_gs_all").partitions_def.get_partition_keys()
+    keys = loaded_partitions(build_definitions(isolated / "artifacts"))  # no instance holds them
     assert keys[0] == "synthetic" and "synth-small" in keys and "tum-fr3-teddy" not in keys  # a download preset: a partition once fetched
 
 
@@ -169,6 +161,27 @@ def test_an_explicit_profile_beats_atlas_profile_and_loading_writes_nothing(isol
     home = isolated / "dagster_home"
     subprocess.run([sys.executable, "-c", "import assets.definitions"], check=True, cwd=Path(__file__).resolve().parents[1])
     assert list(home.iterdir()) == []  # no instance was even opened
+
+
+@pytest.mark.slow
+def test_dagster_asset_materialize_works_from_a_fresh_dagster_home(isolated):
+    """Dagster's own command, nothing before it: the partitions are the registry's, read as the
+    definitions load (no `atlas-gs dataset sync`)."""
+    import os
+
+    home = isolated / "dagster_home"
+    assert list(home.iterdir()) == []
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([sys.executable, "-m", "dagster", "asset", "materialize", "--select", "*",
+                          "--partition", "synth-small", "-m", "assets.definitions"],
+                         cwd=root, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    for a in ASSETS:
+        assert json.loads((isolated / "artifacts" / a / "synth-small" / "_artifact.json").read_text())["files"]
+    with DagsterInstance.get() as instance:
+        (run,) = instance.get_runs()
+        assert run.is_success and run.tags["dagster/partition"] == "synth-small"
 
 
 def test_the_data_version_tag_is_dagsters():

@@ -7,9 +7,10 @@ import pytest
 from dagster import AssetKey, DagsterInstance, build_sensor_context
 
 from assets.cli import main, run_request
-from assets.definitions import build_definitions, dataset_registry_sensor, sync_dataset_partitions
+from assets.definitions import build_definitions, loaded_partitions
 from assets.resources import atlas_config
 from assets.staleness import stale_assets
+from atlas_pipeline.sensors.registry import load_registry
 
 # The small synthetic frames are 160x120: registering them needs their own camera (checked whole).
 SMALL_INTRINSICS = ["--intrinsics", "131.25 131.25 79.5 59.5", "--width", "160", "--height", "120"]
@@ -22,7 +23,6 @@ DOWNSTREAM_OF_LOCALIZATION = ["localization_report", "transitions", "demo_videos
 def _run(root: Path, instance, overrides=None, raise_on_error=True):
     """The job as `atlas-gs run --set` launches it: the overrides as run config and tags."""
     defs = build_definitions(root / "artifacts")
-    sync_dataset_partitions(instance, [PART])
     run_config, tags = run_request("default", overrides or {})
     return defs.resolve_job_def("atlas_gs_all").execute_in_process(
         partition_key=PART, instance=instance, run_config=run_config, tags=tags, raise_on_error=raise_on_error)
@@ -138,7 +138,8 @@ def test_edited_raw_files_are_noticed(persistent):
     depth.write_bytes(depth.read_bytes())  # same bytes, new mtime: re-read, content hash unchanged
     # The registry sensor observes the dataset's files (the daemon records what it returns): the UI
     # shows the raw dataset stale.
-    for event in dataset_registry_sensor(build_sensor_context(instance=instance)).asset_events:
+    sensor = build_definitions(root / "artifacts").resolve_sensor_def("dataset_registry_sensor")
+    for event in sensor(build_sensor_context(instance=instance)).asset_events:
         instance.report_runless_asset_event(event)
     assert _dagster_ui_status(build_definitions(root / "artifacts"), instance, PART)["raw_dataset"] == "STALE"
     status = stale_assets(build_definitions(root / "artifacts"), instance, PART, atlas_config())
@@ -223,7 +224,7 @@ def test_failing_blocking_check_stops_downstream(persistent):
     assert "world_bundle" not in _materializations(again)
 
 
-def test_dataset_add_adds_a_partition_and_the_sensor_syncs_the_registry(isolated, small_synthetic, capsys):
+def test_dataset_add_adds_a_partition_and_the_sensor_names_datasets_to_reload_for(isolated, small_synthetic, capsys):
     import yaml
 
     from atlas_pipeline.errors import ConfigError
@@ -234,19 +235,24 @@ def test_dataset_add_adds_a_partition_and_the_sensor_syncs_the_registry(isolated
             validate_dataset_name(bad)
     assert main(["dataset", "add", "../x", str(small_synthetic)]) == 2
     assert main(["dataset", "add", "my-room", str(small_synthetic), *SMALL_INTRINSICS]) == 0
+    defs = build_definitions(isolated / "artifacts")
+    assert "my-room" in loaded_partitions(defs)  # the definitions read the registry as they load
+    sensor = defs.resolve_sensor_def("dataset_registry_sensor")
     with DagsterInstance.get() as instance:
-        assert "my-room" in instance.get_dynamic_partitions("datasets")
-        # A dataset written into the registry by hand: the sensor adds it.
+        for event in sensor(build_sensor_context(instance=instance)).asset_events:  # first look: its files
+            instance.report_runless_asset_event(event)
+        assert sensor(build_sensor_context(instance=instance)).skip_message.endswith("unchanged on disk")
+        # A dataset written into the registry by hand after they loaded: the sensor says to reload.
         reg = isolated / "datasets.local.yaml"
         data = yaml.safe_load(reg.read_text())
         data["datasets"]["by-hand"] = {"kind": "tum", "path": str(small_synthetic), "camera": "freiburg1"}
         reg.write_text(yaml.safe_dump(data))
-        result = dataset_registry_sensor(build_sensor_context(instance=instance))
-        added = [k for r in result.dynamic_partitions_requests for k in r.partition_keys]
-        assert "by-hand" in added and "my-room" not in added
+        skip = sensor(build_sensor_context(instance=instance)).skip_message
+        assert "until the code location reloads: by-hand (" in skip and "my-room" not in skip, skip
+        assert "by-hand" in loaded_partitions(build_definitions(isolated / "artifacts"))  # reloaded
         # A broken registry is reported, not raised.
         reg.write_text("datasets:\n  Bad Name: {kind: tum, path: x}\n")
-        skip = dataset_registry_sensor(build_sensor_context(instance=instance))
+        skip = sensor(build_sensor_context(instance=instance))
         assert "Bad Name" in skip.skip_message and "invalid dataset name" in skip.skip_message
 
 
@@ -257,10 +263,10 @@ def test_register_dataset_job_from_the_ui(isolated, small_synthetic):
         ok = job.execute_in_process(instance=instance, run_config={"ops": {"register_dataset_op": {"config": {
             "name": "ui-room", "path": str(small_synthetic), "intrinsics": "131.25 131.25 79.5 59.5",
             "width": 160, "height": 120}}}})
-        assert ok.success and "ui-room" in instance.get_dynamic_partitions("datasets")
+        assert ok.success and "ui-room" in loaded_partitions(build_definitions(isolated / "artifacts"))
         bad = job.execute_in_process(instance=instance, raise_on_error=False, run_config={"ops": {
             "register_dataset_op": {"config": {"name": "UI Room", "path": str(small_synthetic)}}}})
-        assert not bad.success and "UI Room" not in instance.get_dynamic_partitions("datasets")
+        assert not bad.success and "UI Room" not in load_registry()
 
 
 def test_keyframes_read_the_tracker_settings_exactly_when_they_track(small_manifest):

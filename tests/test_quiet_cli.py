@@ -198,12 +198,10 @@ def _register_preset(isolated, name: str, url: str) -> None:
 
 
 def _partitions() -> set[str]:
-    from dagster import DagsterInstance
+    """The partitions of the definitions as they load now (read from the registry)."""
+    from assets.definitions import build_definitions, loaded_partitions
 
-    from assets.definitions import DATASETS
-
-    with DagsterInstance.get() as instance:
-        return set(instance.get_dynamic_partitions(DATASETS.name))
+    return set(loaded_partitions(build_definitions()))
 
 
 def test_a_preset_is_a_partition_only_once_fetched(isolated, local_server, capsys):
@@ -213,44 +211,44 @@ def test_a_preset_is_a_partition_only_once_fetched(isolated, local_server, capsy
     make_tgz(root / "seq.tgz")
     _register_preset(isolated, "preset-a", f"{base}/seq.tgz")
 
-    assert main(["dataset", "sync"]) == 0
-    added = json.loads(capsys.readouterr().out)["partitions_added"]
-    assert "synth-small" in added and "synthetic" in added and "preset-a" not in added
-    assert not {"tum-fr1-xyz", "tum-fr1-desk", "tum-fr3-teddy"} & set(added)  # the built-in presets, not fetched
-    assert main(["dataset", "sync", "preset-a"]) == 0  # asked by name: still not before it is on disk
+    assert main(["dataset", "sync"]) == 0  # kept for scripts: says which are partitions, changes nothing
+    out = json.loads(capsys.readouterr().out)
+    assert "synth-small" in out["partitions"] and "synthetic" in out["partitions"]
+    assert "preset-a" not in out["partitions"] and "dataset fetch preset-a" in out["not_partitions"]["preset-a"]
+    assert not {"tum-fr1-xyz", "tum-fr1-desk", "tum-fr3-teddy"} & set(out["partitions"])  # built-in presets, not fetched
+    assert main(["dataset", "sync", "preset-a"]) == 0
+    assert json.loads(capsys.readouterr().out)["partitions"] == []
     assert "preset-a" not in _partitions()
     assert main(["dataset", "list"]) == 0
     assert "not fetched" in next(line for line in capsys.readouterr().out.splitlines() if line.startswith("preset-a"))
 
     from dagster import build_sensor_context, DagsterInstance
 
-    from assets.definitions import dataset_registry_sensor
+    from assets.definitions import build_definitions
 
+    sensor = build_definitions().resolve_sensor_def("dataset_registry_sensor")
     with DagsterInstance.get() as instance:
-        res = dataset_registry_sensor(build_sensor_context(instance=instance))
-        assert not any("preset-a" in getattr(r, "partition_keys", []) for r in
-                       getattr(res, "dynamic_partitions_requests", None) or [])
+        assert "preset-a" not in sensor(build_sensor_context(instance=instance)).skip_message
 
     assert main(["dataset", "fetch", "preset-a"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["fetched"] and out["partition_added"]
     assert (isolated / "data" / "preset-a" / "rgb.txt").is_file()
     assert "preset-a" in _partitions()
+    with DagsterInstance.get() as instance:  # the definitions loaded before the fetch do not have it yet
+        assert "until the code location reloads: preset-a" in sensor(build_sensor_context(instance=instance)).skip_message
     assert main(["dataset", "fetch", "preset-a"]) == 0  # on disk already: nothing downloaded again
     assert json.loads(capsys.readouterr().out)["fetched"] is False
 
 
-def test_a_never_fetched_partition_from_an_older_atlas_gs_is_removed(isolated, local_server, capsys):
+def test_a_preset_partition_of_an_older_atlas_gs_is_no_partition_before_it_is_fetched(isolated, local_server, capsys):
     from dagster import DagsterInstance
-
-    from assets.definitions import DATASETS
 
     _, base = local_server
     _register_preset(isolated, "preset-b", f"{base}/absent.tgz")
-    with DagsterInstance.get() as instance:  # what an older atlas-gs did: every preset a partition
-        instance.add_dynamic_partitions(DATASETS.name, ["preset-b"])
-    assert main(["dataset", "sync"]) == 0
-    assert "preset-b" not in _partitions()
+    with DagsterInstance.get() as instance:  # what an older atlas-gs did: every preset a dynamic partition
+        instance.add_dynamic_partitions("datasets", ["preset-b"])
+    assert "preset-b" not in _partitions()  # the instance's dynamic partitions are no longer read
 
 
 def test_a_run_of_a_preset_that_cannot_be_downloaded_fails_clearly_and_adds_no_partition(isolated, local_server,

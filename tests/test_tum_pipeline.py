@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 from dagster import DagsterInstance, materialize
 
-from assets.definitions import build_definitions, sync_dataset_partitions
+from assets.definitions import build_definitions
 from atlas_pipeline.sensors.registry import load_registry, register_local_dataset
 from tests.conftest import tum_folder
 
@@ -21,9 +21,9 @@ def test_real_sequence_through_every_asset(isolated, folder, name, camera, max_r
     root = tum_folder(folder)
     register_local_dataset(name, root, camera)
     assert name in load_registry()
+    # Registered before the definitions load: one of their partitions.
     defs = build_definitions(isolated / "artifacts", profile="demo" if "teddy" in name else "default")
     instance = DagsterInstance.ephemeral()
-    sync_dataset_partitions(instance, [name])  # dataset partitions are dynamic: the instance holds them
     result = materialize(list(defs.assets), partition_key=name, instance=instance, resources=defs.resources)
     assert result.success
     bundle = isolated / "artifacts" / "world_bundle" / name
