@@ -1,6 +1,7 @@
 """Issue 11.2: being lost has a bounded cost, and mapping follows the camera into unmapped space."""
 
 import numpy as np
+import pytest
 
 from atlas_pipeline.config import load_profile
 from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
@@ -36,9 +37,14 @@ def test_relocalization_backs_off_while_lost(small_manifest, monkeypatch):
     assert seq.RELOCALIZATION_BACKOFF_MAX_FRAMES == 16
 
 
-def test_mapping_tracks_frame_to_frame_where_the_map_ends(small_manifest, monkeypatch):
+@pytest.mark.parametrize("new_surface, keyframe, note", [
+    (1.0, True, seq.NOTE_FRAME_TO_FRAME),  # a pan into unmapped space: the map grows there
+    (0.0, False, seq.NOTE_CONFLICT),  # mapped space the map disagrees with (drift): never merged
+])
+def test_mapping_tracks_frame_to_frame_where_the_map_ends(small_manifest, monkeypatch, new_surface, keyframe, note):
     """When the map does not explain a frame (here: the map-alignment is forced to fail), mapping
-    aligns it to the previous frame, keeps it tracked and makes it a keyframe."""
+    aligns it to the previous frame and keeps it tracked; it becomes a keyframe only when it sees
+    space the map has no surface in."""
     m = small_manifest
     cfg = load_profile("default")
     st = seq.SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), builder=VoxelGaussianBuilder(0.02))
@@ -53,9 +59,11 @@ def test_mapping_tracks_frame_to_frame_where_the_map_ends(small_manifest, monkey
         return real_align(frame, model, T_init, reference)
 
     monkeypatch.setattr(st.tracker, "align", align)
+    monkeypatch.setattr(st, "_new_surface", lambda fp, T: new_surface)
     est = st.process(1, m.read_rgb(1), m.read_depth_m(1), timestamp_s=float(m.timestamps_s[1]))
     assert to_map["n"] >= 1
-    assert est.status == seq.STATUS_TRACKED and est.note == seq.NOTE_FRAME_TO_FRAME and est.keyframe
+    assert est.status == seq.STATUS_TRACKED and est.note == note and est.keyframe == keyframe
+    assert len(st.keyframe_indices) == 1 + keyframe
     # the ground truth of the small synthetic sequence is exact; frame 0 is at the identity here
     T_gt = np.linalg.inv(m.T_world_cam_gt[0]) @ m.T_world_cam_gt[1]
     assert np.linalg.norm(est.T_world_cam[:3, 3] - T_gt[:3, 3]) < 0.01

@@ -448,7 +448,7 @@ def test_every_new_field_changes_the_hash():
     for n in new_fields:
         d = syn._FIELD_DEFAULTS[n]
         v = {"loop_revolutions": 2, "motion_blur_samples": 3, "orbit_rate_deg_per_s": 20.0,
-             "pan_rate_deg_per_s": 60.0}.get(n, d + 0.01 if isinstance(d, float) else d + 1)
+             "pan_rate_deg_per_s": 60.0, "place": "suite"}.get(n, d + 0.01 if isinstance(d, float) else d + 1)
         s = SyntheticSpec(**{n: v})
         assert syn._spec_dict(s)[n] == v
         hashes.add(syn.spec_hash(s))

@@ -127,7 +127,9 @@ def _np_associate(frame, T, model, ref, params):
             continue
         uv[i] = u, v
         dist2 = np.sum((xm[i] - model.points_cam[v, u]) ** 2)
-        outcome[i] = kn.MATCH_OK if dist2 < params.max_distance_m ** 2 else kn.MATCH_GATED
+        in_front = xm[i, 2] < model.points_cam[v, u, 2]
+        outcome[i] = (kn.MATCH_OK if dist2 < params.max_distance_m ** 2
+                      else kn.MATCH_IN_FRONT if in_front else kn.MATCH_GATED)
     xr = _np_to_camera(ref.T_world_cam, pw)
     found = np.zeros(n, bool)
     samples = np.zeros((n, 3))
@@ -233,7 +235,7 @@ def test_build_linear_system_matches_numpy(scene, photometric_weight):
     assert np.array_equal(H, H.T)
     assert stats.n_points == len(frame.points_cam)
     assert stats.n_geometric == n_geometric
-    assert stats.n_on_model == int(np.count_nonzero(assoc[1] != kn.MATCH_NONE))
+    assert stats.n_on_model == int(np.count_nonzero((assoc[1] == kn.MATCH_GATED) | (assoc[1] == kn.MATCH_OK)))
     assert stats.n_photometric == (int(assoc[4].sum()) if photometric_weight else 0)
     assert stats.geometric_sq_m2 == pytest.approx(sq, rel=1e-12)
     assert stats.rmse_m == pytest.approx(np.sqrt(sq / n_geometric), rel=1e-12)
@@ -258,7 +260,7 @@ def test_normal_equations_sums_the_steps_over_chunks(scene):
 
 
 def test_stats_of_no_correspondence():
-    s = kn.Stats(0, 0, 0, 0, 0.0, 0.0, 0.0)
+    s = kn.Stats(0, 0, 0, 0, 0.0, 0.0, 0.0, 0)
     assert s.inlier_fraction == 0.0 and s.agreement == 0.0 and np.isnan(s.rmse_m)
 
 

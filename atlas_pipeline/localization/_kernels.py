@@ -40,7 +40,7 @@ from numba import njit, prange
 
 __all__ = [
     "PinholeView", "SplatParams", "FramePoints", "ModelView", "ReferenceImage", "Params", "Correspondences", "Stats",
-    "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "N_CHUNKS",
+    "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "MATCH_IN_FRONT", "N_CHUNKS",
     "downsample_depth", "downsample_mean", "image_gradients", "splat_surfels",
     "associate", "build_linear_system", "normal_equations",
 ]
@@ -57,8 +57,12 @@ SPLAT_HITS_PER_PIXEL = 16
 
 # Outcome of the geometric association of one point (Correspondences.geometric).
 MATCH_NONE = 0  # projects outside the model view, or onto an empty pixel
-MATCH_GATED = 1  # lands on the model view, but farther from its surface than the gate
+MATCH_GATED = 1  # lands on the model view, but farther from its surface than the gate, behind it
 MATCH_OK = 2  # a correspondence
+# Lands on the model view farther than the gate *in front of* its surface: a surface the map does
+# not have (the far side of an object mapped from one side only, an object moved in): it neither
+# agrees nor disagrees with the map, so it counts as unmapped, not as on the model.
+MATCH_IN_FRONT = 3
 
 
 # ---- named inputs and outputs --------------------------------------------------------------------
@@ -159,12 +163,13 @@ class Stats(NamedTuple):
     """Counts and sums of :func:`build_linear_system` / :func:`normal_equations`."""
 
     n_points: int  # frame points tried
-    n_on_model: int  # points that land on a non-empty pixel of the model view
+    n_on_model: int  # points that land on a non-empty pixel of the model view (not in front of its surface)
     n_geometric: int  # geometric correspondences (within the association gate)
     n_photometric: int  # photometric correspondences
     geometric_cost: float  # sum of Huber-weighted squared point-to-plane residuals, m^2
     photometric_cost: float  # sum of weighted squared intensity residuals
     geometric_sq_m2: float  # sum of unweighted squared point-to-plane residuals, m^2
+    n_in_front: int  # points in front of the model view's surface (MATCH_IN_FRONT)
 
     @property
     def inlier_fraction(self) -> float:
@@ -548,7 +553,10 @@ def associate(lo, hi, frame, T_world_cam, model, ref, params):
                 ex = xm - model_pts[v, u, 0]
                 ey = ym - model_pts[v, u, 1]
                 ez = zm - model_pts[v, u, 2]
-                geometric[i] = MATCH_OK if ex * ex + ey * ey + ez * ez < gate2 else MATCH_GATED
+                if ex * ex + ey * ey + ez * ez < gate2:
+                    geometric[i] = MATCH_OK
+                else:
+                    geometric[i] = MATCH_IN_FRONT if ez < 0.0 else MATCH_GATED
         if not use_photometric:
             continue
         # --- photometric: where the reference image sees the point
@@ -613,6 +621,7 @@ def build_linear_system(corr, model, ref, params):
     pfx, pfy = ref.fx, ref.fy
     huber_depth_m = params.huber_depth_m
     n_on_model = 0
+    n_in_front = 0
     n_geometric = 0
     n_photometric = 0
     geometric_cost = 0.0
@@ -623,8 +632,10 @@ def build_linear_system(corr, model, ref, params):
     for i in range(n):
         px, py, pz = pw[i, 0], pw[i, 1], pw[i, 2]
         outcome = corr.geometric[i]
-        if outcome != MATCH_NONE:
+        if outcome == MATCH_GATED or outcome == MATCH_OK:
             n_on_model += 1
+        elif outcome == MATCH_IN_FRONT:
+            n_in_front += 1
         if outcome == MATCH_OK:
             u, v = corr.model_pixel[i, 0], corr.model_pixel[i, 1]
             ex = corr.points_model[i, 0] - model_pts[v, u, 0]
@@ -655,7 +666,8 @@ def build_linear_system(corr, model, ref, params):
     for a in range(6):
         for b in range(a):
             H[a, b] = H[b, a]
-    return H, g, Stats(n, n_on_model, n_geometric, n_photometric, geometric_cost, photometric_cost, geometric_sq)
+    return H, g, Stats(n, n_on_model, n_geometric, n_photometric, geometric_cost, photometric_cost, geometric_sq,
+                       n_in_front)
 
 
 # ---- both steps, chunk by chunk -----------------------------------------------------------------------
@@ -686,6 +698,7 @@ def normal_equations(frame, T_world_cam, model, ref, params):
     gs = np.zeros((N_CHUNKS, 6))
     # per-chunk Stats fields
     on_model = np.zeros(N_CHUNKS, np.int64)
+    in_front = np.zeros(N_CHUNKS, np.int64)
     geometric = np.zeros(N_CHUNKS, np.int64)
     photometric = np.zeros(N_CHUNKS, np.int64)
     geometric_cost = np.zeros(N_CHUNKS)
@@ -701,6 +714,7 @@ def normal_equations(frame, T_world_cam, model, ref, params):
             Hs[c] = H_c
             gs[c] = g_c
             on_model[c] = s.n_on_model
+            in_front[c] = s.n_in_front
             geometric[c] = s.n_geometric
             photometric[c] = s.n_photometric
             geometric_cost[c] = s.geometric_cost
@@ -708,16 +722,17 @@ def normal_equations(frame, T_world_cam, model, ref, params):
             geometric_sq[c] = s.geometric_sq_m2
     H = np.zeros((6, 6))
     g = np.zeros(6)
-    n_on_model = n_geometric = n_photometric = 0
+    n_on_model = n_geometric = n_photometric = n_in_front = 0
     geometric_cost_sum = photometric_cost_sum = geometric_sq_sum = 0.0
     for c in range(N_CHUNKS):  # in chunk order: the sums do not depend on the thread count
         H += Hs[c]
         g += gs[c]
         n_on_model += on_model[c]
+        n_in_front += in_front[c]
         n_geometric += geometric[c]
         n_photometric += photometric[c]
         geometric_cost_sum += geometric_cost[c]
         photometric_cost_sum += photometric_cost[c]
         geometric_sq_sum += geometric_sq[c]
     return H, g, Stats(n_pts, n_on_model, n_geometric, n_photometric, geometric_cost_sum, photometric_cost_sum,
-                       geometric_sq_sum)
+                       geometric_sq_sum, n_in_front)

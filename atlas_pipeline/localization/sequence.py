@@ -10,9 +10,13 @@ Per frame the status is one of:
 
 * ``anchor``: the pose was given (where the session starts);
 * ``tracked``: aligned to the map from the motion-model guess (or, failing that, the last pose);
-  when mapping, a frame the map does not cover is aligned to the previous frame instead (note
-  ``frame-to-frame``) and becomes a keyframe, so the map grows into what the camera pans to;
-* ``relocalized``: tracking failed, and the frame was placed by :class:`Relocalizer`;
+  when mapping, a frame the map does not explain is aligned to the previous frame instead (note
+  ``frame-to-frame``); it becomes a keyframe only when enough of it is surface the map lacks (a
+  pan into unmapped space), never when it sees mapped surface the map disagrees with (drift on a
+  revisit: merging it would double the surface);
+* ``relocalized``: tracking failed, and the frame was placed by :class:`Relocalizer`: first from
+  the place index's nearest keyframe views (milliseconds, every lost frame), then, with back-off,
+  by the full search (seconds);
 * ``lost``: no good alignment (too few correspondences, too large a residual, no valid depth);
   the pose is the motion-model prediction, and the frame never touches the map. After a failed
   relocalization the next tries back off (1, 2, 4 ... frames, at most
@@ -22,6 +26,13 @@ Per frame the status is one of:
   pose (nothing better is known) and tracking goes on in the new map.
 * ``not_attempted``: never processed (set by callers such as
   :func:`atlas_pipeline.localization.localizer.localize_sequence` when they stop early); NaN pose.
+
+**Keyframes by covisibility.** While mapping, a frame is a keyframe when it moved
+(``keyframe_translation_m`` / ``keyframe_rotation_deg`` from the last keyframe) *and* at least
+:data:`KEYFRAME_MIN_NEW_SURFACE` of its points lie in cells of space the map has no surface in
+(:class:`~atlas_pipeline.localization.places.CoverageMap`): keyframes grow
+with new surface, not with frames, so a slow pan over mapped surfaces adds none and the cost of a
+frame does not grow with the recording.
 
 **Multiple maps.** Every frame's estimate carries the ``map_id`` it was tracked in. While a map
 other than the first is active, each of its keyframes is aligned to every older map from its own
@@ -43,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
+from atlas_pipeline.localization.places import CoverageMap, PlaceIndex, descriptor_level
 from atlas_pipeline.localization.relocalize import Relocalizer
 from atlas_pipeline.localization.tracker import (
     RGBDTracker,
@@ -78,6 +90,10 @@ NOTE_FRAME_TO_FRAME = "frame-to-frame"  # tracked against the previous frame whe
 # next one waits twice as many frames (1, 2, 4, ... up to this cap), so a long stretch the map
 # cannot explain costs a bounded share of relocalizations instead of one per frame.
 RELOCALIZATION_BACKOFF_MAX_FRAMES = 16
+# The place index's fast relocalization (milliseconds) is tried on every lost frame; the full
+# search (seconds) only after this many lost frames in a row, then with the back-off above. A
+# brief loss recovers within a few frames at tracking cost.
+FAST_ONLY_ATTEMPTS = 3
 # Mapping only: the points of the previous frame that a frame is tracked against when the map does
 # not cover it (a pan into unmapped space). One point per this many pixels in u and v.
 FRAME_TO_FRAME_STRIDE = 2
@@ -93,6 +109,10 @@ EVEN_SPACING_RATIO = 1.5
 MAX_VELOCITY_EXTRAPOLATION = 5.0
 # Relocalization into older maps costs seconds: tried on every this-many keyframes of a new map.
 MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES = 5
+# Mapping: a frame that moved is a keyframe only when at least this share of its points lands
+# where the map has no surface (one tenth of the view is new).
+KEYFRAME_MIN_NEW_SURFACE = 0.1
+NOTE_CONFLICT = "frame-to-frame; sees mapped surface the map disagrees with, not merged"
 
 
 @dataclass
@@ -124,6 +144,8 @@ class FrameEstimate:
     keyframe: bool = False
     note: str = ""
     map_id: int = 0
+    overlap: float = float("nan")  # share of the frame's points landing on the map's model view
+    new_surface: float = float("nan")  # mapping: share of its points in space the map has not seen
 
 
 class SequenceTracker:
@@ -163,6 +185,9 @@ class SequenceTracker:
         self.keyframe_indices: list[int] = []
         self.keyframe_poses: list[np.ndarray] = []
         self._relocalizer: Relocalizer | None = None
+        self._places: PlaceIndex | None = None  # built lazily; grows with the keyframes
+        self._coverage: CoverageMap | None = None  # mapping: cells with surface (covisibility)
+        self._n_places = 0  # viewpoints (priors, then keyframes) indexed so far
         self.new_map_after_lost_frames = int(new_map_after_lost_frames)
         self.map_id = 0
         self.maps: list[MapInfo] = [MapInfo(0, None)]
@@ -183,13 +208,27 @@ class SequenceTracker:
         self._last_kf_pose: np.ndarray | None = self.keyframe_poses[-1] if self.keyframe_poses else None
         self._last_frame = None  # (pyramid, pose) of the last accepted frame (frame-to-frame fallback)
         self._reloc_failures = 0  # consecutive failed relocalizations
-        self._reloc_wait = 0  # frames to skip before the next relocalization try
+        self._reloc_wait = FAST_ONLY_ATTEMPTS  # lost frames before the next full search
 
     @property
     def relocalizer(self) -> Relocalizer:
         if self._relocalizer is None:
-            self._relocalizer = Relocalizer(self.tracker, self.model, np.array(self.priors + self.keyframe_poses))
+            self._relocalizer = Relocalizer(self.tracker, self.model, np.array(self.priors + self.keyframe_poses),
+                                            places=self.places)
         return self._relocalizer
+
+    @property
+    def places(self) -> PlaceIndex:
+        """The place index of the active map's viewpoints (priors, then keyframes), brought up
+        to date: only viewpoints not indexed yet are rendered."""
+        if self._places is None:
+            self._places = PlaceIndex(self.camera, descriptor_level(self.camera.width, self.tracker.n_levels))
+            self._n_places = 0
+        views = self.priors + self.keyframe_poses
+        for k in range(self._n_places, len(views)):
+            self._places.add_keyframe(self.model, views[k], k)
+        self._n_places = len(views)
+        return self._places
 
     def _velocity_poses(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
         """``(T_last, T_prev)``, the last two placed frames, when the constant-velocity model
@@ -278,10 +317,11 @@ class SequenceTracker:
             if not res.ok and self.builder is not None:
                 f2f = self._align_to_last_frame(fp, guess)
             if res.ok:
-                est = FrameEstimate(index, res.T_world_cam, STATUS_TRACKED, res.inlier_fraction, res.residual_m, 0.0)
+                est = FrameEstimate(index, res.T_world_cam, STATUS_TRACKED, res.inlier_fraction, res.residual_m, 0.0,
+                                    overlap=res.overlap)
             elif f2f is not None:
                 est = FrameEstimate(index, f2f.T_world_cam, STATUS_TRACKED, f2f.inlier_fraction, f2f.residual_m, 0.0,
-                                    note=NOTE_FRAME_TO_FRAME)
+                                    note=NOTE_FRAME_TO_FRAME, overlap=res.overlap)
             elif self.cfg.relocalize:
                 est = self._relocalize(index, fp, [self._last[1]], fallback=(guess, res))
             else:
@@ -295,6 +335,10 @@ class SequenceTracker:
                                     note=f"new map {self.map_id} after {self._lost_run} lost frames; pose of the last placed frame")
                 self._lost_run = 0
         est.map_id = self.map_id
+        if self.builder is not None and np.isfinite(est.T_world_cam).all():
+            est.new_surface = self._new_surface(fp, est.T_world_cam)
+            if est.note == NOTE_FRAME_TO_FRAME and est.new_surface < KEYFRAME_MIN_NEW_SURFACE:
+                est.note = NOTE_CONFLICT  # sees mapped space the map disagrees with: drift, not new surface
         if est.status != STATUS_LOST:
             self._accept(index, fp, est, timestamp_s)
             if est.keyframe and self._old_maps and est.status != STATUS_NEW_MAP:
@@ -318,6 +362,8 @@ class SequenceTracker:
         self.model = self._surfels.model()
         self.keyframe_indices, self.keyframe_poses = [], []
         self._relocalizer = None
+        self._places = None
+        self._coverage = None
         self._kf_in_map = 0
         last = self._last
         self.reset()
@@ -359,6 +405,8 @@ class SequenceTracker:
         self.keyframe_indices = [int(i) for i, _ in pairs]
         self.keyframe_poses = [T for _, T in pairs]
         self._relocalizer = None
+        self._places = None
+        self._coverage = None
         self.map_id = old_id
         self._kf_in_map = 0
         # Motion state follows the frame into the old map's coordinates.
@@ -399,7 +447,14 @@ class SequenceTracker:
                     fallback: tuple[np.ndarray, TrackResult] | None = None) -> FrameEstimate:
         if len(self.model) == 0:
             return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, 0.0, float("nan"), 0.0, note="empty map")
-        if self._reloc_wait > 0:  # bounded cost: see RELOCALIZATION_BACKOFF_MAX_FRAMES
+        fast = self.relocalizer.relocalize_fast(fp, extra)  # milliseconds: tried on every lost frame
+        if fast.ok:
+            self._reloc_failures, self._reloc_wait = 0, FAST_ONLY_ATTEMPTS
+            return FrameEstimate(index, fast.T_world_cam, STATUS_RELOCALIZED, fast.inlier_fraction, fast.residual_m, 0.0,
+                                 note=f"relocalized from {fast.source} hypothesis, confidence {fast.confidence:.2f}")
+        # Bounded cost: see FAST_ONLY_ATTEMPTS and RELOCALIZATION_BACKOFF_MAX_FRAMES. A map with
+        # no viewpoints to index (an imported field) has only the full search.
+        if self._reloc_wait > 0 and (len(self.places) or self._reloc_failures):
             self._reloc_wait -= 1
             if fallback is not None:
                 guess, res = fallback
@@ -409,7 +464,7 @@ class SequenceTracker:
                                  note=NOTE_BACKING_OFF)
         r = self.relocalizer.relocalize(fp, extra)
         if r.ok:
-            self._reloc_failures = self._reloc_wait = 0
+            self._reloc_failures, self._reloc_wait = 0, FAST_ONLY_ATTEMPTS
             return FrameEstimate(index, r.T_world_cam, STATUS_RELOCALIZED, r.inlier_fraction, r.residual_m, 0.0,
                                  note=f"relocalized from {r.source} hypothesis, confidence {r.confidence:.2f}")
         self._reloc_failures += 1
@@ -440,7 +495,7 @@ class SequenceTracker:
         T = est.T_world_cam
         self._last_frame = (fp, T)
         if est.status in PLACED_STATUSES:
-            self._reloc_failures = self._reloc_wait = 0
+            self._reloc_failures, self._reloc_wait = 0, FAST_ONLY_ATTEMPTS
         consecutive = self._last is not None and abs(index - self._last[0]) == 1 and est.status == STATUS_TRACKED
         self._prev = self._last if consecutive else None
         self._t_prev = self._t_last if consecutive else None
@@ -449,13 +504,31 @@ class SequenceTracker:
         if self._ref is None or est.status != STATUS_TRACKED or _moved(self._ref[1], T, self.cfg.reference_translation_m,
                                                                         self.cfg.reference_rotation_deg):
             self._ref = (fp, T)
-        # A frame placed frame-to-frame sees what the map lacks: it becomes a keyframe at once.
+        # A frame placed frame-to-frame beyond the map becomes a keyframe at once; one that moved
+        # becomes a keyframe when enough of it is new surface (covisibility); a conflicting one never.
         beyond_map = est.note == NOTE_FRAME_TO_FRAME
-        if self.builder is not None and (self._last_kf_pose is None or beyond_map
-                                         or _moved(self._last_kf_pose, T, self.kf_t, self.kf_r)):
+        new_surface = not (est.new_surface < KEYFRAME_MIN_NEW_SURFACE)  # NaN (unknown): new
+        if self.builder is not None and est.note != NOTE_CONFLICT and (
+                self._last_kf_pose is None or beyond_map
+                or (new_surface and _moved(self._last_kf_pose, T, self.kf_t, self.kf_r))):
             self._integrate(index, fp, T)
             est.keyframe = True
             self._ref = (fp, T)
+
+    def _coverage_map(self) -> CoverageMap:
+        """The active map's coverage, seeded from its voxels (a saved or merged map) on first use."""
+        if self._coverage is None:
+            self._coverage = CoverageMap()
+            self._coverage.add_voxels(self.builder)
+        return self._coverage
+
+    def _frame_points_world(self, fp, T: np.ndarray) -> np.ndarray:
+        """``[M, 3]`` the frame's coarsest-level points at pose ``T`` (a few thousand)."""
+        pts = fp.points(len(fp.depth) - 1).points_cam
+        return pts @ T[:3, :3].T + T[:3, 3]
+
+    def _new_surface(self, fp, T: np.ndarray) -> float:
+        return self._coverage_map().new_share(self._frame_points_world(fp, T))
 
     def _integrate(self, index: int, fp, T: np.ndarray) -> None:
         depth = fp.depth[0]
@@ -465,6 +538,7 @@ class SequenceTracker:
             cols = np.full((len(pts), 3), 128, np.uint8)
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         self.builder.integrate(pw, cols)
+        self._coverage_map().add(pw)
         self.model = self._surfels.model()
         self._relocalizer = None  # its map features are stale now
         self.keyframe_indices.append(int(index))

@@ -30,8 +30,9 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -227,7 +228,7 @@ class SurfelCache:
         self._version = b.version
         keep = (np.asarray(b.count) >= self.min_points) & (support >= self.min_support)
         self._model = SurfelModel(np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep]),
-                                  C.surfel_radius_voxels * b.voxel_size_m)
+                                  C.surfel_radius_voxels * b.voxel_size_m, b)
         return self._model
 
 
@@ -257,6 +258,47 @@ def _near(ids: np.ndarray, touched: np.ndarray) -> np.ndarray:
     return out
 
 
+class VoxelAppearance(NamedTuple):
+    """Mean grey of every voxel of a map, to check a pose's appearance: ``ids [V]`` sorted uint64
+    (:func:`pack_voxel_ids`), ``grey [V]`` float32 in [0, 1], the voxel size (m)."""
+
+    ids: np.ndarray
+    grey: np.ndarray
+    voxel_size_m: float
+
+    @classmethod
+    def from_builder(cls, builder) -> "VoxelAppearance":
+        count = np.maximum(np.asarray(builder.count, np.float64), 1.0)
+        rgb = np.asarray(builder.sum_rgb, np.float64) / count[:, None]
+        grey = (rgb @ np.array(C.luma_weights_rgb)) / C.max_colour_value
+        return cls(np.asarray(builder.ids, np.uint64), grey.astype(np.float32), float(builder.voxel_size_m))
+
+    def correlation(self, points_world: np.ndarray, grey: np.ndarray) -> tuple[float, int]:
+        """``(normalized cross-correlation, pairs)`` of ``grey [M]`` seen at ``points_world [M, 3]``
+        with the map's grey of the voxels they fall in: invariant to exposure and gain, near 0 where
+        the pose puts the frame on surfaces of other texture (a look-alike room)."""
+        from atlas_pipeline.gaussian_world.builder import _OFFSET, pack_voxel_ids
+
+        if not len(self.ids) or not len(points_world):
+            return float("nan"), 0
+        ijk = np.floor(np.asarray(points_world, np.float64) / self.voxel_size_m).astype(np.int64)
+        inside = (np.abs(ijk) < _OFFSET).all(axis=1)
+        ijk, g = ijk[inside], np.asarray(grey, np.float64)[inside]
+        ids = pack_voxel_ids(ijk)
+        pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+        hit = self.ids[pos] == ids
+        if hit.sum() < MIN_APPEARANCE_PAIRS:
+            return float("nan"), int(hit.sum())
+        a, b = g[hit], self.grey[pos[hit]].astype(np.float64)
+        a, b = a - a.mean(), b - b.mean()
+        den = np.sqrt((a * a).sum() * (b * b).sum())
+        return (float((a * b).sum() / den) if den > 0 else float("nan")), int(hit.sum())
+
+
+# Fewer frame points in mapped voxels than this: no appearance check is possible.
+MIN_APPEARANCE_PAIRS = 50
+
+
 # surfels.npz members: (dtype kinds, ndim) -- centres [M, 3], normals [M, 3], radius_m scalar.
 _SURFEL_MEMBERS = {"centres": ("f", 2), "normals": ("f", 2), "radius_m": ("f", 0)}
 
@@ -268,6 +310,17 @@ class SurfelModel:
     centres: np.ndarray
     normals: np.ndarray
     radius_m: float
+    # The voxel statistics the surfels came from, when known (not saved): their colours check a
+    # relocalized pose's appearance (:meth:`appearance`).
+    builder: object = field(default=None, repr=False, compare=False)
+
+    def appearance(self) -> VoxelAppearance | None:
+        """The map's voxel grey (:class:`VoxelAppearance`), or None for surfels without statistics."""
+        if self.builder is None:
+            return None
+        if getattr(self, "_appearance", None) is None:
+            self._appearance = VoxelAppearance.from_builder(self.builder)
+        return self._appearance
 
     def __post_init__(self) -> None:
         # The map is what surfels.npz stores (float32). Rounding here too makes a map used in
@@ -280,7 +333,7 @@ class SurfelModel:
     @classmethod
     def from_builder(cls, builder, min_points: int = C.surfel_min_points) -> "SurfelModel":
         c, n = surfels_from_voxels(builder.ids, builder.count, builder.sum_xyz, builder.sum_sq, min_points)
-        return cls(c, n, C.surfel_radius_voxels * builder.voxel_size_m)
+        return cls(c, n, C.surfel_radius_voxels * builder.voxel_size_m, builder)
 
     @classmethod
     def from_field(cls, positions: np.ndarray, voxel_size_m: float, opacities: np.ndarray | None = None,
@@ -359,6 +412,8 @@ class TrackResult:
         residual_m: RMS point-to-plane residual of those correspondences.
         n_points: finest-level points used.
         ok: alignment judged good (see :meth:`RGBDTracker.judge`).
+        overlap: share of the frame's points that land on the model view at all (covisibility
+            with the map: 1 - overlap of the frame is surface the map does not have).
     """
 
     T_world_cam: np.ndarray
@@ -368,6 +423,15 @@ class TrackResult:
     ok: bool
     iterations: int = 0
     agreement: float = float("nan")
+    overlap: float = float("nan")
+    in_front: float = 0.0  # share of the frame's points in front of the map's surface (MATCH_IN_FRONT)
+
+    @property
+    def strict_agreement(self) -> float:
+        """Correspondences among the points that land on the map *including* those in front of
+        it: what a pose with no motion prior (relocalization) must explain."""
+        landed = self.overlap + self.in_front
+        return self.inlier_fraction / landed if landed > 0 else 0.0
 
 
 class RGBDTracker:
@@ -449,8 +513,11 @@ class RGBDTracker:
             view = model.model_view(T, self.camera, self.model_level)
         stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
+        overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0
+        in_front = stats.n_in_front / stats.n_points if stats.n_points else 0.0
         return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points,
-                           self.judge(stats.inlier_fraction, stats.rmse_m, stats.agreement), total_it, stats.agreement)
+                           self.judge(stats.inlier_fraction, stats.rmse_m, stats.agreement), total_it, stats.agreement,
+                           overlap, in_front)
 
     def quality_stats(self, frame: FramePyramid, view: kn.ModelView, T_world_cam: np.ndarray) -> kn.Stats:
         """Geometric correspondences of ``frame``'s finest-level points at ``T_world_cam`` with the

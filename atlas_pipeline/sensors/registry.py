@@ -195,7 +195,9 @@ _SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "f
     "depth_noise_b_per_m", "depth_noise_angle_m", "depth_noise_corr_px", "inverse_depth_step_per_m",
     "depth_lateral_noise_px", "edge_dropout_prob", "projector_baseline_m", "dark_dropout_luma", "shiny_dropout_deg",
     "grazing_dropout_deg", "rgb_shift_x_px", "rgb_shift_y_px", "motion_blur_samples", "exposure_time_s",
-    "exposure_drift", "white_balance_drift", "rgb_noise_std", "dropped_frame_rate", "colour_delay_s"}
+    "exposure_drift", "white_balance_drift", "rgb_noise_std", "dropped_frame_rate", "colour_delay_s",
+    "place", "route", "suite_speed_m_per_s", "light_level"}
+_SYNTH_TEXT_KEYS = {"place"}  # the other synthetic keys are numbers
 
 
 # Registry keys of each recording kind besides kind and path; camera: "preset" when it has a
@@ -256,7 +258,10 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
             raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}")
         params = {k: raw[k] for k in _SYNTH_KEYS if k in raw}
         for k, v in params.items():
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
+            if k in _SYNTH_TEXT_KEYS:
+                if not isinstance(v, str):
+                    raise ConfigError(f"{where}.{k}: must be a name, got {v!r}")
+            elif isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise ConfigError(f"{where}.{k}: must be a number")
         path = Path(raw.get("path", name))
         path = path if path.is_absolute() else data_dir() / path

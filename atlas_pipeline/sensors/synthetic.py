@@ -189,6 +189,10 @@ class SyntheticSpec:
     pan_rate_deg_per_s: float = 0.0  # > 0: sustained pans, camera yaw rate in the world frame
     shake_m: float = 0.0  # hand shake: translation amplitude per axis, 5-10 Hz
     shake_deg: float = 0.0  # hand shake: rotation amplitude per axis, 5-10 Hz
+    # -- Place (defaults: the one room). See synthetic_places.py. --
+    place: str = "room"  # "room", or "suite": three rooms joined by doors, walked along a route
+    route: int = 0  # suite: which route (0: a closed tour, 1: a second visit on another path)
+    suite_speed_m_per_s: float = 0.0  # suite: walking speed; 0 = the whole route over the recording
 
     # -- Depth sensor model (defaults: exact depth). See KINECT_V1_SENSOR. --
     depth_noise_a_m: float = 0.0  # sigma_z = a + b (z - 0.4)^2 + c / sqrt(z) theta^2/(pi/2-theta)^2
@@ -215,10 +219,13 @@ class SyntheticSpec:
     # -- Timing --
     dropped_frame_rate: float = 0.0  # chance per sensor frame that a drop burst (1-3 frames) starts
     colour_delay_s: float = 0.0  # colour taken this long after depth (unsynchronised streams), < 20 ms
+    light_level: float = 1.0  # scale of all lighting: another time of day (0.5: dusk)
 
     def __post_init__(self) -> None:
         # Canonical types (YAML may give 525 for 525.0): equal specs hash equally, seeds are ints.
-        for name in ("seed", "n_frames", "width", "height", "loop_revolutions", "motion_blur_samples"):
+        if self.place not in PLACES:
+            raise ConfigError(f"synthetic: place must be one of {list(PLACES)}, got {self.place!r}")
+        for name in ("seed", "n_frames", "width", "height", "loop_revolutions", "motion_blur_samples", "route"):
             v = getattr(self, name)
             if isinstance(v, bool) or not float(v).is_integer():
                 raise ConfigError(f"synthetic: {name} must be an integer, got {v!r}")
@@ -232,6 +239,16 @@ class SyntheticSpec:
                 raise ConfigError(f"synthetic: {name} must be a finite {'' if signed else 'non-negative '}"
                                   f"number, got {v!r}")
             object.__setattr__(self, name, float(v))
+        if self.place == "suite":
+            from atlas_pipeline.sensors.synthetic_places import SUITE_ROUTES
+
+            if self.route not in SUITE_ROUTES:
+                raise ConfigError(f"synthetic: route must be one of {sorted(SUITE_ROUTES)}, got {self.route}")
+            if self.loop_revolutions or self.pan_rate_deg_per_s:
+                raise ConfigError("synthetic: place 'suite' follows its route: loop_revolutions and "
+                                  "pan_rate_deg_per_s must be 0")
+        if not 0.05 <= self.light_level <= 4.0:
+            raise ConfigError(f"synthetic: light_level must be in [0.05, 4], got {self.light_level}")
         for name in ("loop_revolutions", "motion_blur_samples"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"synthetic: {name} must be >= 0, got {getattr(self, name)}")
@@ -300,12 +317,13 @@ class SyntheticSpec:
 _V1_FIELDS = ("seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "depth_scale", "fps",
               "gt_rate_hz", "max_depth_m")
 _MOTION_FIELDS = ("orbit_rate_deg_per_s", "loop_revolutions", "pan_rate_deg_per_s", "shake_m",
-                  "shake_deg")
+                  "shake_deg", "place", "route", "suite_speed_m_per_s")
+PLACES = ("room", "suite")
 _FIELD_DEFAULTS = {f.name: f.default for f in fields(SyntheticSpec)}
 _SENSOR_FIELDS = tuple(n for n in _FIELD_DEFAULTS if n not in _V1_FIELDS and n not in _MOTION_FIELDS)
 _EXTENSION_FLOAT_FIELDS = tuple(
     n for n in _FIELD_DEFAULTS
-    if n not in _V1_FIELDS and n not in ("loop_revolutions", "motion_blur_samples")
+    if n not in _V1_FIELDS and n not in ("loop_revolutions", "motion_blur_samples", "place", "route")
 )
 
 # A Kinect v1 / Xtion-class structured-light RGB-D camera (the sensor of the TUM RGB-D benchmark).
@@ -357,6 +375,16 @@ HANDHELD_MOTION: dict[str, float | int] = {
 # One full turn around the room (~12 m of path) ending 3 mm from the start: loop closure tests.
 LOOP_MOTION: dict[str, float | int] = {"loop_revolutions": 1}
 
+# A walk through the three-room suite (~25 m, back to its start) and a second visit of it on
+# another path, lower, at dusk (light_level 0.55, auto exposure on), with the noisy sensor.
+SUITE_PRESETS: dict[str, dict[str, float | int | str]] = {
+    "synthetic-suite": {"seed": 0, "n_frames": 1500, "width": 640, "height": 480, "place": "suite", "route": 0,
+                        **KINECT_V1_SENSOR, "shake_m": 0.002, "shake_deg": 0.1},
+    "synthetic-suite-visit2": {"seed": 0, "n_frames": 900, "width": 640, "height": 480, "place": "suite",
+                               "route": 1, **KINECT_V1_SENSOR, "shake_m": 0.002, "shake_deg": 0.1,
+                               "light_level": 0.55},
+}
+
 # The registry presets of configs/datasets.yaml, as spec keyword arguments (a test keeps them equal).
 SYNTHETIC_PRESETS: dict[str, dict[str, float | int]] = {
     "synthetic-noisy": {"seed": 0, "n_frames": 60, "width": 640, "height": 480, **KINECT_V1_SENSOR},
@@ -364,6 +392,7 @@ SYNTHETIC_PRESETS: dict[str, dict[str, float | int]] = {
                            **KINECT_V1_SENSOR, **HANDHELD_MOTION},
     "synthetic-loop": {"seed": 0, "n_frames": 300, "width": 320, "height": 240, "fx": 262.5, "fy": 262.5,
                        "cx": 159.5, "cy": 119.5, **KINECT_V1_SENSOR, **LOOP_MOTION},
+    **SUITE_PRESETS,
 }
 
 
@@ -534,7 +563,14 @@ def build_scene(seed: int) -> SyntheticScene:
     if objects is None:
         # Never observed (300 seeds checked); fail loudly rather than build a different scene.
         raise RuntimeError(f"synthetic scene {seed}: could not place {kinds}")
+    return textured_scene(seed, rng, objects, ROOM_MIN, ROOM_MAX)
 
+
+def textured_scene(seed: int, rng: np.random.Generator, objects: list[SceneObject], room_min: np.ndarray,
+                   room_max: np.ndarray, flat_ids: tuple[int, ...] = ()) -> SyntheticScene:
+    """The scene of ``objects`` in the box ``room_min``..``room_max`` ``[3]`` with textures drawn
+    from ``rng``; objects whose surface id is in ``flat_ids`` (partition walls) get wallpaper
+    instead of an object's saturated colour."""
     n_surf = _N_ROOM_SURFACES + len(objects)
     noise = rng.random((_NOISE_N,) * 3, dtype=np.float32)
     noise = np.pad(noise, ((0, 1),) * 3, mode="wrap").ravel()  # [65^3], see SyntheticScene.noise
@@ -551,7 +587,9 @@ def build_scene(seed: int) -> SyntheticScene:
     for obj in objects:
         base = rng.uniform(0.15, 0.95, size=3)
         base[rng.integers(3)] = rng.uniform(0.75, 1.0)  # one strong channel: saturated colour
-        c0[obj.surface_id] = 0.35 * base
+        if obj.surface_id in flat_ids:
+            base = 0.55 + 0.4 * base  # a painted wall: pale
+        c0[obj.surface_id] = 0.35 * base if obj.surface_id not in flat_ids else 0.6 * base
         c1[obj.surface_id] = base
 
     tex_scale = np.full(n_surf, 2.0)
@@ -581,8 +619,8 @@ def build_scene(seed: int) -> SyntheticScene:
 
     return SyntheticScene(
         seed=seed,
-        room_min=ROOM_MIN.copy(),
-        room_max=ROOM_MAX.copy(),
+        room_min=np.asarray(room_min, np.float64).copy(),
+        room_max=np.asarray(room_max, np.float64).copy(),
         objects=tuple(objects),
         noise=noise,
         tex_c0=c0.astype(np.float32),
@@ -819,6 +857,8 @@ def camera_path(spec: SyntheticSpec, t_s: np.ndarray) -> np.ndarray:
     pose at the last frame time.
     """
     t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+    if spec.place == "suite":
+        return _suite_camera_path(spec, t)
     ph = _path_phases(spec.seed)
     out = np.empty((t.shape[0], 4, 4), dtype=np.float64)
     if spec.custom_motion:
@@ -829,6 +869,36 @@ def camera_path(spec: SyntheticSpec, t_s: np.ndarray) -> np.ndarray:
     for i, ti in enumerate(t):
         out[i] = _pose_at(float(ti), ph)
     return out
+
+
+def _suite_camera_path(spec: SyntheticSpec, t: np.ndarray) -> np.ndarray:
+    """Poses ``[N, 4, 4]`` along the suite route of ``spec`` (hand shake on top when set)."""
+    from atlas_pipeline.sensors.synthetic_places import route_length_m, suite_path
+
+    speed = spec.suite_speed_m_per_s
+    if speed <= 0:  # the whole route over the recording
+        speed = route_length_m(spec.route) / max(float(frame_times_s(spec)[-1]), 1.0 / spec.fps)
+    out = suite_path(spec.route, speed, t)
+    if spec.shake_m > 0.0 or spec.shake_deg > 0.0:
+        m = _motion_of(spec)
+        for i, ti in enumerate(t):
+            w = [0.5 * sum(math.sin(2.0 * math.pi * float(m.shake_f[a, k]) * float(ti) + float(m.shake_ph[a, k]))
+                           for k in range(2)) for a in range(6)]
+            R = out[i, :3, :3]
+            for a in range(3):
+                R = _mul3(R, _rot3(a, m.shake_rad * w[3 + a]))
+            out[i, :3, :3] = R
+            out[i, :3, 3] += m.shake_m * np.array(w[:3])
+    return out
+
+
+def scene_of(spec: SyntheticSpec) -> SyntheticScene:
+    """The scene ``spec`` renders: the room of ``build_scene(seed)`` or the suite of that seed."""
+    if spec.place == "suite":
+        from atlas_pipeline.sensors.synthetic_places import build_suite_scene
+
+        return build_suite_scene(spec.seed)
+    return build_scene(spec.seed)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1121,6 +1191,8 @@ def _trace(spec: SyntheticSpec, scene: SyntheticScene, T_world_cam: np.ndarray):
     P = np.stack([o[a] + th * d[a][idx] for a in range(3)], axis=1)  # [M, 3] world points
     nrm, sid = _surface_normals(scene, P, prim[idx], room_axis[idx])
     col = _albedo(scene, P, sid) * _shade(nrm)[:, None]
+    if spec.light_level != 1.0:
+        col = col * np.float32(spec.light_level)
     return idx, th, d, nrm, sid, col
 
 
@@ -1484,7 +1556,7 @@ def _write_list(path: Path, header: list[str], rows: list[str]) -> None:
 
 def _write_dataset(root: Path, spec: SyntheticSpec) -> None:
     """Render and write every file of the dataset into ``root`` (an empty folder)."""
-    scene = build_scene(spec.seed)
+    scene = scene_of(spec)
     (root / "rgb").mkdir()
     (root / "depth").mkdir()
     label = f"atlas-gs synthetic seed={spec.seed}"

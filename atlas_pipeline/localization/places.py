@@ -1,0 +1,204 @@
+"""Place recognition over a map's keyframes: which viewpoints could a frame have been taken from?
+
+Relocalization without a guess used to try every viewpoint prior and a global feature
+registration against the whole map: seconds per attempt, growing with the map. A place index
+answers the same question in microseconds and leaves the tracker a handful of hypotheses to verify
+(:meth:`atlas_pipeline.localization.relocalize.Relocalizer.relocalize_fast`).
+
+Each entry is a *depth layout*: the map rendered from a viewpoint (a keyframe pose, and the same
+pose turned left and right about the camera's vertical axis, so a frame taken facing another way
+from the same spot is found too), reduced to a coarse grid of block-mean log depths (the "small
+blurry image" of Klein & Murray's PTAM relocalizer and of Glocker et al.'s randomized ferns, in
+depth). Depth is what a second visit at another time of day still shares with the first: it does
+not change with exposure or lighting. A frame's own depth image, reduced the same way, is compared
+with every entry over the blocks valid in both (RMS log-depth difference, plus a penalty for blocks
+valid in only one); the nearest entries are the hypotheses.
+
+Entries come from the map itself, so any world with keyframe poses (built, extended, reloaded)
+has an index without storing images; the index grows by one keyframe's entries at a time while
+mapping. Shapes: ``T_*`` ``[4, 4]`` camera-to-world.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from atlas_pipeline.geometry import so3_exp
+
+__all__ = ["PlaceIndex", "PlaceMatch", "depth_layout", "DESCRIPTOR_GRID", "VIEW_YAWS_DEG"]
+
+# Blocks of a depth layout (rows, columns): 192 numbers, coarse enough that a viewpoint 20 cm or
+# 10 degrees away still matches, fine enough to tell the walls of one room from another's.
+DESCRIPTOR_GRID = (12, 16)
+# A block counts when at least this share of its pixels has depth.
+MIN_BLOCK_VALID_FRACTION = 0.5
+# Views indexed per keyframe: the keyframe itself and turned about the camera's vertical axis.
+VIEW_YAWS_DEG = (0.0, -15.0, 15.0, -30.0, 30.0, -45.0, 45.0)
+# Layouts are made at the coarsest pyramid level at least this wide (80 px at 640 or 320).
+DESCRIPTOR_MIN_WIDTH_PX = 64
+# Fewer blocks valid in both than this share of the grid: no comparison (blank wall, no depth).
+MIN_COMMON_BLOCKS_FRACTION = 0.3
+# Weight of the share of blocks valid in only one layout, against the RMS log-depth difference:
+# a block missing on one side is as bad as a 30 % depth error.
+MISMATCH_PENALTY = 0.3
+
+
+class PlaceMatch(NamedTuple):
+    """One hypothesis: ``T_world_cam [4, 4]`` of the entry, its distance, its keyframe number."""
+
+    T_world_cam: np.ndarray
+    distance: float
+    keyframe: int
+
+
+def descriptor_level(width_px: int, n_levels: int) -> int:
+    """The pyramid level layouts are made at (``DESCRIPTOR_MIN_WIDTH_PX``), below ``n_levels``."""
+    level = 0
+    while level + 1 < n_levels and width_px // 2 ** (level + 1) >= DESCRIPTOR_MIN_WIDTH_PX:
+        level += 1
+    return level
+
+
+def depth_layout(depth_m: np.ndarray) -> np.ndarray:
+    """``[B]`` float32 block-mean log depth of ``depth_m [h, w]`` (0 or NaN = none) on
+    :data:`DESCRIPTOR_GRID`; NaN for blocks with too little depth."""
+    d = np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, 0.0).astype(np.float64)
+    gh, gw = DESCRIPTOR_GRID
+    h, w = d.shape
+    rows = (np.arange(h) * gh) // h  # block of each pixel row / column
+    cols = (np.arange(w) * gw) // w
+    valid = (d > 0).astype(np.float64)
+    logd = np.where(d > 0, np.log(np.maximum(d, 1e-6)), 0.0)
+    s = np.zeros((gh, gw))
+    c = np.zeros((gh, gw))
+    np.add.at(s, (rows[:, None], cols[None, :]), logd)
+    np.add.at(c, (rows[:, None], cols[None, :]), valid)
+    size = np.zeros((gh, gw))
+    np.add.at(size, (rows[:, None], cols[None, :]), 1.0)
+    out = np.where(c >= MIN_BLOCK_VALID_FRACTION * size, s / np.maximum(c, 1.0), np.nan)
+    return out.ravel().astype(np.float32)
+
+
+def _turned(T_world_cam: np.ndarray, yaw_deg: float) -> np.ndarray:
+    """The pose turned by ``yaw_deg`` about its own vertical (image y) axis, centre kept."""
+    if yaw_deg == 0.0:
+        return np.array(T_world_cam, np.float64)
+    T = np.array(T_world_cam, np.float64)
+    T[:3, :3] = T[:3, :3] @ so3_exp(np.array([0.0, math.radians(yaw_deg), 0.0]))
+    return T
+
+
+class PlaceIndex:
+    """Depth layouts of a map's viewpoints (module docstring), searched by :meth:`query`.
+
+    Args:
+        model: the map (:class:`~atlas_pipeline.localization.tracker.SurfelModel`) the entries are
+            rendered from; ``camera`` and ``level`` fix the view they are rendered at.
+    """
+
+    def __init__(self, camera, level: int):
+        self.camera = camera
+        self.level = level
+        self._codes: list[np.ndarray] = []  # [B] each
+        self._poses: list[np.ndarray] = []
+        self._keyframe: list[int] = []
+        self._stack: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self._codes)
+
+    def add_keyframe(self, model, T_world_cam: np.ndarray, keyframe: int) -> None:
+        """Index the map ``model`` as seen from ``T_world_cam`` and its turned views."""
+        for yaw in VIEW_YAWS_DEG:
+            T = _turned(T_world_cam, yaw)
+            pts, _ = model.render(T, self.camera, self.level)
+            code = depth_layout(pts[..., 2])
+            if np.isfinite(code).sum() < MIN_COMMON_BLOCKS_FRACTION * code.size:
+                continue  # nothing to recognise (looking into empty space)
+            self._codes.append(code)
+            self._poses.append(T)
+            self._keyframe.append(int(keyframe))
+        self._stack = None
+
+    def query(self, depth_m: np.ndarray, k: int) -> list[PlaceMatch]:
+        """The ``k`` entries nearest the layout of ``depth_m [h, w]`` (the frame at ``level``),
+        nearest first, at most one per keyframe; empty when the frame has too little depth."""
+        if not self._codes:
+            return []
+        q = depth_layout(depth_m)
+        qv = np.isfinite(q)
+        if qv.sum() < MIN_COMMON_BLOCKS_FRACTION * q.size:
+            return []
+        if self._stack is None:
+            self._stack = np.stack(self._codes)  # [E, B]
+        E = self._stack
+        ev = np.isfinite(E)
+        both = ev & qv[None, :]
+        n_both = both.sum(axis=1)
+        diff = np.where(both, E - q[None, :], 0.0)
+        rms = np.sqrt((diff * diff).sum(axis=1) / np.maximum(n_both, 1))
+        only_one = (ev ^ qv[None, :]).sum(axis=1) / q.size
+        dist = rms + MISMATCH_PENALTY * only_one
+        dist = np.where(n_both >= MIN_COMMON_BLOCKS_FRACTION * q.size, dist, np.inf)
+        out: list[PlaceMatch] = []
+        seen: set[int] = set()
+        for e in np.argsort(dist, kind="stable"):
+            if not np.isfinite(dist[e]) or len(out) >= k:
+                break
+            if self._keyframe[e] in seen:
+                continue
+            seen.add(self._keyframe[e])
+            out.append(PlaceMatch(self._poses[e], float(dist[e]), self._keyframe[e]))
+        return out
+
+
+# Cells of the coverage map (m): coarse enough that a surface sampled every few centimetres (far
+# walls, stride-2 points) fills its cells, fine enough that a new wall or object is new cells.
+COVERAGE_CELL_M = 0.1
+
+
+class CoverageMap:
+    """Which coarse cells of space hold mapped surface (hashed voxels, :data:`COVERAGE_CELL_M`).
+
+    What a keyframe adds is the share of its points in cells the map has never seen: robust to a
+    sparse or noisy map where "lands on a rendered surfel" is not, and its cost per frame depends
+    on the frame's points only (a sorted-array lookup), not on how much has been mapped.
+    """
+
+    def __init__(self, cell_m: float = COVERAGE_CELL_M):
+        self.cell_m = float(cell_m)
+        self._cells = np.zeros(0, np.uint64)  # sorted unique cell ids
+
+    def __len__(self) -> int:
+        return len(self._cells)
+
+    def _ids(self, points_world: np.ndarray) -> np.ndarray:
+        from atlas_pipeline.gaussian_world.builder import pack_voxel_ids
+
+        return pack_voxel_ids(np.floor(np.asarray(points_world, np.float64) / self.cell_m).astype(np.int64))
+
+    def add(self, points_world: np.ndarray) -> None:
+        """Mark the cells of ``points_world [M, 3]`` as mapped."""
+        if len(points_world):
+            self._cells = np.union1d(self._cells, self._ids(points_world))
+
+    def add_voxels(self, builder) -> None:
+        """Mark the cells of every voxel of a :class:`VoxelGaussianBuilder` (a saved map)."""
+        from atlas_pipeline.gaussian_world.builder import unpack_voxel_ids
+
+        if len(builder.ids):
+            centres = (unpack_voxel_ids(builder.ids) + 0.5) * builder.voxel_size_m
+            self.add(centres)
+
+    def new_share(self, points_world: np.ndarray) -> float:
+        """Share of ``points_world [M, 3]`` in cells not mapped yet (1.0 for an empty map; NaN with no points)."""
+        if not len(points_world):
+            return float("nan")
+        if not len(self._cells):
+            return 1.0
+        ids = self._ids(points_world)
+        pos = np.minimum(np.searchsorted(self._cells, ids), len(self._cells) - 1)
+        return float(np.mean(self._cells[pos] != ids))

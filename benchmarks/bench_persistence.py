@@ -1,0 +1,223 @@
+"""Persistence benchmark: worlds a robot comes back to.
+
+For every pair of visits of one place, on the frames as read from disk:
+
+1. **build**: tracking and mapping of visit 1 with no ground truth (``slam_poses``: loop closure
+   included), then the world merged from its keyframes (no fit): what ``atlas-gs build --set
+   mapping.pose_source=estimated`` does. SLAM ATE, keyframes, frames/s, build seconds.
+2. **own frames**: visit 1 localized in the world it built, from the world's first keyframe
+   (``atlas-gs localize``): placed %, ATE, frames/s. Target: 100 % placed, ATE <= 1.1x SLAM's.
+3. **second visit, no start pose**: visit 2 localized in world 1 with no initial pose (the first
+   frame relocalized): placed %, placed % of the frames that see mapped surface (judged with
+   ground truth: the visit's true pose moved into the world's frame by the rigid alignment of
+   visit 1's estimates to its ground truth, and at least half of the frame's points landing on
+   the map there), ATE, frames/s, mean seconds per relocalization attempt.
+4. **extend**: visit 2 tracked and mapped into world 1 (``atlas-gs build --extend``): placed %,
+   frames/s; then visit 2 localized in the extended world with no start pose: placed %, ATE.
+
+Pairs: the synthetic suite (``synthetic-suite`` then ``synthetic-suite-visit2``, generated into
+the data folder on first use), and the real TUM frames in ``../shared/data`` split in two halves
+(teddy frames 0-49 / 50-99; fr1 xyz 0-4 / 5-9). ``--pair A B`` adds registered datasets.
+Ground truth only grades. Usage::
+
+    python benchmarks/bench_persistence.py [--quick] [--json out.json] [--pair NAME1 NAME2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SHARED_DATA = ROOT.parent / "shared" / "data"
+SHARED_SPLITS = (("tum_fr3_teddy_100", "freiburg3", 50), ("tum_fr1_xyz_10", "freiburg1", 5))
+SUITE_PAIR = ("synthetic-suite", "synthetic-suite-visit2")
+QUICK_SUITE_FRAMES = (300, 200)  # --quick: the first frames of each suite visit
+# A frame "sees mapped surface" when at least this share of its points lands on the map at its true pose.
+SEES_MAP_MIN_OVERLAP = 0.5
+
+logger = logging.getLogger("bench_persistence")
+
+
+def _slice(manifest, start: int, stop: int, name: str):
+    """Frames ``start..stop-1`` of ``manifest`` as a manifest of their own (a visit)."""
+    sl = slice(start, stop)
+    rgb_ts = None if manifest.rgb_timestamps_s is None else manifest.rgb_timestamps_s[sl].copy()
+    return dataclasses.replace(
+        manifest, dataset=name, timestamps_s=manifest.timestamps_s[sl].copy(),
+        depth_timestamps_s=manifest.depth_timestamps_s[sl].copy(), rgb_files=manifest.rgb_files[sl],
+        depth_files=manifest.depth_files[sl], T_world_cam_gt=manifest.T_world_cam_gt[sl].copy(),
+        has_gt=manifest.has_gt[sl].copy(), rgb_timestamps_s=rgb_ts)
+
+
+def _pairs(args, cfg) -> list[tuple[str, object, object]]:
+    from atlas_pipeline.sensors.camera import TUM_CAMERAS
+    from atlas_pipeline.sensors.registry import DatasetEntry, load_dataset, load_registry, read_dataset_manifest
+
+    reg = load_registry()
+    out = []
+    names = ([] if args.no_suite else [SUITE_PAIR]) + [tuple(p) for p in args.pair]
+    for a, b in names:
+        ma, mb = load_dataset(reg[a], cfg), load_dataset(reg[b], cfg)
+        if args.quick and (a, b) == SUITE_PAIR:
+            ma = _slice(ma, 0, min(QUICK_SUITE_FRAMES[0], ma.n_frames), a)
+            mb = _slice(mb, 0, min(QUICK_SUITE_FRAMES[1], mb.n_frames), b)
+        out.append((f"{a} / {b}", ma, mb))
+    for folder, cam, split in SHARED_SPLITS:
+        root = SHARED_DATA / folder
+        if not root.is_dir():
+            logger.warning("%s not found: skipped", root)
+            continue
+        m = read_dataset_manifest(DatasetEntry(folder, "tum", root, camera=TUM_CAMERAS[cam]))
+        out.append((f"{folder} [0,{split}) / [{split},{m.n_frames})", _slice(m, 0, split, f"{folder}-1"),
+                    _slice(m, split, m.n_frames, f"{folder}-2")))
+    return out
+
+
+def _placed(status: list[str]) -> np.ndarray:
+    from atlas_pipeline.localization.sequence import PLACED_STATUSES, STATUS_ANCHOR
+
+    return np.array([s in PLACED_STATUSES or s == STATUS_ANCHOR for s in status])
+
+
+def _sees_map(manifest, model, T_align: np.ndarray, cfg) -> np.ndarray:
+    """``[N]`` bool: frames whose true pose (moved into the world's frame) sees mapped surface."""
+    from atlas_pipeline.localization.tracker import RGBDTracker
+
+    tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
+    out = np.zeros(manifest.n_frames, bool)
+    for i in range(manifest.n_frames):
+        if not manifest.has_gt[i]:
+            continue
+        T = T_align @ manifest.T_world_cam_gt[i]
+        fp = tracker.prepare(None, manifest.read_depth_m(i, allow_empty=True))
+        stats = tracker.quality_stats(fp, model.model_view(T, manifest.camera, tracker.model_level), T)
+        out[i] = stats.n_points > 0 and stats.n_on_model / stats.n_points >= SEES_MAP_MIN_OVERLAP
+    return out
+
+
+def _gt_to_world(slam_poses: np.ndarray, valid: np.ndarray, manifest) -> np.ndarray | None:
+    """``[4, 4]`` moving ground-truth coordinates into the SLAM world's (rigid alignment)."""
+    from atlas_pipeline.localization.metrics import align_rigid
+
+    ok = valid & manifest.has_gt & np.isfinite(slam_poses).all(axis=(1, 2))
+    if ok.sum() < 3:
+        return None
+    return np.linalg.inv(align_rigid(slam_poses[ok], manifest.T_world_cam_gt[ok]))
+
+
+def _reloc_time_s(report) -> float:
+    """Mean seconds of the frames that needed a relocalization attempt (relocalized or lost with one)."""
+    t = [report.time_s[i] for i, s in enumerate(report.status) if s == "relocalized"]
+    return float(np.mean(t)) if t else float("nan")
+
+
+def run_pair(label: str, v1, v2, cfg) -> dict:
+    from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map
+    from atlas_pipeline.mapping.keyframes import KeyframeSet, slam_poses
+    from atlas_pipeline.mapping.mapper import build_world, extend_world_by_tracking
+    from atlas_pipeline.perception.rgbd import fuse_frames
+
+    depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
+    row: dict = {"pair": label, "visit1_frames": v1.n_frames, "visit2_frames": v2.n_frames}
+    t0 = time.perf_counter()
+    fused = fuse_frames(v1, cfg.fusion)
+    t1 = time.perf_counter()
+    slam = slam_poses(v1, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride)
+    t_slam = time.perf_counter() - t1
+    kf = KeyframeSet(slam.T_world_cam, slam.valid, slam.keyframe_indices, "estimated", slam.loop_closure, slam.maps)
+    world = build_world(fused, kf, cfg.mapping, manifest=v1)
+    t_build = time.perf_counter() - t0
+    from benchmarks.common import grade
+
+    g = grade(v1, np.where(slam.valid[:, None, None], slam.T_world_cam, np.nan))
+    row.update({"slam_ate_m": g.get("ate_rmse_m"), "slam_frames_per_s": v1.n_frames / t_slam,
+                "build_s": t_build, "keyframes": len(kf.indices), "gaussians": len(world.field),
+                "loops": None if slam.loop_closure is None else slam.loop_closure.get("n_loops")})
+    # Own frames in the world they built.
+    own = localize(v1, world, cfg)
+    row.update({"own_placed_pct": 100 * _placed(own.status).mean(), "own_ate_m": own.summary.get("ate_rmse_m"),
+                "own_frames_per_s": own.summary.get("frames_per_s"), "own_outcome": own.summary.get("outcome")})
+    # Second visit, no start pose.
+    model = tracking_map(world)
+    T_align = _gt_to_world(slam.T_world_cam, slam.valid, v1)
+    second = localize_sequence(v2, model, cfg.localization, None, map_id=world.map_id, depth_range_m=depth_range,
+                               prior_poses=world.T_world_cam_keyframes)
+    placed = _placed(second.status)
+    row.update({"visit2_placed_pct": 100 * placed.mean(), "visit2_ate_m": second.summary.get("ate_rmse_m"),
+                "visit2_frames_per_s": second.summary.get("frames_per_s"),
+                "visit2_reloc_s": _reloc_time_s(second), "visit2_outcome": second.summary.get("outcome")})
+    if T_align is not None:
+        sees = _sees_map(v2, model, T_align, cfg)
+        row["visit2_seeing_map"] = int(sees.sum())
+        row["visit2_placed_of_seeing_pct"] = 100 * placed[sees].mean() if sees.any() else float("nan")
+    # Extend world 1 by visit 2, then localize visit 2 in the extended world.
+    t0 = time.perf_counter()
+    extended, _, status = extend_world_by_tracking(world, v2, cfg.mapping, cfg.localization, depth_range,
+                                                   cfg.fusion.stride)
+    row.update({"extend_placed_pct": 100 * _placed(status).mean(),
+                "extend_frames_per_s": v2.n_frames / (time.perf_counter() - t0)})
+    again = localize_sequence(v2, tracking_map(extended), cfg.localization, None, map_id=extended.map_id,
+                              depth_range_m=depth_range, prior_poses=extended.T_world_cam_keyframes)
+    row.update({"extended_placed_pct": 100 * _placed(again.status).mean(),
+                "extended_ate_m": again.summary.get("ate_rmse_m"),
+                "extended_frames_per_s": again.summary.get("frames_per_s")})
+    return row
+
+
+def _fmt(v, scale: float = 1.0, digits: int = 1) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "-"
+    return f"{v * scale:.{digits}f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help=f"the first {QUICK_SUITE_FRAMES} frames of the suite visits")
+    ap.add_argument("--pair", nargs=2, action="append", default=[], metavar=("VISIT1", "VISIT2"),
+                    help="two registered datasets of one place")
+    ap.add_argument("--no-suite", action="store_true", help="leave out the synthetic suite pair")
+    ap.add_argument("--json", type=Path, help="write the rows here")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
+    from atlas_pipeline.config import load_profile
+
+    cfg = load_profile("default")
+    cfg = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, pose_source="estimated",
+                                                                optimization_epochs=0, colour_refinement_iterations=0))
+    rows = []
+    for label, v1, v2 in _pairs(args, cfg):
+        print(f"running {label} ...", flush=True)
+        rows.append(run_pair(label, v1, v2, cfg))
+    print(f"\nmachine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores; "
+          f"profile default, mapping.pose_source=estimated, no fit")
+    print("| pair | frames | SLAM ATE cm | SLAM f/s | build s | keyframes | own placed % | own ATE cm | own f/s "
+          "| visit 2 placed % (of seeing map) | visit 2 ATE cm | visit 2 f/s | reloc s | extend placed % | extend f/s "
+          "| in extended placed % | ATE cm |")
+    print("|" + "---|" * 17)
+    for r in rows:
+        print(f"| {r['pair']} | {r['visit1_frames']} + {r['visit2_frames']} | {_fmt(r['slam_ate_m'], 100, 2)} "
+              f"| {_fmt(r['slam_frames_per_s'])} | {_fmt(r['build_s'])} | {r['keyframes']} "
+              f"| {_fmt(r['own_placed_pct'])} | {_fmt(r['own_ate_m'], 100, 2)} | {_fmt(r['own_frames_per_s'])} "
+              f"| {_fmt(r['visit2_placed_pct'])} ({_fmt(r.get('visit2_placed_of_seeing_pct'))} of "
+              f"{r.get('visit2_seeing_map', '-')}) | {_fmt(r['visit2_ate_m'], 100, 2)} "
+              f"| {_fmt(r['visit2_frames_per_s'])} | {_fmt(r['visit2_reloc_s'], 1, 3)} "
+              f"| {_fmt(r['extend_placed_pct'])} | {_fmt(r['extend_frames_per_s'])} "
+              f"| {_fmt(r['extended_placed_pct'])} | {_fmt(r['extended_ate_m'], 100, 2)} |")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

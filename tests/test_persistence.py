@@ -1,0 +1,203 @@
+"""Worlds to come back to: the suite place, the place index, covisibility keyframes, fast relocalization."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from atlas_pipeline.config import LocalizationConfig
+from atlas_pipeline.errors import ConfigError
+from atlas_pipeline.localization.places import DESCRIPTOR_GRID, PlaceIndex, depth_layout, descriptor_level
+from atlas_pipeline.localization.relocalize import Relocalizer
+from atlas_pipeline.localization.sequence import STATUS_ANCHOR, STATUS_RELOCALIZED, SequenceTracker
+from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel
+from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+from atlas_pipeline.geometry import invert_se3
+from atlas_pipeline.perception.rgbd import backproject
+from atlas_pipeline.sensors import synthetic as syn
+from atlas_pipeline.sensors.synthetic_places import SUITE_ROUTES, build_suite_scene, route_length_m
+
+QVGA = dict(width=160, height=120, fx=525.0 / 4, fy=525.0 / 4, cx=79.5, cy=59.5)
+DEPTH_RANGE = (0.1, 4.0)
+
+
+def _suite_spec(**kw) -> syn.SyntheticSpec:
+    return syn.SyntheticSpec(**{"place": "suite", "n_frames": 40, "suite_speed_m_per_s": 0.5, **QVGA, **kw})
+
+
+# -- the suite ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("route", sorted(SUITE_ROUTES))
+def test_suite_routes_keep_clear_of_every_surface(route):
+    """Every pose of a whole route is at least 0.5 m from walls, partitions and objects."""
+    spec = syn.SyntheticSpec(place="suite", route=route, n_frames=1500)
+    scene = build_suite_scene(spec.seed)
+    T = syn.camera_path(spec, syn.frame_times_s(spec))
+    assert scene.clearance_m(T[:, :3, 3]).min() > 0.5
+    step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    assert step.max() < 0.05  # walking pace: a few cm per frame
+    if SUITE_ROUTES[route]["closed"]:
+        assert np.linalg.norm(T[-1, :2, 3] - T[0, :2, 3]) < 0.01  # the tour ends where it began (bob aside)
+
+
+def test_suite_has_three_rooms_and_objects():
+    scene = build_suite_scene(0)
+    walls = [o for o in scene.objects if o.half_size[0] < 0.1 and o.half_size[1] > 0.5]
+    assert len(walls) == 4  # two partitions, a door in each
+    assert len(scene.objects) >= 4 + 6
+    assert route_length_m(0) > 20.0
+
+
+@pytest.mark.parametrize("kw, field", [
+    ({"place": "hall"}, "place"), ({"place": "suite", "route": 7}, "route"),
+    ({"light_level": 0.0}, "light_level"), ({"place": "suite", "loop_revolutions": 1}, "loop_revolutions"),
+])
+def test_suite_spec_errors_name_the_field(kw, field):
+    with pytest.raises(ConfigError, match=field):
+        syn.SyntheticSpec(**kw)
+
+
+def test_light_level_darkens_the_same_view():
+    spec, dusk = _suite_spec(), _suite_spec(light_level=0.5)
+    T = syn.camera_path(spec, np.array([1.0]))[0]
+    scene = syn.scene_of(spec)
+    rgb, depth = syn.render_synthetic_frame(spec, scene, T)
+    rgb2, depth2 = syn.render_synthetic_frame(dusk, scene, T)
+    assert np.array_equal(depth, depth2)
+    lit = depth > 0
+    ratio = rgb2[lit].astype(float).mean() / rgb[lit].astype(float).mean()
+    assert 0.45 < ratio < 0.55
+
+
+def test_suite_registry_entries_are_the_python_presets():
+    from atlas_pipeline.sensors.registry import load_registry
+
+    reg = load_registry()
+    for name in syn.SUITE_PRESETS:
+        assert syn.SyntheticSpec(**reg[name].params) == syn.SyntheticSpec(**syn.SUITE_PRESETS[name])
+    assert syn.SyntheticSpec(**reg["synthetic-suite"].params).n_frames >= 1500
+
+
+def test_registry_rejects_a_place_that_is_not_a_name(tmp_path):
+    from atlas_pipeline.sensors.registry import load_registry
+
+    bad = tmp_path / "datasets.yaml"
+    bad.write_text("datasets:\n  s:\n    kind: synthetic\n    place: 3\n")
+    with pytest.raises(ConfigError, match=r"s\.place"):
+        load_registry([bad])
+
+
+# -- the place index ---------------------------------------------------------------------------
+
+def _suite_map(spec, times_s):
+    """A tracking map of ``spec``'s scene merged from exact frames at ``times_s``; their poses."""
+    scene = syn.scene_of(spec)
+    cam = spec.camera()
+    b = VoxelGaussianBuilder(0.04)
+    poses = syn.camera_path(spec, np.asarray(times_s, float))
+    for T in poses:
+        rgb, depth = syn.render_synthetic_frame(spec, scene, T)
+        pts, cols = backproject(depth, rgb, cam, 1, *DEPTH_RANGE)
+        b.integrate(pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3], cols)
+    return SurfelModel.from_builder(b), poses, scene
+
+
+def test_depth_layout_grid_and_blank_frames():
+    assert depth_layout(np.zeros((60, 80))).shape == (DESCRIPTOR_GRID[0] * DESCRIPTOR_GRID[1],)
+    assert np.isnan(depth_layout(np.zeros((60, 80)))).all()
+    code = depth_layout(np.full((60, 80), 2.0))
+    assert np.allclose(code, np.log(2.0))
+
+
+def test_place_index_finds_the_keyframe_a_frame_was_taken_near():
+    spec = _suite_spec()
+    times = np.arange(0.0, 40.0, 2.0)  # keyframes every metre along the tour
+    model, poses, scene = _suite_map(spec, times)
+    level = descriptor_level(spec.width, 3)
+    index = PlaceIndex(spec.camera(), level)
+    for k, T in enumerate(poses):
+        index.add_keyframe(model, T, k)
+    tracker = RGBDTracker(spec.camera(), LocalizationConfig(), DEPTH_RANGE)
+    hits = 0
+    for k in range(len(poses)):
+        T = syn.camera_path(spec, np.array([times[k] + 0.3]))[0]  # 15 cm further on
+        _, depth = syn.render_synthetic_frame(spec, scene, T)
+        fp = tracker.prepare(None, depth)
+        t0 = time.perf_counter()
+        found = index.query(fp.depth[level], 3)
+        assert time.perf_counter() - t0 < 0.05
+        hits += any(m.keyframe == k for m in found)
+    assert hits >= 0.8 * len(poses)
+
+
+def test_fast_relocalization_places_a_frame_with_no_guess():
+    """Frames between keyframes 25 cm apart: most are placed, near their true pose, none elsewhere
+    (flat walls fit many poses: an ambiguous frame is left for the next one)."""
+    spec = _suite_spec()
+    times = np.arange(0.0, 40.0, 0.5)
+    model, poses, scene = _suite_map(spec, times)
+    cfg = LocalizationConfig()
+    tracker = RGBDTracker(spec.camera(), cfg, DEPTH_RANGE)
+    index = PlaceIndex(spec.camera(), descriptor_level(spec.width, tracker.n_levels))
+    for k, T in enumerate(poses):
+        index.add_keyframe(model, T, k)
+    reloc = Relocalizer(tracker, model, poses, places=index)
+    placed = 0
+    queries = times[::8] + 0.25
+    for t in queries:
+        T_true = syn.camera_path(spec, np.array([t]))[0]
+        rgb, depth = syn.render_synthetic_frame(spec, scene, T_true)
+        r = reloc.relocalize_fast(tracker.prepare(rgb, depth))
+        if r.ok:
+            err = invert_se3(T_true) @ r.T_world_cam
+            # geometry alone verifies: on a flat wall a pose may slide along it by a few cm
+            assert np.linalg.norm(err[:3, 3]) < 0.15
+            placed += 1
+    assert placed >= 0.5 * len(queries)
+
+
+# -- covisibility keyframes --------------------------------------------------------------------
+
+def test_a_second_pass_over_mapped_surfaces_adds_no_keyframes():
+    """Tracking the same stretch again (a pan over mapped surface) merges nothing new."""
+    spec = syn.SyntheticSpec(n_frames=20, **QVGA)
+    scene = syn.build_scene(spec.seed)
+    poses = syn.camera_path(spec, syn.frame_times_s(spec))
+    frames = [syn.render_synthetic_frame(spec, scene, T) for T in poses]
+    st = SequenceTracker(spec.camera(), LocalizationConfig(), DEPTH_RANGE, builder=VoxelGaussianBuilder(0.02))
+    for i, (rgb, depth) in enumerate(frames):
+        st.process(i, rgb, depth, T_given=poses[0] if i == 0 else None, timestamp_s=i / spec.fps)
+    n_first = len(st.keyframe_indices)
+    assert n_first >= 2
+    st.reset(len(frames) - 1, poses[-1])
+    for j, (rgb, depth) in enumerate(frames[::-1]):  # back over the same frames
+        est = st.process(len(frames) + j, rgb, depth, timestamp_s=(len(frames) + j) / spec.fps)
+        assert est.status not in ("lost",)
+    assert len(st.keyframe_indices) == n_first
+
+
+def test_relocalization_in_a_saved_map_is_fast():
+    """Frames with no pose are placed by the place index within the fast attempts, each well
+    under the full search's seconds."""
+    from atlas_pipeline.localization.sequence import FAST_ONLY_ATTEMPTS
+
+    spec = _suite_spec()
+    times = np.arange(0.0, 40.0, 0.5)
+    model, poses, scene = _suite_map(spec, times)
+    st = SequenceTracker(spec.camera(), LocalizationConfig(), DEPTH_RANGE, model=model, prior_poses=poses)
+    st.places  # the index is built once per session, before the clock
+    for start in (10.4, 20.3, 30.2):
+        st.reset()
+        for k in range(FAST_ONLY_ATTEMPTS):
+            t = start + k / spec.fps
+            T_true = syn.camera_path(spec, np.array([t]))[0]
+            rgb, depth = syn.render_synthetic_frame(spec, scene, T_true)
+            est = st.process(k, rgb, depth, timestamp_s=t)  # no pose yet: relocalized
+            assert est.status != STATUS_ANCHOR and est.time_s < 0.5
+            if est.status == STATUS_RELOCALIZED:
+                assert np.linalg.norm((invert_se3(T_true) @ est.T_world_cam)[:3, 3]) < 0.15
+                break
+        else:
+            pytest.fail(f"no frame from t = {start} s placed in {FAST_ONLY_ATTEMPTS} fast attempts")
