@@ -76,6 +76,14 @@ def test_tracking_map_travels_with_the_bundle(tmp_path):
     loaded = load_world_bundle(d).tracking_model()
     assert np.allclose(loaded.centres, model.centres, atol=1e-6) and loaded.radius_m == model.radius_m
     assert np.allclose(loaded.normals, model.normals, atol=1e-6)
+    # what relocalization checks a pose's appearance against: the Gaussians' colours, the same
+    # from the bundle as from the world in memory
+    from atlas_pipeline.localization.tracker import VoxelAppearance
+
+    expected = VoxelAppearance.from_field(b.to_field(), 0.02)
+    got = load_world_bundle(d).tracking_model(0.02).appearance()
+    assert len(expected.ids) > 1000 and np.array_equal(got.ids, expected.ids)
+    assert np.array_equal(got.grey, expected.grey)
     d2 = write_world_bundle(tmp_path / "w2", b.to_field(), {"gaussians": {"voxel_size_m": 0.02}})
     derived = load_world_bundle(d2).tracking_model()
     assert len(derived) > 0.9 * len(model) and np.abs(derived.normals[:, 2]).min() > 0.9

@@ -393,8 +393,14 @@ def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: 
 
 def tracking_map(world: GaussianWorld) -> SurfelModel:
     """The ``SurfelModel`` localization tracks against: surfels from the voxel statistics (the
-    fitted Gaussians render the images better but no longer mark the surface exactly)."""
-    return SurfelModel.from_builder(world.builder)
+    fitted Gaussians render the images better but no longer mark the surface exactly), with the
+    Gaussians' colours as its appearance (as a bundle reloaded gives it)."""
+    from atlas_pipeline.localization.tracker import VoxelAppearance
+
+    model = SurfelModel.from_builder(world.builder)
+    model.builder = None
+    model.appearance_map = VoxelAppearance.from_field(world.field, world.builder.voxel_size_m)
+    return model
 
 
 def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,

@@ -228,7 +228,7 @@ class SurfelCache:
         self._version = b.version
         keep = (np.asarray(b.count) >= self.min_points) & (support >= self.min_support)
         self._model = SurfelModel(np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep]),
-                                  C.surfel_radius_voxels * b.voxel_size_m, b)
+                                  C.surfel_radius_voxels * b.voxel_size_m, builder=b)
         return self._model
 
 
@@ -268,10 +268,30 @@ class VoxelAppearance(NamedTuple):
 
     @classmethod
     def from_builder(cls, builder) -> "VoxelAppearance":
+        """The mean colour of each voxel of a :class:`VoxelGaussianBuilder`."""
         count = np.maximum(np.asarray(builder.count, np.float64), 1.0)
         rgb = np.asarray(builder.sum_rgb, np.float64) / count[:, None]
         grey = (rgb @ np.array(C.luma_weights_rgb)) / C.max_colour_value
         return cls(np.asarray(builder.ids, np.uint64), grey.astype(np.float32), float(builder.voxel_size_m))
+
+    @classmethod
+    def from_field(cls, field, voxel_size_m: float) -> "VoxelAppearance":
+        """The mean colour of the solid Gaussians of a :class:`GaussianField` in each voxel: what a
+        saved world shows, the same whether it is in memory or reloaded from its bundle."""
+        from atlas_pipeline.gaussian_world.builder import pack_voxel_ids
+
+        pos = np.asarray(field.positions, np.float64)
+        rgb = np.asarray(field.colors, np.float64)
+        solid = np.asarray(field.opacities) >= C.field_min_opacity
+        if solid.sum() >= C.field_min_solid_fraction * len(pos):  # as SurfelModel.from_field
+            pos, rgb = pos[solid], rgb[solid]
+        if not len(pos):
+            return cls(np.zeros(0, np.uint64), np.zeros(0, np.float32), float(voxel_size_m))
+        ids = pack_voxel_ids(np.floor(pos / voxel_size_m).astype(np.int64))
+        uniq, inv = np.unique(ids, return_inverse=True)
+        grey = (rgb @ np.array(C.luma_weights_rgb)) / C.max_colour_value
+        mean = np.bincount(inv, grey, len(uniq)) / np.bincount(inv, minlength=len(uniq))
+        return cls(uniq, mean.astype(np.float32), float(voxel_size_m))
 
     def correlation(self, points_world: np.ndarray, grey: np.ndarray) -> tuple[float, int]:
         """``(normalized cross-correlation, pairs)`` of ``grey [M]`` seen at ``points_world [M, 3]``
@@ -310,17 +330,17 @@ class SurfelModel:
     centres: np.ndarray
     normals: np.ndarray
     radius_m: float
-    # The voxel statistics the surfels came from, when known (not saved): their colours check a
-    # relocalized pose's appearance (:meth:`appearance`).
+    # What the map looks like, to check a relocalized pose (:meth:`appearance`), not saved: a
+    # saved world's Gaussian colours (:meth:`VoxelAppearance.from_field`), or, while mapping, the
+    # voxel statistics the surfels come from (computed when first needed).
+    appearance_map: VoxelAppearance | None = field(default=None, repr=False, compare=False)
     builder: object = field(default=None, repr=False, compare=False)
 
     def appearance(self) -> VoxelAppearance | None:
-        """The map's voxel grey (:class:`VoxelAppearance`), or None for surfels without statistics."""
-        if self.builder is None:
-            return None
-        if getattr(self, "_appearance", None) is None:
-            self._appearance = VoxelAppearance.from_builder(self.builder)
-        return self._appearance
+        """The map's voxel grey (:class:`VoxelAppearance`), or None when nothing is known of it."""
+        if self.appearance_map is None and self.builder is not None:
+            self.appearance_map = VoxelAppearance.from_builder(self.builder)
+        return self.appearance_map
 
     def __post_init__(self) -> None:
         # The map is what surfels.npz stores (float32). Rounding here too makes a map used in
@@ -333,7 +353,7 @@ class SurfelModel:
     @classmethod
     def from_builder(cls, builder, min_points: int = C.surfel_min_points) -> "SurfelModel":
         c, n = surfels_from_voxels(builder.ids, builder.count, builder.sum_xyz, builder.sum_sq, min_points)
-        return cls(c, n, C.surfel_radius_voxels * builder.voxel_size_m, builder)
+        return cls(c, n, C.surfel_radius_voxels * builder.voxel_size_m, builder=builder)
 
     @classmethod
     def from_field(cls, positions: np.ndarray, voxel_size_m: float, opacities: np.ndarray | None = None,

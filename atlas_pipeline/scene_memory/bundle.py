@@ -392,12 +392,16 @@ class WorldBundle:
     def tracking_model(self, voxel_size_m: float | None = None):
         """The ``SurfelModel`` to localize against: ``surfels.npz`` (checksum verified) when the
         bundle has one, else surfels derived from the Gaussian centres (e.g. an imported PLY)."""
-        from atlas_pipeline.localization.tracker import SurfelModel
+        from atlas_pipeline.localization.tracker import SurfelModel, VoxelAppearance
 
-        if "surfels.npz" in self.metadata.get("files", {}):
-            return SurfelModel.load(_verified_file(self.directory, self.metadata, "surfels.npz"))
         voxel = voxel_size_m or float(self.metadata.get("gaussians", {}).get("voxel_size_m", 0.02))
-        return SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
+        if "surfels.npz" in self.metadata.get("files", {}):
+            model = SurfelModel.load(_verified_file(self.directory, self.metadata, "surfels.npz"))
+        else:
+            model = SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
+        # the Gaussians' colours: what relocalization checks a pose's appearance against
+        model.appearance_map = VoxelAppearance.from_field(self.field, voxel)
+        return model
 
 
 def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
