@@ -347,6 +347,7 @@ def _start_pose(args: argparse.Namespace) -> np.ndarray | None:
 def cmd_relocalize(args: argparse.Namespace) -> int:
     """Place single frames in a saved world with no initial pose; print pose, confidence and, where
     the dataset has ground truth, the error (meaningful when the world shares its frame)."""
+    from atlas_pipeline.localization.places import place_index
     from atlas_pipeline.localization.relocalize import Relocalizer
     from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
@@ -360,12 +361,14 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frame {bad[0]} is outside 0..{manifest.n_frames - 1}")
     voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
     tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
-    reloc = Relocalizer(tracker, bundle.tracking_model(voxel),
-                        bundle_keyframe_poses(bundle.metadata))
+    model, priors = bundle.tracking_model(voxel), bundle_keyframe_poses(bundle.metadata)
+    reloc = Relocalizer(tracker, model, priors, places=place_index(model, manifest.camera, tracker, priors))
     rows = []
     for i in frames:
         fp = tracker.prepare(manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True))
-        r = reloc.relocalize(fp)
+        r = reloc.relocalize_fast(fp)  # the place index first (milliseconds), the full search if it finds nothing
+        if not r.ok:
+            r = reloc.relocalize(fp)
         row: dict[str, Any] = {"frame": i, "timestamp_s": float(manifest.timestamps_s[i]), "ok": bool(r.ok),
                                "confidence": round(r.confidence, 4), "source": r.source,
                                "inlier_fraction": round(r.inlier_fraction, 4)}

@@ -28,7 +28,8 @@ import numpy as np
 
 from atlas_pipeline.geometry import so3_exp
 
-__all__ = ["PlaceIndex", "PlaceMatch", "depth_layout", "DESCRIPTOR_GRID", "VIEW_YAWS_DEG"]
+__all__ = ["PlaceIndex", "PlaceMatch", "CoverageMap", "place_index", "depth_layout", "DESCRIPTOR_GRID",
+           "VIEW_YAWS_DEG"]
 
 # Blocks of a depth layout (rows, columns): 192 numbers, coarse enough that a viewpoint 20 cm or
 # 10 degrees away still matches, fine enough to tell the walls of one room from another's.
@@ -153,6 +154,15 @@ class PlaceIndex:
             seen.add(self._keyframe[e])
             out.append(PlaceMatch(self._poses[e], float(dist[e]), self._keyframe[e]))
         return out
+
+
+def place_index(model, camera, tracker, poses: np.ndarray) -> PlaceIndex:
+    """A :class:`PlaceIndex` of ``model`` seen from ``poses [K, 4, 4]`` (a world's keyframes), at
+    the level ``tracker``'s pyramids give."""
+    index = PlaceIndex(camera, descriptor_level(camera.width, tracker.n_levels))
+    for k, T in enumerate(np.asarray(poses, np.float64).reshape(-1, 4, 4)):
+        index.add_keyframe(model, T, k)
+    return index
 
 
 # Cells of the coverage map (m): coarse enough that a surface sampled every few centimetres (far
