@@ -414,9 +414,11 @@ def cmd_localize(args: argparse.Namespace) -> int:
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
     voxel = float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
+    # The world's own recording is never a mismatch (the world was built from it), as in the graph.
+    own = bundle.metadata.get("dataset", {}).get("name") == entry.name
     report = localize_sequence(manifest, bundle.tracking_model(voxel), cfg.localization,
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-                               prior_poses=bundle_keyframe_poses(bundle.metadata))
+                               prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own)
     update_world_bundle(args.world, localization=report)
     _out(json.dumps({"world": str(Path(args.world).resolve()), **{  # to_json: unknown numbers are null
         k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.to_json()["summary"].items()}}, indent=2))

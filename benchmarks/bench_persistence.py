@@ -122,6 +122,12 @@ def _reloc_time_s(report) -> float:
     return float(np.mean(t)) if t else float("nan")
 
 
+def _progress(stage: str, row: dict) -> None:
+    """The figures so far, to stderr: a long pair shows each stage as it ends."""
+    print(f"  {stage}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+          file=sys.stderr, flush=True)
+
+
 def run_pair(label: str, v1, v2, cfg) -> dict:
     from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map
     from atlas_pipeline.mapping.keyframes import KeyframeSet, slam_poses
@@ -144,10 +150,12 @@ def run_pair(label: str, v1, v2, cfg) -> dict:
     row.update({"slam_ate_m": g.get("ate_rmse_m"), "slam_frames_per_s": v1.n_frames / t_slam,
                 "build_s": t_build, "keyframes": len(kf.indices), "gaussians": len(world.field),
                 "loops": None if slam.loop_closure is None else slam.loop_closure.get("n_loops")})
+    _progress("build", row)
     # Own frames in the world they built.
     own = localize(v1, world, cfg)
     row.update({"own_placed_pct": 100 * _placed(own.status).mean(), "own_ate_m": own.summary.get("ate_rmse_m"),
                 "own_frames_per_s": own.summary.get("frames_per_s"), "own_outcome": own.summary.get("outcome")})
+    _progress("own frames", row)
     # Second visit, no start pose.
     model = tracking_map(world)
     T_align = _gt_to_world(slam.T_world_cam, slam.valid, v1)
@@ -161,6 +169,7 @@ def run_pair(label: str, v1, v2, cfg) -> dict:
         sees = _sees_map(v2, model, T_align, cfg)
         row["visit2_seeing_map"] = int(sees.sum())
         row["visit2_placed_of_seeing_pct"] = 100 * placed[sees].mean() if sees.any() else float("nan")
+    _progress("second visit", row)
     # Extend world 1 by visit 2, then localize visit 2 in the extended world.
     t0 = time.perf_counter()
     extended, _, status = extend_world_by_tracking(world, v2, cfg.mapping, cfg.localization, depth_range,

@@ -447,8 +447,9 @@ def test_every_new_field_changes_the_hash():
     hashes = set()
     for n in new_fields:
         d = syn._FIELD_DEFAULTS[n]
-        v = {"loop_revolutions": 2, "motion_blur_samples": 3, "orbit_rate_deg_per_s": 20.0,
-             "pan_rate_deg_per_s": 60.0, "place": "suite"}.get(n, d + 0.01 if isinstance(d, float) else d + 1)
+        special = {"loop_revolutions": 2, "motion_blur_samples": 3, "orbit_rate_deg_per_s": 20.0,
+                   "pan_rate_deg_per_s": 60.0, "place": "suite"}
+        v = special[n] if n in special else (d + 0.01 if isinstance(d, float) else d + 1)
         s = SyntheticSpec(**{n: v})
         assert syn._spec_dict(s)[n] == v
         hashes.add(syn.spec_hash(s))

@@ -407,11 +407,11 @@ def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
              log: Callable[[str], None] | None = None) -> LocalizationReport:
     """The localization stage: track the sequence against its own world, starting at the world's
     first keyframe (whose pose the world defines), with the world's keyframe poses as
-    relocalization priors."""
+    relocalization priors. Never stopped as a mismatch: the world was built from these frames."""
     anchor = int(world.keyframe_indices[0])
     return localize_sequence(
         manifest, tracking_map(world), cfg.localization,
         T_world_cam_start=world.T_world_cam_keyframes[0], anchor_index=anchor, map_id=world.map_id,
         depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-        prior_poses=world.T_world_cam_keyframes, log=log,
+        prior_poses=world.T_world_cam_keyframes, log=log, stop_on_mismatch=False,
     )
