@@ -144,7 +144,6 @@ class FrameEstimate:
     keyframe: bool = False
     note: str = ""
     map_id: int = 0
-    overlap: float = float("nan")  # share of the frame's points landing on the map's model view
     new_surface: float = float("nan")  # mapping: share of its points in space the map has not seen
 
 
@@ -317,11 +316,10 @@ class SequenceTracker:
             if not res.ok and self.builder is not None:
                 f2f = self._align_to_last_frame(fp, guess)
             if res.ok:
-                est = FrameEstimate(index, res.T_world_cam, STATUS_TRACKED, res.inlier_fraction, res.residual_m, 0.0,
-                                    overlap=res.overlap)
+                est = FrameEstimate(index, res.T_world_cam, STATUS_TRACKED, res.inlier_fraction, res.residual_m, 0.0)
             elif f2f is not None:
                 est = FrameEstimate(index, f2f.T_world_cam, STATUS_TRACKED, f2f.inlier_fraction, f2f.residual_m, 0.0,
-                                    note=NOTE_FRAME_TO_FRAME, overlap=res.overlap)
+                                    note=NOTE_FRAME_TO_FRAME)
             elif self.cfg.relocalize:
                 est = self._relocalize(index, fp, [self._last[1]], fallback=(guess, res))
             else:
