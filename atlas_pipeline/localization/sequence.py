@@ -333,11 +333,11 @@ class SequenceTracker:
                                     note=f"new map {self.map_id} after {self._lost_run} lost frames; pose of the last placed frame")
                 self._lost_run = 0
         est.map_id = self.map_id
-        if self.builder is not None and np.isfinite(est.T_world_cam).all():
-            est.new_surface = self._new_surface(fp, est.T_world_cam)
-            if est.note == NOTE_FRAME_TO_FRAME and est.new_surface < KEYFRAME_MIN_NEW_SURFACE:
-                est.note = NOTE_CONFLICT  # sees mapped space the map disagrees with: drift, not new surface
         if est.status != STATUS_LOST:
+            if self.builder is not None and np.isfinite(est.T_world_cam).all():  # only frames that may be merged
+                est.new_surface = self._new_surface(fp, est.T_world_cam)
+                if est.note == NOTE_FRAME_TO_FRAME and est.new_surface < KEYFRAME_MIN_NEW_SURFACE:
+                    est.note = NOTE_CONFLICT  # sees mapped space the map disagrees with: drift, not new surface
             self._accept(index, fp, est, timestamp_s)
             if est.keyframe and self._old_maps and est.status != STATUS_NEW_MAP:
                 self._try_merge(index, fp, est.T_world_cam)
