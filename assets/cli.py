@@ -402,12 +402,20 @@ def cmd_evaluate_trajectory(args: argparse.Namespace) -> int:
 
 def cmd_localize(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.localizer import localize_sequence
-    from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle, update_world_bundle
+    from atlas_pipeline.scene_memory.bundle import (
+        bundle_keyframe_poses,
+        check_bundle_update,
+        load_world_bundle,
+        update_world_bundle,
+    )
     from atlas_pipeline.scene_memory.metadata import start_pose
 
     cfg = _config(args)
     bundle = load_world_bundle(args.world)  # verifies every file the bundle lists
     entry = _dataset(args.input, args.camera)
+    # Whether the report may go into this bundle is known now, not after every frame is localized.
+    check_bundle_update(args.world, entry.name, bundle.map_id, drop_transitions=args.drop_transitions,
+                        meta=bundle.metadata)
     check_writable(Path(args.world).parent)
     manifest = load_dataset(entry, cfg)
     T0, anchor = start_pose(bundle.metadata, entry.name, _start_pose(args), relocalize=args.relocalize)
@@ -419,7 +427,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
     report = localize_sequence(manifest, bundle.tracking_model(voxel), cfg.localization,
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
                                prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own)
-    update_world_bundle(args.world, localization=report)
+    update_world_bundle(args.world, localization=report, drop_transitions=args.drop_transitions)
     _out(json.dumps({"world": str(Path(args.world).resolve()), **{  # to_json: unknown numbers are null
         k: (round(v, 6) if isinstance(v, float) else v) for k, v in report.to_json()["summary"].items()}}, indent=2))
     if report.summary.get("outcome", "complete") != "complete":
@@ -431,7 +439,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
 
 def cmd_log_transitions(args: argparse.Namespace) -> int:
     from atlas_pipeline.localization.localizer import LocalizationReport
-    from atlas_pipeline.scene_memory.bundle import update_world_bundle, verify_bundle_files
+    from atlas_pipeline.scene_memory.bundle import check_bundle_update, update_world_bundle, verify_bundle_files
 
     cfg = _config(args)
     world = Path(args.world)
@@ -442,6 +450,7 @@ def cmd_log_transitions(args: argparse.Namespace) -> int:
     entry = _dataset(args.input, args.camera)
     if report.dataset != entry.name:
         raise ConfigError(f"{world}/localization.json is for dataset '{report.dataset}', not '{entry.name}'")
+    check_bundle_update(world, transitions_of={"dataset": entry.name, "map_id": report.map_id}, meta=meta)
     if cfg.transitions.pose_source == "ground_truth":  # refresh GT from the dataset, not the report
         manifest = load_dataset(entry, cfg)
         report.T_world_cam_gt = manifest.T_world_cam_gt
@@ -1093,6 +1102,8 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--start-pose", default=None, help="'tx ty tz qx qy qz qw' of the first frame in the world")
     lo.add_argument("--relocalize", action="store_true",
                     help="ignore the world's anchor: find the first frame's pose by relocalization")
+    lo.add_argument("--drop-transitions", action="store_true",
+                    help="remove the bundle's transitions.parquet of another dataset (refused otherwise)")
     lo.set_defaults(func=cmd_localize)
 
     t = sub.add_parser("log-transitions", help="write transitions.parquet into a localized world bundle")

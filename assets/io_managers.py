@@ -35,7 +35,8 @@ from atlas_pipeline.config import project_root
 from atlas_pipeline.errors import ArtifactError, AtlasError, WriteError
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.evaluation import PhotometricReport
-from atlas_pipeline.io_utils import (
+from atlas_pipeline.io_utils import (  # ARTIFACT_KIND: output-policy kind of every folder this IO manager writes
+    ARTIFACT_KIND,
     MIN_FREE_BYTES,
     LockedError,
     ProcessLock,
@@ -109,7 +110,6 @@ def artifact_dir(root: str | Path, asset: str, partition: str) -> Path:
     return Path(root) / asset / partition
 
 
-ARTIFACT_KIND = "artifact"  # output-policy kind of every folder this IO manager writes
 LOCKS_DIR = ".locks"  # under the root: one lock file per partition
 # Free space asked before computing an asset, as a multiple of its previous version's size.
 FREE_SPACE_FACTOR = 2
@@ -331,7 +331,8 @@ class ArtifactIOManager(ConfigurableIOManager):
         if same and self.intact(staged.record["asset"], staged.record["partition"]):
             discard_dir(staged.staging)
             return staged.target
-        return commit_dir(staged.staging, staged.target, ARTIFACT_KIND)
+        # The marker records where the artifact lives: a copy of it elsewhere (cp -a) is then a user's bundle.
+        return commit_dir(staged.staging, staged.target, ARTIFACT_KIND, {"path": str(Path(staged.target).resolve())})
 
     # -- Dagster IO manager protocol ------------------------------------------------------------
 

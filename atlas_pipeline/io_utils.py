@@ -38,6 +38,9 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "MARKER_NAME",
+    "ARTIFACT_KIND",
+    "ARTIFACT_RECORD",
+    "read_marker",
     "atomic_path",
     "atomic_dir",
     "stage_dir",
@@ -62,6 +65,10 @@ __all__ = [
 # Hidden so that bundle checksum tables and copies skip it; JSON: {"kind", "files", "writer", ...}.
 MARKER_NAME = ".atlas-gs.json"
 MARKER_VERSION = 1
+# The Dagster IO manager's folders (kind and record file), named here so a library reader can tell
+# the live artifact from a user's copy of it.
+ARTIFACT_KIND = "artifact"
+ARTIFACT_RECORD = "_artifact.json"
 _STAGE_SUFFIXES = ("tmp", "new", "old")
 # A probe write before expensive work: big enough to hit a full disk, small enough to be free.
 _PROBE_BYTES = 64 * 1024
@@ -283,6 +290,11 @@ def atomic_dir(path: str | Path, kind: str = "folder", marker_extra: dict[str, A
 # ---- output policy -----------------------------------------------------------------------------
 
 
+def read_marker(folder: Path) -> dict[str, Any] | None:
+    """The marker of an Atlas-GS folder (kind, files, what its writer added), None if it has none."""
+    return _read_marker(Path(folder))
+
+
 def _read_marker(folder: Path) -> dict[str, Any] | None:
     p = folder / MARKER_NAME
     try:
@@ -296,7 +308,7 @@ def _read_marker(folder: Path) -> dict[str, Any] | None:
 
 def _legacy_files(folder: Path) -> tuple[str, list[str]] | None:
     """Kind and files of folders written before the marker existed (bundles, artifacts)."""
-    for record, kind in (("metadata.json", "world_bundle"), ("_artifact.json", "artifact")):
+    for record, kind in (("metadata.json", "world_bundle"), (ARTIFACT_RECORD, ARTIFACT_KIND)):
         try:
             data = json.loads((folder / record).read_text(encoding="utf-8"))
         except (OSError, ValueError):

@@ -403,7 +403,7 @@ def test_localize_refuses_to_rewrite_a_dagster_artifact_folder(tmp_path):
             shutil.copy2(p, staged / p.name)
     commit_dir(staged, art, "artifact")
     before = _snapshot(art)
-    with pytest.raises(BundleFormatError, match="managed by the Dagster IO manager"):
+    with pytest.raises(BundleFormatError, match="artifact of the Dagster IO manager"):
         update_world_bundle(art)
     assert _snapshot(art) == before
 

@@ -45,6 +45,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.field import FIELD_BYTES_PER_GAUSSIAN, GaussianField
 from atlas_pipeline.io_utils import (
+    ARTIFACT_KIND,
+    ARTIFACT_RECORD,
     MARKER_NAME,
     atomic_dir,
     check_output_dir,
@@ -52,6 +54,7 @@ from atlas_pipeline.io_utils import (
     discard_dir,
     folder_kind,
     foreign_entries,
+    read_marker,
     sha256_file,
     stage_dir,
     write_json_atomic,
@@ -70,7 +73,7 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
     "read_metadata", "copy_bundle", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
-    "verify_bundle_files", "BundleMetadataSchema", "BUNDLE_KIND",
+    "verify_bundle_files", "check_bundle_update", "BundleMetadataSchema", "BUNDLE_KIND",
     "VOXEL_BYTES_PER_VOXEL", "bundle_disk_bytes", "world_memory_bytes", "save_peak_bytes", "load_peak_bytes",
 ]
 
@@ -202,9 +205,23 @@ def _write_parts(directory: Path, localization: LocalizationReport | None, trans
         write_transitions(transitions, directory / "transitions.parquet")
 
 
-def _file_table(directory: Path) -> dict[str, dict[str, Any]]:
+def _part_names(localization: LocalizationReport | None, transitions: pa.Table | None) -> dict[str, dict[str, str]]:
+    """The dataset and map each written part names, recorded beside its checksum: a reader (and the
+    next update) sees which recording a part comes from without parsing it."""
+    names: dict[str, dict[str, str]] = {}
+    if localization is not None:
+        for name in _PART_FILES["localization"]:
+            names[name] = {"dataset": localization.dataset, "map_id": localization.map_id}
+    if transitions is not None and transitions.num_rows:
+        for name in _PART_FILES["transitions"]:
+            names[name] = {"dataset": str(transitions.column("partition")[0]),
+                           "map_id": str(transitions.column("map_id")[0])}
+    return names
+
+
+def _file_table(directory: Path, parts: dict[str, dict[str, str]] | None = None) -> dict[str, dict[str, Any]]:
     return {
-        p.name: {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
+        p.name: {"bytes": p.stat().st_size, "sha256": sha256_file(p), **(parts or {}).get(p.name, {})}
         for p in sorted(directory.iterdir())
         if p.is_file() and p.name != "metadata.json" and not p.name.startswith(".")
     }
@@ -227,6 +244,11 @@ def write_bundle_files(
     ``extras`` are objects with ``save(directory)`` stored beside the Gaussians (e.g. the
     ``GaussianWorld`` with its voxel statistics, so the world can be extended later).
     """
+    parts = _part_names(localization, transitions)
+    loc, tr = parts.get("localization.json"), parts.get("transitions.parquet")
+    if loc and tr and loc != tr:
+        raise BundleFormatError(directory, f"the localization (dataset '{loc['dataset']}', map {loc['map_id']}) and the "
+                                           f"transitions (dataset '{tr['dataset']}', map {tr['map_id']}) disagree")
     write_gaussian_ply(field, directory / "gaussians.ply")
     write_gaussian_binary(field, directory / "gaussians.bin")
     _write_parts(directory, localization, transitions)
@@ -241,7 +263,7 @@ def write_bundle_files(
         "map_id": field.content_hash()[:16],
         "n_gaussians": len(field),
         **metadata,
-        "files": _file_table(directory),
+        "files": _file_table(directory, parts),
     }
     write_json_atomic(directory / "metadata.json", meta)
     return sorted(p for p in directory.iterdir() if p.is_file() and not p.name.startswith("."))
@@ -289,27 +311,131 @@ def verify_bundle_files(directory: str | Path, meta: dict[str, Any] | None = Non
     return meta
 
 
+def _recorded_part(directory: Path, meta: dict[str, Any], name: str) -> dict[str, str] | None:
+    """The dataset and map the listed part ``name`` names (None when the bundle has no such part):
+    from its record in metadata.json, else (bundles written before records carried them) from the
+    file itself."""
+    rec = meta["files"].get(name)
+    if rec is None:
+        return None
+    if isinstance(rec.get("dataset"), str) and isinstance(rec.get("map_id"), str):
+        return {"dataset": rec["dataset"], "map_id": rec["map_id"]}
+    path = directory / name
+    try:
+        if name == "transitions.parquet":
+            import pyarrow.parquet as pq
+
+            table = pq.read_table(path, columns=["partition", "map_id"])
+            if not table.num_rows:
+                return None
+            return {"dataset": str(table.column("partition")[0]), "map_id": str(table.column("map_id")[0])}
+        if name == "localization.json":
+            data = json.loads(path.read_text(encoding="utf-8"))
+            return {"dataset": str(data.get("dataset")), "map_id": str(data.get("map_id"))}
+    except (OSError, ValueError, KeyError, AttributeError, pa.ArrowException) as exc:
+        raise BundleFormatError(path, f"cannot read which dataset and map it is for ({exc})") from exc
+    return None
+
+
+def _live_artifact(directory: Path) -> bool:
+    """Whether ``directory`` is the Dagster IO manager's own folder, not a copy of it (``cp -a``):
+    its marker records where it was written. Without that place (older artifacts) it is a copy only
+    when its record names an asset and partition the folder does not sit at (``<asset>/<partition>``)."""
+    marker = read_marker(directory) or {}
+    if isinstance(marker.get("path"), str):
+        return Path(marker["path"]) == directory.resolve()
+    try:
+        record = json.loads((directory / ARTIFACT_RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return True
+    resolved = directory.resolve()
+    return not isinstance(record, dict) or \
+        (resolved.parent.name, resolved.name) == (record.get("asset"), record.get("partition"))
+
+
+def _check_updatable(directory: Path, meta: dict[str, Any]) -> None:
+    kind = folder_kind(directory)
+    if kind == ARTIFACT_KIND and _live_artifact(directory):
+        raise BundleFormatError(directory, "is the world_bundle artifact of the Dagster IO manager (`atlas-gs run` "
+                                           f"rewrites it); copy it first (`cp -a {directory} my-world`) and give "
+                                           "the copy as --world; nothing was changed")
+    if kind not in (None, BUNDLE_KIND, ARTIFACT_KIND):
+        raise BundleFormatError(directory, f"is an Atlas-GS {kind} folder, not a world bundle; nothing was changed")
+    # A copy of the artifact carries its record (_artifact.json): not a part of the bundle, dropped by the update.
+    foreign = [n for n in foreign_entries(directory) if n not in meta["files"] and n not in ("metadata.json", ARTIFACT_RECORD)]
+    if foreign:
+        raise BundleFormatError(directory, f"holds files this bundle does not list ({', '.join(foreign[:5])}); "
+                                           "move them out of the bundle folder first, nothing was changed")
+
+
+def check_bundle_update(directory: str | Path, dataset: str | None = None, map_id: str | None = None,
+                        transitions_of: dict[str, str] | None = None, drop_transitions: bool = False,
+                        meta: dict[str, Any] | None = None) -> list[str]:
+    """Decide, before any work, whether a localization of ``dataset`` on ``map_id`` (or transitions
+    naming ``transitions_of``'s dataset and map) may be written into the bundle at ``directory``;
+    raise BundleFormatError naming the file that would disagree. Returns the listed parts the update
+    removes: transitions derived from the localization being replaced, which would no longer agree
+    with it. Those of another recording are removed only with ``drop_transitions`` (they cannot be
+    derived again from this bundle); refused otherwise.
+
+    A bundle is one recording's truth: every part it lists names the same dataset and map.
+    """
+    directory = Path(directory)
+    meta = read_metadata(directory) if meta is None else meta
+    _check_updatable(directory, meta)
+    world_map = str(meta.get("map_id", ""))
+    for what, names in (("localization", {"map_id": map_id} if map_id is not None else None),
+                        ("transitions", transitions_of)):
+        if names is not None and world_map and names["map_id"] != world_map:
+            raise BundleFormatError(directory, f"holds map {world_map}; the {what} to write is for map "
+                                               f"{names['map_id']} (another world); nothing was changed")
+    if transitions_of is not None:
+        loc = {"dataset": dataset, "map_id": map_id or world_map} if dataset is not None else \
+            _recorded_part(directory, meta, "localization.json")
+        if loc is None:
+            raise BundleFormatError(directory, "has no localization.json: transitions are derived from a "
+                                               "localization, so localize first; nothing was changed")
+        if loc["dataset"] != transitions_of["dataset"]:
+            raise BundleFormatError(directory / "localization.json",
+                                    f"is for dataset '{loc['dataset']}'; the transitions to write are for "
+                                    f"'{transitions_of['dataset']}'; nothing was changed")
+        return []
+    if dataset is None:
+        return []
+    old = _recorded_part(directory, meta, "transitions.parquet")
+    if old is None:
+        return []
+    if old["dataset"] != dataset and not drop_transitions:
+        raise BundleFormatError(directory / "transitions.parquet",
+                                f"holds the transitions of dataset '{old['dataset']}'; a localization of "
+                                f"'{dataset}' would leave them beside a report they do not come from. Localize "
+                                f"into a copy of the bundle (`cp -a {directory} {directory.name}-{dataset}`), or "
+                                "drop them from this bundle (localize --drop-transitions); nothing was changed")
+    return list(_PART_FILES["transitions"])
+
+
 def update_world_bundle(directory: str | Path, localization: LocalizationReport | None = None,
-                        transitions: pa.Table | None = None) -> Path:
+                        transitions: pa.Table | None = None, drop_transitions: bool = False) -> Path:
     """Add or replace the localization or transitions of an existing bundle (CLI sessions).
 
     Every file the bundle lists is verified first (a corrupt file stops the update, so it is never
     re-hashed into a new metadata.json); a bundle holding files atlas-gs did not write is refused
-    (the swap would drop them). The new bundle is assembled in a folder beside it (verified
-    copies of the unchanged files, the new parts) and swapped in whole.
+    (the swap would drop them), and so is a part that would disagree with the others on dataset or
+    map (:func:`check_bundle_update`, which also says which parts a new localization makes stale:
+    they leave the bundle). The new bundle is assembled in a folder beside it (verified copies of
+    the unchanged files, the new parts) and swapped in whole.
     """
     directory = Path(directory)
     meta = verify_bundle_files(directory)
-    kind = folder_kind(directory)
-    if kind not in (None, BUNDLE_KIND):
-        raise BundleFormatError(directory, f"is a {kind} folder managed by the Dagster IO manager "
-                                           "(`atlas-gs run` rewrites it); copy it to a folder of your own and "
-                                           "localize into the copy, nothing was changed")
-    foreign = [n for n in foreign_entries(directory) if n not in meta["files"] and n not in ("metadata.json", "_artifact.json")]
-    if foreign:
-        raise BundleFormatError(directory, f"holds files this bundle does not list ({', '.join(foreign[:5])}); "
-                                           "move them out of the bundle folder first, nothing was changed")
-    replaced = set()
+    parts = _part_names(localization, transitions)
+    loc, tr = parts.get("localization.json"), parts.get("transitions.parquet")
+    stale = check_bundle_update(directory, loc["dataset"] if loc else None, loc["map_id"] if loc else None,
+                                tr, drop_transitions, meta)
+    for name in stale:
+        logger.warning("%s: removed from the bundle: derived from the localization now replaced, it would not agree "
+                       "with the new one (`atlas-gs log-transitions --world %s --input %s` derives it from the new one)",
+                       directory / name, directory, loc["dataset"] if loc else "DATASET")
+    replaced = set(stale)
     if localization is not None:
         replaced.update(_PART_FILES["localization"])
     if transitions is not None:
@@ -327,7 +453,8 @@ def update_world_bundle(directory: str | Path, localization: LocalizationReport 
         _write_parts(tmp, localization, transitions)
         for name in sorted(replaced):
             if (tmp / name).is_file():
-                files[name] = {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name)}
+                files[name] = {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name),
+                               **parts.get(name, {})}
         meta = {**meta, "files": dict(sorted(files.items())), "updated_at": _utc_now()}
         write_json_atomic(tmp / "metadata.json", meta)
         commit_dir(tmp, directory, BUNDLE_KIND)

@@ -1,0 +1,160 @@
+"""Faults and hostile input, second round: a bundle is one recording's truth, content changes and
+corrupt caches are noticed, a lost depth frame is a lost frame, interrupts and a bad DAGSTER_HOME
+end in one line. Each test is a row of docs/reliability.md's fault table and asserts that the
+message names the file, field or option."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+import yaml
+
+from assets.cli import main
+from atlas_pipeline.io_utils import MARKER_NAME
+
+FAST = ["--set", "mapping.optimization_epochs=0", "--set", "mapping.colour_refinement_iterations=0"]
+SMALL = {"kind": "synthetic", "seed": 0, "n_frames": 12, "width": 160, "height": 120,
+         "fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5}
+
+
+def _register_other(isolated: Path) -> None:
+    """A second recording, ``other`` (the same frames under another name)."""
+    reg = isolated / "datasets.local.yaml"
+    data = yaml.safe_load(reg.read_text())
+    data["datasets"]["other"] = dict(SMALL)
+    reg.write_text(yaml.safe_dump(data))
+
+
+def _parts_named(world: Path) -> dict[str, tuple[str, str]]:
+    """(dataset, map) each listed part names, read from the part itself (not its record)."""
+    meta = json.loads((world / "metadata.json").read_text())
+    named = {}
+    for name in meta["files"]:
+        if name == "localization.json":
+            d = json.loads((world / name).read_text())
+            named[name] = (d["dataset"], d["map_id"])
+        elif name == "transitions.parquet":
+            t = pq.read_table(world / name, columns=["partition", "map_id"])
+            assert len(set(t.column("partition").to_pylist())) == 1 and len(set(t.column("map_id").to_pylist())) == 1
+            named[name] = (t.column("partition")[0].as_py(), t.column("map_id")[0].as_py())
+        rec = meta["files"][name]
+        if "dataset" in rec:  # the record says what the part says
+            assert (rec["dataset"], rec["map_id"]) == named.get(name, named.get("localization.json")), name
+    return named
+
+
+def _agrees(world: Path) -> None:
+    """Every part the bundle lists names the same dataset, and the bundle's own map."""
+    meta = json.loads((world / "metadata.json").read_text())
+    named = _parts_named(world)
+    assert len({d for d, _ in named.values()}) <= 1, named
+    assert all(m == meta["map_id"] for _, m in named.values()), (named, meta["map_id"])
+
+
+@pytest.fixture
+def world(isolated, capsys):
+    """A bundle of ``synth-small`` with its localization and transitions."""
+    _register_other(isolated)
+    w = isolated / "world"
+    assert main(["build", "--input", "synth-small", "--output", str(w), *FAST]) == 0
+    assert main(["localize", "--world", str(w), "--input", "synth-small"]) == 0
+    assert main(["log-transitions", "--world", str(w), "--input", "synth-small"]) == 0
+    capsys.readouterr()
+    _agrees(w)
+    return w
+
+
+# ---- a bundle is one recording's truth -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv, code, says, listed", [
+    # another recording's report beside the old one's transitions: refused, naming the file, both datasets, the way out
+    (["localize", "--input", "other"], 2, ["transitions.parquet", "'synth-small'", "'other'", "--drop-transitions",
+                                           "cp -a"], {"localization.json", "transitions.parquet"}),
+    (["localize", "--input", "other", "--drop-transitions"], 0, ["transitions.parquet", "removed"],
+     {"localization.json"}),
+    # the same recording localized again: its old transitions are the old poses', so they leave, with the command
+    (["localize", "--input", "synth-small"], 0, ["transitions.parquet", "log-transitions", "--input synth-small"],
+     {"localization.json"}),
+    (["log-transitions", "--input", "other"], 2, ["localization.json", "'synth-small'", "'other'"],
+     {"localization.json", "transitions.parquet"}),
+])
+def test_a_bundle_lists_only_parts_of_one_recording(world, capsys, monkeypatch, argv, code, says, listed):
+    from atlas_pipeline.localization import localizer
+
+    if code:  # a refusal comes before any frame is localized
+        monkeypatch.setattr(localizer, "localize_sequence", lambda *a, **k: pytest.fail("localized before refusing"))
+    before = json.loads((world / "metadata.json").read_text())
+    assert main([argv[0], "--world", str(world), *argv[1:]]) == code
+    err = capsys.readouterr().err
+    for word in says:
+        assert word in err, (word, err)
+    meta = json.loads((world / "metadata.json").read_text())
+    assert {n for n in meta["files"] if n in ("localization.json", "transitions.parquet")} == listed
+    if code:
+        assert meta == before
+    _agrees(world)
+
+
+def test_parts_that_disagree_are_never_written_together(world, small_manifest):
+    from atlas_pipeline.errors import BundleFormatError
+    from atlas_pipeline.localization.localizer import LocalizationReport
+    from atlas_pipeline.scene_memory.bundle import update_world_bundle
+
+    report = LocalizationReport.load(world)
+    table = pq.read_table(world / "transitions.parquet")
+    other_map = LocalizationReport(**{**report.__dict__, "map_id": "0123456789abcdef"})
+    with pytest.raises(BundleFormatError, match="holds map .* the localization to write is for map 0123456789abcdef"):
+        update_world_bundle(world, localization=other_map)
+    other_set = LocalizationReport(**{**report.__dict__, "dataset": "other"})
+    with pytest.raises(BundleFormatError, match="localization.json: is for dataset 'other'; the transitions to write are for 'synth-small'"):
+        update_world_bundle(world, localization=other_set, transitions=table)
+    _agrees(world)
+
+
+# ---- a copy of the Dagster artifact is the user's bundle -------------------------------------------
+
+
+@pytest.fixture
+def dagster_bundle(isolated, capsys):
+    _register_other(isolated)
+    assert main(["run", "synth-small", *FAST]) == 0
+    capsys.readouterr()
+    return isolated / "artifacts" / "world_bundle" / "synth-small"
+
+
+@pytest.mark.parametrize("how, code, says", [
+    ("artifact", 2, ["world_bundle artifact of the Dagster IO manager", "cp -a", "--world"]),
+    ("cp -a", 0, []),
+    ("cp -a, marker removed", 0, []),
+    ("cp -a, a file of yours added", 2, ["notes.txt", "move them out"]),
+])
+def test_localizing_into_a_copy_of_the_dagster_bundle(dagster_bundle, isolated, capsys, monkeypatch, how, code, says):
+    from atlas_pipeline.localization import localizer
+
+    target = dagster_bundle
+    if how != "artifact":
+        target = isolated / "my-world"
+        shutil.copytree(dagster_bundle, target, symlinks=True, copy_function=shutil.copy2)
+        if "marker" in how:
+            (target / MARKER_NAME).unlink()
+        if "yours" in how:
+            (target / "notes.txt").write_text("mine")
+    if code:  # refused before any frame is localized
+        monkeypatch.setattr(localizer, "localize_sequence", lambda *a, **k: pytest.fail("localized before refusing"))
+    before = sorted(p.name for p in target.iterdir())
+    assert main(["localize", "--world", str(target), "--input", "other", "--drop-transitions"]) == code
+    err = capsys.readouterr().err
+    for word in says:
+        assert word in err, (word, err)
+    if code:
+        assert sorted(p.name for p in target.iterdir()) == before
+    else:
+        assert json.loads((target / "localization.json").read_text())["dataset"] == "other"
+        assert not (target / "_artifact.json").exists()  # the copy is now a bundle of its own
+        _agrees(target)
+    _agrees(dagster_bundle)
