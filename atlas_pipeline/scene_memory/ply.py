@@ -12,13 +12,18 @@ Per vertex (binary little endian, float32 unless noted)::
     red green blue        uint8 colour, so plain point-cloud viewers show colours
     id_hi id_lo           uint32 halves of the stable uint64 id (PLY has no 64-bit integer type)
 
-Gaussian-splat viewers and gsplat read the 3DGS properties and ignore the extra ones. Reading
-accepts any PLY with at least the 3DGS properties (ids are assigned when absent). Spherical
+Gaussian-splat viewers and gsplat read the 3DGS properties and ignore the extra ones. Reading goes
+through plyfile (the reference implementation's own reader) and accepts any PLY with at least the
+3DGS properties, in any format (ascii, binary little or big endian) and with any property types
+(ids are assigned when absent); our header pass before it names the header line of a problem and
+checks the counts against the file size before anything is allocated. Spherical
 harmonics beyond degree 0 (``f_rest_*``, 45 of them at the reference's degree 3) are not supported
 yet: they are dropped with a warning naming the file, their number and the SH degree.
 
-Both directions work in chunks of ``_CHUNK`` vertices, so a PLY of any size is written and read
-with the field plus a few MB: ``PLY_BYTES_PER_GAUSSIAN`` (79) bytes per vertex on disk; reading
+Writing is ours, in chunks of ``_CHUNK`` vertices (faster than plyfile's writer and without its
+copy of the whole vertex table: ``benchmarks/bench_ply.py``); binary vertex data is memory-mapped
+by plyfile and decoded ``_CHUNK`` at a time, so a PLY of any size is written and read with the
+field plus a few MB: ``PLY_BYTES_PER_GAUSSIAN`` (79) bytes per vertex on disk; reading
 holds the field (``FIELD_BYTES_PER_GAUSSIAN``), one chunk and, for foreign files whose ids are not
 sorted, one sorted copy of the ids.
 """
@@ -28,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,11 +55,14 @@ __all__ = ["SH_C0", "write_gaussian_ply", "read_gaussian_ply", "PLY_BYTES_PER_GA
 
 SH_C0 = 0.28209479177387814
 
+# PLY scalar types (both spellings of the standard): (bytes, numpy kind).
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
-    "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
+    "char": (1, "i"), "int8": (1, "i"), "uchar": (1, "u"), "uint8": (1, "u"), "short": (2, "i"), "int16": (2, "i"),
+    "ushort": (2, "u"), "uint16": (2, "u"), "int": (4, "i"), "int32": (4, "i"), "uint": (4, "u"), "uint32": (4, "u"),
+    "float": (4, "f"), "float32": (4, "f"), "double": (8, "f"), "float64": (8, "f"),
 }
+_PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+_ASCII_MIN_BYTES_PER_VALUE = 2  # a digit and a separator
 
 _FLOAT_PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                 "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -126,11 +135,23 @@ def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
     return path
 
 
-def _parse_header(path: Path, f) -> tuple[int, np.dtype, int]:
-    """Parse the header at the start of ``f``: ``(vertex count, vertex dtype, data offset)``.
+@dataclass(frozen=True)
+class _Element:
+    """One ``element`` of a PLY header: its name, count and properties (name, value type, and
+    for a list the type of its length, else None)."""
+
+    name: str
+    count: int
+    props: tuple[tuple[str, str, str | None], ...]
+    line: int  # header line of the 'element' keyword
+
+
+def _parse_header(path: Path, f) -> tuple[str, list[_Element], int]:
+    """Parse the header at the start of ``f``: ``(format, elements, data offset)``.
 
     Every problem is a ``BundleFormatError`` naming the file and the header line; nothing here
-    allocates more than the (bounded) header.
+    allocates more than the (bounded) header. plyfile parses the header again when it reads the
+    data; this pass exists for the line-numbered messages and the size check before any allocation.
     """
     head = f.read(_MAX_HEADER_BYTES)
     end = head.find(b"end_header\n")
@@ -141,10 +162,15 @@ def _parse_header(path: Path, f) -> tuple[int, np.dtype, int]:
     if lines[0].strip() != "ply":
         raise BundleFormatError(path, f"header line 1: expected 'ply', found {lines[0][:80]!r}")
     fmt = None
-    count = None
-    props: list[tuple[str, str]] = []
+    elements: list[_Element] = []
+    props: list[tuple[str, str, str | None]] = []
     seen: set[str] = set()
-    in_vertex = False
+    current: tuple[str, int, int] | None = None  # name, count, line of the element being read
+
+    def close() -> None:
+        if current is not None:
+            elements.append(_Element(current[0], current[1], tuple(props), current[2]))
+
     for ln, line in enumerate(lines[1:], start=2):
         parts = line.split()
         if not parts or parts[0] in ("comment", "obj_info"):
@@ -153,40 +179,61 @@ def _parse_header(path: Path, f) -> tuple[int, np.dtype, int]:
             if len(parts) != 3:
                 raise BundleFormatError(path, f"header line {ln}: malformed format line {line[:80]!r}")
             fmt = parts[1]
+            if fmt not in _PLY_FORMATS:
+                raise BundleFormatError(path, f"header line {ln}: unknown PLY format {fmt[:40]!r} (expected one of "
+                                              f"{', '.join(_PLY_FORMATS)})")
         elif parts[0] == "element":
             if len(parts) != 3 or not re.fullmatch(r"[0-9]{1,%d}" % _MAX_COUNT_DIGITS, parts[2]):
                 raise BundleFormatError(path, f"header line {ln}: malformed element line {line[:80]!r}")
-            in_vertex = parts[1] == "vertex"
-            if in_vertex:
-                if count is not None:
-                    raise BundleFormatError(path, f"header line {ln}: a second 'element vertex'")
-                count = int(parts[2])
-            elif count is not None:
-                break  # elements after the vertices (faces) are not part of a Gaussian file
-            else:
-                raise BundleFormatError(path, f"header line {ln}: element {parts[1][:40]!r} before 'vertex' is not supported")
+            close()
+            if parts[1] in {e.name for e in elements}:
+                raise BundleFormatError(path, f"header line {ln}: a second 'element {parts[1][:40]}'")
+            current, props, seen = (parts[1], int(parts[2]), ln), [], set()
         elif parts[0] == "property":
-            if not in_vertex:
+            if current is None:
                 raise BundleFormatError(path, f"header line {ln}: property outside an element")
-            if len(parts) != 3 or parts[1] == "list":
-                raise BundleFormatError(path, f"header line {ln}: unsupported vertex property {line[:80]!r}")
-            if parts[1] not in _PLY_TYPES:
-                raise BundleFormatError(path, f"header line {ln}: unknown property type {parts[1][:40]!r}")
-            if parts[2] in seen:
-                raise BundleFormatError(path, f"header line {ln}: duplicate vertex property {parts[2][:40]!r}")
-            seen.add(parts[2])
-            props.append((parts[2], _PLY_TYPES[parts[1]]))
+            if parts[1:2] == ["list"]:
+                if len(parts) != 5:
+                    raise BundleFormatError(path, f"header line {ln}: malformed list property {line[:80]!r}")
+                length_type, value_type, name = parts[2], parts[3], parts[4]
+                if length_type not in _PLY_TYPES or _PLY_TYPES[length_type][1] == "f":
+                    raise BundleFormatError(path, f"header line {ln}: list length type {length_type[:40]!r} is not "
+                                                  "an integer type")
+            elif len(parts) == 3:
+                length_type, value_type, name = None, parts[1], parts[2]
+            else:
+                raise BundleFormatError(path, f"header line {ln}: malformed property line {line[:80]!r}")
+            if value_type not in _PLY_TYPES:
+                raise BundleFormatError(path, f"header line {ln}: unknown property type {value_type[:40]!r}")
+            if name in seen:
+                raise BundleFormatError(path, f"header line {ln}: duplicate {current[0][:40]} property {name[:40]!r}")
+            seen.add(name)
+            props.append((name, value_type, length_type))
         else:
             raise BundleFormatError(path, f"header line {ln}: unknown header keyword {parts[0][:40]!r}")
-    if fmt != "binary_little_endian":
-        raise BundleFormatError(path, f"only binary_little_endian PLY is supported, file says {fmt!r}")
-    if count is None:
+    close()
+    if fmt is None:
+        raise BundleFormatError(path, "no 'format' line in header")
+    vertex = next((e for e in elements if e.name == "vertex"), None)
+    if vertex is None:
         raise BundleFormatError(path, "no 'element vertex' in header")
-    names = [p for p, _ in props]
+    names = [p for p, _, _ in vertex.props]
     missing = [p for p in _REQUIRED if p not in names]
     if missing:
         raise BundleFormatError(path, f"missing Gaussian properties: {', '.join(missing)}")
-    return count, np.dtype(props), end + len(b"end_header\n")
+    lists = [p for p, _, n in vertex.props if n is not None and p in _REQUIRED]
+    if lists:
+        raise BundleFormatError(path, f"Gaussian properties must be scalars, not lists: {', '.join(lists)}")
+    return fmt, elements, end + len(b"end_header\n")
+
+
+def _min_bytes(fmt: str, element: _Element) -> int:
+    """The fewest bytes the data of ``element`` can take in a file of format ``fmt``: what a
+    count is checked against before anything is allocated (Python ints: no overflow)."""
+    if fmt == "ascii":  # every value at least one character and one separator (a list: its length)
+        return element.count * _ASCII_MIN_BYTES_PER_VALUE * len(element.props)
+    row = sum(_PLY_TYPES[length or value][0] for _, value, length in element.props)  # a list: its length field
+    return element.count * row
 
 
 def _warn_dropped_sh(path: Path, names: tuple[str, ...]) -> None:
@@ -218,40 +265,56 @@ def _finite_float32(path: Path, v: np.ndarray, names: list[str]) -> np.ndarray:
 
 
 def read_gaussian_ply(path: str | Path, allow_empty: bool = False) -> GaussianField:
-    """Read a 3DGS-layout PLY into a :class:`GaussianField`.
+    """Read a 3DGS-layout PLY of any format (``ascii``, ``binary_little_endian``,
+    ``binary_big_endian``) and property types into a :class:`GaussianField`, through plyfile.
 
-    The vertex count is checked against the file size before any array is allocated, and every
+    The element counts are checked against the file size before any array is allocated, and every
     value must be finite (also once stored as float32). A file of 0 vertices holds no world (it
     can be neither localized in nor saved as a bundle): a ``BundleFormatError`` naming the file,
-    unless ``allow_empty`` (the encoding round-trip check of an empty field). ``red green blue`` are used when they are
-    ``uchar``, else colours come from ``f_dc_*``; ``id_hi id_lo`` when they are ``uint``. The
-    vertices are read and decoded ``_CHUNK`` at a time into the field's arrays.
+    unless ``allow_empty`` (the encoding round-trip check of an empty field). ``red green blue`` are
+    used when they are ``uchar``, else colours come from ``f_dc_*``; ``id_hi id_lo`` when they are
+    unsigned integers of at most 32 bits. Binary vertex data is memory-mapped by plyfile and decoded
+    ``_CHUNK`` vertices at a time into the field's arrays.
     """
+    from plyfile import PlyData
+
     path = Path(path)
     if not path.is_file():
         raise BundleFormatError(path, "file not found")
     try:
         size = path.stat().st_size
         with open(path, "rb") as f:
-            count, dtype, data_start = _parse_header(path, f)
-            if count == 0 and not allow_empty:
+            fmt, elements, data_start = _parse_header(path, f)
+            vertex = next(e for e in elements if e.name == "vertex")
+            if vertex.count == 0 and not allow_empty:
                 raise BundleFormatError(path, "header declares 0 vertices: the file holds no Gaussians, "
                                               "so there is no world to read")
-            _warn_dropped_sh(path, dtype.names)
-            need = count * dtype.itemsize  # Python ints: a count of 10**19 cannot overflow here
+            _warn_dropped_sh(path, tuple(p for p, _, _ in vertex.props))
+            need = sum(_min_bytes(fmt, e) for e in elements)
             if size - data_start < need:
+                what = (f"{vertex.count} vertices" if len(elements) == 1 else
+                        ", ".join(f"{e.count} {e.name}" for e in elements))
                 raise BundleFormatError(
-                    path, f"header declares {count} vertices ({need} bytes) but only {size - data_start} bytes follow"
+                    path, f"header declares {what} (at least {need} bytes) but only {size - data_start} bytes follow"
                 )
-            f.seek(data_start)
-            return _read_vertices(path, f, count, dtype)
+            f.seek(0)
+            try:
+                ply = PlyData.read(f)
+            except BundleFormatError:
+                raise
+            except Exception as exc:  # plyfile's parse errors, and numpy's on data it cannot convert
+                raise BundleFormatError(path, f"cannot parse the PLY data: {exc}") from None
+            return _decode_vertices(path, ply["vertex"].data)
     except OSError as exc:
         raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
 
 
-def _read_vertices(path: Path, f, count: int, dtype: np.dtype) -> GaussianField:
-    """Decode ``count`` vertices of ``dtype`` from ``f`` (at the first vertex), ``_CHUNK`` at a time."""
+def _decode_vertices(path: Path, data: np.ndarray) -> GaussianField:
+    """Decode the ``[N]`` structured vertex rows ``data`` (any byte order and property types, as
+    plyfile returns them: memory-mapped for binary files), ``_CHUNK`` at a time."""
     col = {p: k for k, p in enumerate(_REQUIRED)}
+    count = len(data)
+    dtype = data.dtype
     names = dtype.names
     rgb_u8 = all(c in names and dtype[c] == np.uint8 for c in ("red", "green", "blue"))
     if not rgb_u8 and any(c in names for c in ("red", "green", "blue")):
@@ -264,15 +327,9 @@ def _read_vertices(path: Path, f, count: int, dtype: np.dtype) -> GaussianField:
     colors = np.empty((count, 3), np.uint8)
     opacities = np.empty(count, np.float32)
     ids = np.empty(count, np.uint64) if has_ids and ids_ok else np.arange(count, dtype=np.uint64)
-    buf = np.empty(min(count, _CHUNK) * dtype.itemsize, np.uint8)
     for i in range(0, count, _CHUNK):
         m = min(_CHUNK, count - i)
-        view = buf[: m * dtype.itemsize]
-        got = f.readinto(view)
-        if got != len(view):  # the file shrank after stat()
-            raise BundleFormatError(path, f"header declares {count} vertices ({count * dtype.itemsize} bytes) but only "
-                                          f"{i * dtype.itemsize + (got or 0)} bytes could be read")
-        v = np.frombuffer(view, dtype=dtype, count=m)
+        v = data[i:i + m]
         vals = _finite_float32(path, v, _REQUIRED)  # [m, 14] in _REQUIRED order
         c = slice(i, i + m)
         pos[c] = vals[:, [col["x"], col["y"], col["z"]]]
