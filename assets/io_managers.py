@@ -19,6 +19,7 @@ left) or :class:`Reused` (current on disk: nothing is written). Inputs are loade
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -56,7 +57,7 @@ from atlas_pipeline.perception.rgbd import FusedFrames
 from atlas_pipeline.scene_memory.metadata import WorldBundleArtifact
 from atlas_pipeline.sensors.registry import validate_dataset_name
 from atlas_pipeline.sensors.tum import FrameManifest
-from atlas_pipeline.versioning import files_intact
+from atlas_pipeline.versioning import file_identity, verify_files
 from atlas_pipeline.viz.demo import DemoVideos
 
 
@@ -167,8 +168,7 @@ class Reused:
 def _file_records(files: list[Path]) -> dict[str, dict[str, Any]]:
     out = {}
     for p in sorted(files, key=lambda q: q.name):
-        st = p.stat()
-        out[p.name] = {"bytes": st.st_size, "sha256": sha256_file(p), "mtime_ns": st.st_mtime_ns}
+        out[p.name] = {**file_identity(p), "sha256": sha256_file(p)}
     return out
 
 
@@ -214,9 +214,16 @@ class ArtifactIOManager(ConfigurableIOManager):
         directory = self.directory(asset, partition)
         recover_dir(directory)
         try:
-            return files_intact(directory, read_artifact_record(directory).get("files", {}))
+            record = read_artifact_record(directory)
         except ArtifactError:
             return False
+        ok, files = verify_files(directory, record.get("files", {}))
+        if ok and files != record.get("files"):
+            # Verified by content; keep the identities found (older records lack inode and change
+            # time), so the next check is a stat again. A record that cannot be written costs reads.
+            with contextlib.suppress(OSError, AtlasError):
+                write_json_atomic(directory / "_artifact.json", {**record, "files": files})
+        return ok
 
     def load_artifact(self, asset: str, partition: str) -> Any:
         """The typed artifact of ``asset``/``partition`` (what ``load_input`` gives an asset)."""

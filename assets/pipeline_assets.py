@@ -12,6 +12,7 @@ records every input that shapes an artifact.
 
 import hashlib
 import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,7 +40,9 @@ from assets.checks import (
     check_gaussians,
     check_transitions_schema,
 )
+from assets.io_managers import artifacts_root
 from assets.resources import AtlasConfig, dataset_entry
+from assets.storage import is_remote, local_scratch
 from assets.versioning import (
     DATASET_FILES,
     STAGES,
@@ -103,10 +106,19 @@ def _md_table(df) -> str:
     return head + "\n".join(rows)
 
 
+SIGNATURES_DIR = ".signatures"  # under a local artifacts root (else the machine's scratch): content-hash caches
+
+
+def signature_cache_dir() -> Path:
+    root = artifacts_root()
+    return local_scratch() / SIGNATURES_DIR if is_remote(str(root)) else Path(root) / SIGNATURES_DIR
+
+
 def dataset_version(name: str) -> str:
-    """Data version of a dataset: its registry entry and the signature (names, sizes, mtimes) of its files."""
+    """Data version of a dataset: its registry entry and the signature (names, sizes, content hashes)
+    of its files (:func:`atlas_pipeline.versioning.dataset_signature`; hashes cached by file identity)."""
     entry = dataset_entry(name)
-    text = json.dumps(entry.describe(), sort_keys=True, default=str) + dataset_signature(entry.path)
+    text = json.dumps(entry.describe(), sort_keys=True, default=str) + dataset_signature(entry.path, signature_cache_dir())
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
@@ -125,7 +137,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
 
     @observable_source_asset(key=DATASET_FILES, partitions_def=partitions_def, group_name=GROUP,
                              description="The dataset's folder (or bag file) as registered; data version: the registry "
-                                         "entry and the names, sizes and modification times of its files. A "
+                                         "entry and the names, sizes and content hashes of its files. A "
                                          "generated (synthetic) dataset is generated first.")
     def dataset_files(context):
         names = [context.partition_key] if context.has_partition_key else partitions_def.get_partition_keys()

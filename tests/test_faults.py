@@ -6,7 +6,9 @@ message names the file, field or option."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import tarfile
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -158,3 +160,123 @@ def test_localizing_into_a_copy_of_the_dagster_bundle(dagster_bundle, isolated, 
         assert not (target / "_artifact.json").exists()  # the copy is now a bundle of its own
         _agrees(target)
     _agrees(dagster_bundle)
+
+
+# ---- content changes behind restored sizes and times are noticed -----------------------------------
+
+
+def _flip_keep_times(path: Path, offset: int | None = None) -> None:
+    """One byte changed in place, size and modification time as before (what cp -p, rsync -t and
+    tar x leave of an edit)."""
+    st = path.stat()
+    data = bytearray(path.read_bytes())
+    i = len(data) // 2 if offset is None else offset
+    data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def _replace_keep_times(path: Path, offset: int, char: str) -> None:
+    st = path.stat()
+    data = bytearray(path.read_bytes())
+    data[offset] = ord(char)
+    path.write_bytes(bytes(data))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def _edit(root: Path, how: str) -> None:
+    frame = sorted((root / "depth").iterdir())[3]
+    st = frame.stat()
+    if how == "same bytes rewritten":
+        frame.write_bytes(frame.read_bytes())
+    elif how == "touched":
+        os.utime(frame, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    elif how == "in place, mtime restored (cp -p)":
+        _flip_keep_times(frame)
+    elif how == "renamed into place, mtime restored (rsync -t)":
+        data = bytearray(frame.read_bytes())
+        data[-100] ^= 1
+        tmp = frame.with_name("." + frame.name + ".rsync")
+        tmp.write_bytes(bytes(data))
+        os.utime(tmp, ns=(st.st_atime_ns, st.st_mtime_ns))
+        os.replace(tmp, frame)
+    elif how == "extracted from an archive (tar x)":
+        edited = root.parent / "edited.png"
+        _flip_keep_times(shutil.copy2(frame, edited))
+        with tarfile.open(root.parent / "a.tar", "w") as tar:
+            tar.add(edited, arcname=frame.name)
+        with tarfile.open(root.parent / "a.tar") as tar:
+            tar.extractall(frame.parent, filter="data")  # the test's own archive
+    elif how == "a file added":
+        (root / "notes.txt").write_text("x")
+    else:
+        raise AssertionError(how)
+
+
+@pytest.mark.parametrize("how, changed", [
+    ("same bytes rewritten", False), ("touched", False),
+    ("in place, mtime restored (cp -p)", True), ("renamed into place, mtime restored (rsync -t)", True),
+    ("extracted from an archive (tar x)", True), ("a file added", True),
+])
+def test_dataset_signature_notices_content_behind_restored_times(small_synthetic, tmp_path, monkeypatch, how, changed):
+    from atlas_pipeline import versioning
+
+    root = tmp_path / "rec"
+    shutil.copytree(small_synthetic, root)
+    cache = tmp_path / "cache"
+    before = versioning.dataset_signature(root, cache)
+    reads = []
+    real = versioning.sha256_file
+    monkeypatch.setattr(versioning, "sha256_file", lambda p, *a: reads.append(Path(p).name) or real(p, *a))
+    assert versioning.dataset_signature(root, cache) == before and reads == []  # unchanged: stat only, no read
+    _edit(root, how)
+    assert (versioning.dataset_signature(root, cache) != before) == changed, how
+    # bounded cost: only the file whose identity changed was read (none for a new file's neighbours)
+    assert len(reads) <= 1, reads
+    assert versioning.dataset_signature(root) == versioning.dataset_signature(root, cache)  # the cache changes nothing
+
+
+def test_dataset_signature_never_opens_a_fifo(small_synthetic, tmp_path):
+    from atlas_pipeline.versioning import dataset_signature
+
+    root = tmp_path / "rec"
+    shutil.copytree(small_synthetic, root)
+    before = dataset_signature(root)
+    os.mkfifo(root / "pipe")
+    assert dataset_signature(root, tmp_path / "cache") != before  # returns: it was not opened
+
+
+def _status(capsys, partition: str = "synth-small") -> tuple[int, str]:
+    code = main(["status", partition, *FAST])
+    out = capsys.readouterr()
+    return code, out.out + out.err
+
+
+@pytest.mark.parametrize("what, path, stale, says", [
+    ("a ground-truth pose, mtime restored", "data/synth-small/groundtruth.txt", "raw_dataset", "dataset files changed"),
+    ("world.npz of the cached world, mtime restored", "artifacts/gaussian_world/synth-small/world.npz",
+     "gaussian_world", "artifact files changed"),
+    ("surfels.npz of the bundle, mtime restored", "artifacts/world_bundle/synth-small/surfels.npz",
+     "world_bundle", "artifact files changed"),
+])
+def test_a_changed_byte_behind_a_restored_mtime_is_stale_and_recomputed(dagster_bundle, isolated, capsys,
+                                                                         what, path, stale, says):
+    from atlas_pipeline.versioning import verify_files
+
+    code, text = _status(capsys)
+    assert code == 0 and "current" in text, text
+    target = isolated / path
+    if target.suffix == ".txt":  # the last digit of the last quaternion: 1e-7 off, the file still reads
+        text = target.read_text()
+        i = len(text.rstrip("\n")) - 1
+        _replace_keep_times(target, i, "1" if text[i] != "1" else "2")
+    else:
+        _flip_keep_times(target)
+    code, text = _status(capsys)
+    assert stale in text and says in text and "all current" not in text, text
+    assert main(["run", "synth-small", *FAST]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert stale in out["recomputed"], out
+    if "artifacts" in path:  # recomputed: the cached files are whole again
+        art = target.parent
+        assert verify_files(art, json.loads((art / "_artifact.json").read_text())["files"])[0]
