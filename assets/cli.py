@@ -14,6 +14,7 @@ import argparse
 import json
 import logging
 import os
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from atlas_pipeline.sensors.camera import TUM_CAMERAS
 from atlas_pipeline.sensors.registry import (
     DatasetEntry,
     camera_from_intrinsics,
+    files_missing,
     load_dataset,
     load_registry,
     local_registry_path,
@@ -536,8 +538,7 @@ def _dagster_setup(args: argparse.Namespace):
     defs = build_definitions(profile=args.profile)
     loaded = set(loaded_partitions(defs))
     for p in [p for p in partitions if p not in loaded]:  # not on disk: a preset not fetched, files gone
-        missing = DatasetError(registry[p].path, f"dataset '{p}' is no partition: its files are not there" + (
-            f" (`atlas-gs dataset fetch {p}` or `atlas-gs run {p}` downloads them)" if registry[p].url else ""))
+        missing = files_missing(registry[p])
         if not getattr(args, "all", False):
             raise missing
         logger.warning("%s left out: %s", p, missing)
@@ -905,16 +906,20 @@ def cmd_status(args: argparse.Namespace) -> int:
 
     defs, instance, partitions, atlas, _ = _dagster_setup(args)
     stale = {p: stale_assets(defs, instance, p, atlas) for p in partitions}
-    _out(json.dumps(stale, indent=2) if args.json else "\n".join(_status_words(p, s) for p, s in stale.items()))
+    # The run that recomputes them: the same partition, profile and overrides as this status
+    options = "".join(f" {o} {shlex.quote(v)}" for o, vs in (("--profile", [args.profile] if args.profile else []),
+                                                            ("--set", args.set or [])) for v in vs)
+    _out(json.dumps(stale, indent=2) if args.json else "\n".join(_status_words(p, s, options) for p, s in stale.items()))
     return 0
 
 
-def _status_words(partition: str, stale: dict[str, list[str]]) -> str:
-    """``synthetic: all 9 assets current``, or the stale / missing assets in pipeline order with why."""
+def _status_words(partition: str, stale: dict[str, list[str]], options: str = "") -> str:
+    """``synthetic: all 9 assets current``, or the stale / missing assets in pipeline order with why
+    and the command that recomputes them (``options``: the profile and overrides status was given)."""
     if not stale:
         return f"{partition}: all {len(ASSET_ORDER)} assets current"
     lines = [f"{partition}: {len(stale)} of {len(ASSET_ORDER)} assets would be recomputed "
-             "(`atlas-gs run --stale-only` runs them)"]
+             f"(`atlas-gs run {partition} --stale-only{options}` runs them)"]
     width = max(len(a) for a in stale)
     for asset in sorted(stale, key=lambda a: ASSET_ORDER.index(a) if a in ASSET_ORDER else len(ASSET_ORDER)):
         lines.append(f"  {asset:<{width}s}  {'; '.join(stale[asset])}")

@@ -280,3 +280,33 @@ def test_a_changed_byte_behind_a_restored_mtime_is_stale_and_recomputed(dagster_
     if "artifacts" in path:  # recomputed: the cached files are whole again
         art = target.parent
         assert verify_files(art, json.loads((art / "_artifact.json").read_text())["files"])[0]
+
+
+# ---- status of a partition whose folder is gone ---------------------------------------------------
+
+
+def test_status_of_a_deleted_partition_folder_says_so_and_its_advice_works(isolated, small_synthetic, capsys):
+    import shlex
+
+    rec = isolated / "mine"
+    shutil.copytree(small_synthetic, rec)
+    camera = ["--intrinsics", "131.25 131.25 79.5 59.5", "--width", "160", "--height", "120"]
+    assert main(["dataset", "add", "mine", str(rec), "--kind", "tum", *camera]) == 0
+    assert main(["run", "mine", *FAST]) == 0
+    capsys.readouterr()
+    moved = rec.rename(isolated / "mine-moved")
+    for argv in (["status", "mine", *FAST], ["run", "mine", "--stale-only", *FAST]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        for word in (str(rec), "is missing", "atlas-gs dataset add mine PATH --replace"):
+            assert word in err, (argv, word, err)
+    # the advice: register where it is now; status then names the run that recomputes, and it works
+    assert main(["dataset", "add", "mine", str(moved), "--kind", "tum", *camera, "--replace"]) == 0
+    code, text = _status(capsys, "mine")
+    assert code == 0 and "raw_dataset" in text, text
+    command = text[text.index("`") + 1:text.index("`", text.index("`") + 1)]
+    assert command.startswith("atlas-gs run mine --stale-only --set mapping.optimization_epochs=0"), command
+    assert main(shlex.split(command)[1:]) == 0
+    capsys.readouterr()
+    code, text = _status(capsys, "mine")
+    assert code == 0 and "all 9 assets current" in text, text

@@ -62,6 +62,7 @@ __all__ = [
     "load_dataset",
     "ensure_dataset_files",
     "dataset_on_disk",
+    "files_missing",
     "needs_download",
     "recording_bytes",
 ]
@@ -400,6 +401,19 @@ def dataset_on_disk(entry: DatasetEntry) -> bool:
     """Whether a run can build the entry without the network: a synthetic entry (generated on
     demand) or a recording whose files are on disk. Only these are offered as partitions."""
     return entry.kind == "synthetic" or recording_exists(entry.kind, entry.path)
+
+
+def files_missing(entry: DatasetEntry) -> DatasetError:
+    """The error for an entry whose recording is not on disk, with the commands that mend it: a
+    preset's download, else putting the recording back or pointing the entry where it is now."""
+    what = "is missing" if not os.path.lexists(entry.path) else f"is there but is not a {entry.kind} recording"
+    if entry.url:
+        fix = f"`atlas-gs dataset fetch {entry.name}` (or `atlas-gs run {entry.name}`) downloads them"
+    else:
+        fix = (f"put the recording back at {entry.path}, or register where it is now: "
+               f"`atlas-gs dataset add {entry.name} PATH --replace`; then `atlas-gs status {entry.name}`")
+    return DatasetError(entry.path, f"dataset '{entry.name}' is no partition: its files are not there "
+                                    f"(the path {what}); {fix}")
 
 
 def recording_bytes(entry: DatasetEntry) -> int:
