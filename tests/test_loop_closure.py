@@ -1,4 +1,4 @@
-"""Loop closure (issue 11 part 3): pose graph math, and loops found and closed on rendered frames."""
+"""Loop closure: pose graph math, loop candidates (near, covisible, alike), and loops found and closed on rendered frames."""
 
 from __future__ import annotations
 
@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 
 from atlas_pipeline.geometry import invert_se3, so3_exp
+from atlas_pipeline.localization.tracker import translation_constraint
 from atlas_pipeline.mapping.loop_closure import (
+    LOOP_MIN_TRANSLATION_CONSTRAINT,
+    CovisibilityView,
+    covisible_candidates,
     loop_candidates,
     optimize_pose_graph,
     propagate_correction,
@@ -75,6 +79,82 @@ def test_candidates_are_old_near_and_looking_the_same_way():
     assert len(loop_candidates(T, 5, min_gap=10, radius_m=0.3)) == 0  # nothing old enough
     T[19, :3, :3] = so3_exp(np.array([0.0, np.pi, 0.0]))  # same place, looking the other way: no overlap
     assert len(loop_candidates(T, 19, min_gap=10, radius_m=0.3)) == 0
+
+
+def _wall_points(x_m: float, y_range: tuple[float, float], z_range: tuple[float, float], step_m: float = 0.05):
+    """``[M, 3]`` points of a wall at ``x = x_m`` (world frame)."""
+    y, z = np.meshgrid(np.arange(*y_range, step_m), np.arange(*z_range, step_m))
+    return np.stack([np.full(y.size, x_m), y.ravel(), z.ravel()], axis=1)
+
+
+def _camera_looking_along_x(y_m: float) -> np.ndarray:
+    """An OpenCV camera at (0, y_m, 0) looking along +x (z forward, y down = world -z)."""
+    T = np.eye(4)
+    T[:3, :3] = np.stack([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], axis=1)
+    T[:3, 3] = (0.0, y_m, 0.0)
+    return T
+
+
+def _depth_of_wall(T_world_cam: np.ndarray, wall_x_m: float, view: CovisibilityView, shape: tuple[int, int]) -> np.ndarray:
+    """The subsampled depth image of an infinite wall ``x = wall_x_m`` seen by a camera looking along +x."""
+    return np.full(shape, wall_x_m - T_world_cam[0, 3])
+
+
+def test_a_return_along_another_path_is_a_covisible_candidate_and_a_hidden_wall_is_not():
+    view = CovisibilityView(fx=50.0, fy=50.0, cx=40.0, cy=30.0, stride=4, depth_tolerance_m=0.1)
+    shape = (15, 20)  # an 80 x 60 image subsampled by 4
+    # Keyframe 0 saw the wall at x = 2 from y = 0; keyframes 1-10 looked elsewhere (no points
+    # near it); keyframe 11 sees the same wall from 0.8 m to the side, where nearness of camera
+    # centres (0.3 m radius) finds nothing.
+    T = np.stack([_camera_looking_along_x(0.0)] + [_camera_looking_along_x(50.0 + k) for k in range(10)]
+                 + [_camera_looking_along_x(0.8)])
+    points = [_wall_points(2.0, (-2.0, 2.0), (-1.0, 1.0))] + [_wall_points(2.0, (60.0, 61.0), (0.0, 1.0))] * 10
+    points.append(_wall_points(2.0, (-1.2, 2.8), (-1.0, 1.0)))
+    depth = np.stack([_depth_of_wall(Tk, 2.0, view, shape) for Tk in T])
+    assert loop_candidates(T, 11, 10, 0.3).tolist() == []
+    assert covisible_candidates(points, depth, T, 11, view, min_gap=10).tolist() == [0]
+    # The same wall behind a nearer one (keyframe 11 now sees a wall at x = 1): the old points
+    # project into the image but lie behind the surface it measures, so they are not seen.
+    depth[11] = _depth_of_wall(T[11], 1.0, view, shape)
+    assert covisible_candidates(points, depth, T, 11, view, min_gap=10).tolist() == []
+    # ... and keyframes younger than the gap are never candidates.
+    depth[11] = _depth_of_wall(T[11], 2.0, view, shape)
+    assert covisible_candidates(points, depth, T, 11, view, min_gap=12).tolist() == []
+
+
+def _point_to_plane_translation_block(normals: np.ndarray) -> np.ndarray:
+    """``[6, 6]`` normal matrix of point-to-plane residuals with these unit normals (translation part)."""
+    H = np.zeros((6, 6))
+    H[:3, :3] = normals.T @ normals
+    return H
+
+
+def test_translation_constraint_is_near_zero_for_two_planes_and_one_for_a_corner():
+    rng = np.random.default_rng(0)
+    floor_and_wall = np.repeat(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), 500, axis=0)
+    noisy = floor_and_wall + rng.normal(0.0, 0.01, floor_and_wall.shape)
+    corner = np.repeat(np.eye(3), 300, axis=0)
+    assert translation_constraint(_point_to_plane_translation_block(noisy)) < 0.001
+    assert translation_constraint(_point_to_plane_translation_block(corner)) == pytest.approx(1.0)
+    # A corner seen mostly as two planes, with a little of the third: still below the loop bound.
+    sliver = np.concatenate([floor_and_wall, np.repeat([[0.0, 1.0, 0.0]], 10, axis=0)])
+    assert translation_constraint(_point_to_plane_translation_block(sliver)) < LOOP_MIN_TRANSLATION_CONSTRAINT
+    assert translation_constraint(np.zeros((6, 6))) == 0.0
+
+
+def test_a_loop_the_geometry_cannot_pin_is_not_verified():
+    from atlas_pipeline.localization.tracker import TrackResult
+    from atlas_pipeline.mapping.loop_closure import verify_loop
+
+    class Tracker:  # aligns every frame with a good fit; only its constraint differs
+        def __init__(self, constraint):
+            self.constraint = constraint
+
+        def align(self, frame, model, T_init, reference):
+            return TrackResult(np.eye(4), 0.6, 0.005, 1000, True, translation_constraint=self.constraint)
+
+    assert verify_loop(Tracker(0.2), None, None, [np.eye(4)]) is not None
+    assert verify_loop(Tracker(0.5 * LOOP_MIN_TRANSLATION_CONSTRAINT), None, None, [np.eye(4)]) is None
 
 
 def test_correction_propagates_from_the_nearest_earlier_keyframe():

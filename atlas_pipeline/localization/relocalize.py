@@ -55,6 +55,7 @@ class RelocalizationResult:
     source: str
     n_hypotheses: int
     ambiguous: bool = False  # a distinct pose explains the frame almost as well (FAST_MAX_RUNNER_UP_SCORE)
+    translation_constraint: float = 0.0  # of the best hypothesis (tracker.translation_constraint)
 
 
 def geometric_score(r: TrackResult) -> float:
@@ -215,7 +216,7 @@ class Relocalizer:
         # No motion prior vouches for the pose: points in front of the map count against it too.
         ok = best.ok and best.strict_agreement >= self.tracker.cfg.min_agreement
         return RelocalizationResult(best.T_world_cam, ok, float(conf), best.inlier_fraction, best.residual_m,
-                                    src, len(hyps), ambiguous)
+                                    src, len(hyps), ambiguous, best.translation_constraint)
 
     def _features(self, points: np.ndarray):
         """Downsampled Open3D cloud with normals and its FPFH features."""

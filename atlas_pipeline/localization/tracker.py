@@ -445,6 +445,9 @@ class TrackResult:
     agreement: float = float("nan")
     overlap: float = float("nan")
     in_front: float = 0.0  # share of the frame's points in front of the map's surface (MATCH_IN_FRONT)
+    # How well the geometry pins the position (translation_constraint): near 0 when the matched
+    # surfaces leave a direction free, e.g. a wall and the floor seen through a door.
+    translation_constraint: float = 1.0
 
     @property
     def strict_agreement(self) -> float:
@@ -531,27 +534,37 @@ class RGBDTracker:
         moved_m, turned_deg = pose_change(view.T_world_cam, T)
         if moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg:
             view = model.model_view(T, self.camera, self.model_level)
-        stats = self.quality_stats(frame, view, T)
+        H_final, stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
         overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0
         in_front = stats.n_in_front / stats.n_points if stats.n_points else 0.0
         return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points,
                            self.judge(stats.inlier_fraction, stats.rmse_m, stats.agreement), total_it, stats.agreement,
-                           overlap, in_front)
+                           overlap, in_front, translation_constraint(H_final))
 
-    def quality_stats(self, frame: FramePyramid, view: kn.ModelView, T_world_cam: np.ndarray) -> kn.Stats:
+    def quality_stats(self, frame: FramePyramid, view: kn.ModelView,
+                      T_world_cam: np.ndarray) -> tuple[np.ndarray, kn.Stats]:
         """Geometric correspondences of ``frame``'s finest-level points at ``T_world_cam`` with the
         model ``view``, at the tightest gate (``min_correspondence_m``), no photometric term: what
-        :meth:`judge` grades."""
+        :meth:`judge` grades. Returns ``(H [6, 6] point-to-plane normal matrix, stats)``."""
         points = frame.points(self.cfg.finest_level, C.finest_checkerboard)
         T = np.ascontiguousarray(T_world_cam, np.float64)
-        return kn.normal_equations(points, T, view, self._no_reference, self._params)[2]
+        H, _, stats = kn.normal_equations(points, T, view, self._no_reference, self._params)
+        return H, stats
 
     def judge(self, inlier_fraction: float, residual_m: float, agreement: float = 1.0) -> bool:
         """Good alignment: enough of the frame explained by the map, the part of it that overlaps
         the map mostly agreeing with it, and a small residual."""
         return (inlier_fraction >= self.cfg.min_fitness and agreement >= self.cfg.min_agreement
                 and np.isfinite(residual_m) and residual_m <= self.cfg.max_residual_m)
+
+
+def translation_constraint(H: np.ndarray) -> float:
+    """Smallest over largest eigenvalue of the translation block ``H[:3, :3]`` of point-to-plane
+    normal equations ``[6, 6]``: 1 when matched normals span all directions evenly, near 0 when
+    the surfaces let the camera slide (two planes constrain only two directions)."""
+    ev = np.linalg.eigvalsh(0.5 * (H[:3, :3] + H[:3, :3].T))
+    return float(ev[0] / ev[-1]) if ev[-1] > 0 else 0.0
 
 
 def solve_update(H: np.ndarray, g: np.ndarray, max_step_m: float, max_step_rad: float) -> np.ndarray | None:

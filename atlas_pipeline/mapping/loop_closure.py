@@ -8,15 +8,18 @@ tracking and mapping:
 1. **Detection**: for each keyframe ``i``, earlier keyframes ``j`` at least ``min_gap`` keyframes
    back whose poses are near (:func:`loop_candidates`: camera centres within ``radius_m``, optical
    axes within :data:`LOOP_MAX_VIEW_ANGLE_DEG`; the views overlap if the drift is smaller than the
-   radius), and, whatever the drift, those that *look* alike (:func:`appearance_candidates`: place
-   recognition by the "small blurry image" of PTAM's relocalizer, Klein and Murray 2008, a
-   normalised cross-correlation of 40x30 thumbnails).
+   radius); those whose surfaces keyframe ``i`` sees again from elsewhere
+   (:func:`covisible_candidates`: old points landing on ``i``'s depth image, the case of a camera
+   returning along another path); and, whatever the drift, those that *look* alike
+   (:func:`appearance_candidates`: place recognition by the "small blurry image" of PTAM's
+   relocalizer, Klein and Murray 2008, a normalised cross-correlation of 40x30 thumbnails).
 2. **Verification** (:func:`verify_loop`): keyframe ``i`` is aligned with the RGB-D tracker to the
    geometry of the candidate and its neighbours as they were mapped (a :class:`SurfelModel` from
    their own points), from the drifted pose and from the candidate's pose; when both fail, the
    :class:`Relocalizer` (no initial pose needed) searches that local map. A loop is accepted only
    when the tracker judges the fit good (``ok``: inlier fraction, agreement, residual) and the
-   inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION`.
+   inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION`, and only when the matched surfaces
+   pin the camera in every direction (:data:`LOOP_MIN_TRANSLATION_CONSTRAINT`).
 3. **Pose graph** (:func:`optimize_pose_graph`): Open3D's ``PoseGraph`` with one odometry edge
    between consecutive keyframes (the tracked relative pose) and one uncertain edge per verified
    loop, solved by ``global_optimization`` (Levenberg-Marquardt with a line process that prunes
@@ -37,7 +40,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -45,7 +48,8 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LoopEdge", "LoopClosureResult", "loop_candidates", "keyframe_thumbnail", "appearance_candidates",
+__all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "loop_candidates", "covisible_candidates",
+           "keyframe_thumbnail", "appearance_candidates",
            "relative_poses", "optimize_pose_graph",
            "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
            "refuse_keyframes"]
@@ -61,12 +65,24 @@ LOOP_MODEL_WINDOW = 2
 # A loop edge is added to the graph only when this share of the keyframe's points fit the old
 # geometry: stricter than tracking's ``min_fitness`` (a wrong loop bends the whole trajectory).
 LOOP_MIN_INLIER_FRACTION = 0.3
+# A loop is verified by geometry alone, so the matched surfaces must pin the camera in every
+# direction: a wall and the floor seen through a door let the alignment slide metres along them
+# with a good fit. The least over the largest eigenvalue of the translation block of the
+# point-to-plane normal matrix (tracker.translation_constraint) must reach this; views of real
+# rooms measure 0.05-0.4, such two-plane views below 0.02.
+LOOP_MIN_TRANSLATION_CONSTRAINT = 0.03
 # After a keyframe closes a loop, the next this-many keyframes do not search: they would add
 # near-duplicate edges, costing time but no information.
 LOOP_COOLDOWN_KEYFRAMES = 2
 # Place recognition (appearance_candidates): thumbnails of this size, blurred by a Gaussian of this
 # sigma (thumbnail pixels) so small shifts still correlate, and a candidate only above this
 # normalised cross-correlation (1 = the same image; unrelated indoor views are mostly below 0.6).
+# Covisibility (covisible_candidates): an older keyframe is a candidate when its points land on at
+# least this share of the keyframe's depth pixels, tested on every COVISIBILITY_STRIDE-th pixel,
+# a point counting as on the surface within the tolerance (drift before a loop is a few cm).
+LOOP_MIN_COVISIBLE_SHARE = 0.2
+COVISIBILITY_STRIDE = 8
+COVISIBILITY_DEPTH_TOLERANCE_M = 0.1
 THUMBNAIL_SIZE = (40, 30)
 THUMBNAIL_BLUR_PX = 1.0
 LOOP_MIN_APPEARANCE_NCC = 0.85
@@ -90,6 +106,19 @@ LOOP_DRIFT_TOLERANCE_FACTOR = 1.25
 # Points per keyframe used for the information matrices (Open3D counts correspondences): voxel
 # downsampling at twice the map voxel keeps them cheap.
 INFO_VOXEL_FACTOR = 2.0
+
+
+class CovisibilityView(NamedTuple):
+    """The keyframe camera as :func:`covisible_candidates` sees it: intrinsics ``fx, fy, cx, cy``
+    (pixels of the full image), the subsampling ``stride`` of its depth, and how far (m) a point may
+    lie from the measured surface and still count as seen."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    stride: int
+    depth_tolerance_m: float
 
 
 @dataclass
@@ -175,6 +204,52 @@ def loop_candidates(T_kf: np.ndarray, i: int, min_gap: int, radius_m: float,
     ok = (d <= radius_m) & (cos_axes >= np.cos(np.radians(max_view_angle_deg))) & np.isfinite(d)
     idx = np.flatnonzero(ok)
     return idx[np.argsort(d[idx], kind="stable")][:max_candidates].astype(np.int64)
+
+
+def covisible_candidates(points_world: list[np.ndarray], depth_small: np.ndarray, T_kf: np.ndarray, i: int,
+                         view: "CovisibilityView", min_gap: int,
+                         min_overlap: float = LOOP_MIN_COVISIBLE_SHARE,
+                         max_candidates: int = LOOP_MAX_CANDIDATES) -> np.ndarray:
+    """Earlier keyframes that saw the surfaces keyframe ``i`` sees, most overlap first.
+
+    A camera coming back to a mapped place seldom stands where it stood (and keyframes chosen by
+    new surface are never taken over mapped space), so nearness of camera centres misses most
+    returns. Here an older keyframe's points, moved into keyframe ``i``'s camera by the tracked
+    poses, are tested against ``i``'s own depth: a point that lands on ``i``'s measured surface
+    (within ``view.depth_tolerance_m``) is seen by both. Points behind a wall land behind the
+    measured surface, so rooms do not leak into each other.
+
+    Args:
+        points_world: per keyframe ``[M_k, 3]`` world points (a few thousand each).
+        depth_small: ``[K, h, w]`` keyframe depths subsampled by ``view.stride`` (0 = none).
+        T_kf: ``[K, 4, 4]`` keyframe poses (camera-to-world).
+        i: the keyframe searching; candidates are ``j <= i - min_gap``.
+        min_overlap: least share of ``i``'s depth pixels that ``j``'s points land on.
+    Returns:
+        ``[C]`` int64 keyframe positions, ``C <= max_candidates``.
+    """
+    last = i - min_gap
+    if last < 0:
+        return np.zeros(0, np.int64)
+    depth_i = depth_small[i]
+    h, w = depth_i.shape
+    n_valid = int(np.count_nonzero(depth_i > 0))
+    if n_valid == 0:
+        return np.zeros(0, np.int64)
+    T_cam_world = invert_se3(T_kf[i])
+    share = np.zeros(last + 1)
+    for j in range(last + 1):
+        p = points_world[j] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        p = p[p[:, 2] > 0]
+        u = np.floor((view.fx * p[:, 0] / p[:, 2] + view.cx) / view.stride).astype(np.int64)
+        v = np.floor((view.fy * p[:, 1] / p[:, 2] + view.cy) / view.stride).astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        z_meas = depth_i[v[inside], u[inside]]
+        hit = (z_meas > 0) & (np.abs(z_meas - p[inside, 2]) <= view.depth_tolerance_m)
+        # Distinct pixels covered, not points: a dense old keyframe must not count twice.
+        share[j] = len(np.unique(v[inside][hit] * w + u[inside][hit])) / n_valid
+    idx = np.flatnonzero(share >= min_overlap)
+    return idx[np.argsort(-share[idx], kind="stable")][:max_candidates].astype(np.int64)
 
 
 def keyframe_thumbnail(rgb: np.ndarray | None, depth_m: np.ndarray) -> np.ndarray:
@@ -337,16 +412,20 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
 
     Returns ``(TrackResult-like with T_world_cam, inlier_fraction, residual_m, method)`` or None.
     """
+    def good(r) -> bool:
+        return (r.ok and r.inlier_fraction >= min_inlier_fraction
+                and r.translation_constraint >= LOOP_MIN_TRANSLATION_CONSTRAINT)
+
     best = None
     for g in guesses:
         r = tracker.align(frame, model, g, None)
-        if r.ok and r.inlier_fraction >= min_inlier_fraction and (best is None or r.inlier_fraction > best.inlier_fraction):
+        if good(r) and (best is None or r.inlier_fraction > best.inlier_fraction):
             best = r
     if best is not None:
         return best.T_world_cam, best.inlier_fraction, best.residual_m, "tracker"
     if relocalizer_factory is not None:
         r = relocalizer_factory().relocalize(frame, guesses)
-        if r.ok and r.inlier_fraction >= min_inlier_fraction:
+        if good(r):
             return r.T_world_cam, r.inlier_fraction, r.residual_m, "relocalizer"
     return None
 
@@ -382,12 +461,19 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
     # matrices are made from these (each a few thousand points; frames are not kept).
     pts: list[np.ndarray] = []
     thumbs = []
+    depth_small = []
     for k in kf:
         depth = manifest.read_depth_m(int(k), allow_empty=True)
         p, _ = backproject(depth, None, manifest.camera, fusion_stride, *depth_range_m)
         pts.append(_voxel_means(p.astype(np.float64), voxel_size_m))
         thumbs.append(keyframe_thumbnail(manifest.read_rgb(int(k)), depth))
+        d = depth[::COVISIBILITY_STRIDE, ::COVISIBILITY_STRIDE]
+        depth_small.append(np.where((d > depth_range_m[0]) & (d < depth_range_m[1]), d, 0.0))
     thumbs = np.stack(thumbs)
+    depth_small = np.stack(depth_small)
+    points_world = [p.astype(np.float64) @ T[:3, :3].T + T[:3, 3] for p, T in zip(pts, T_kf)]
+    cam = manifest.camera
+    view = CovisibilityView(cam.fx, cam.fy, cam.cx, cam.cy, COVISIBILITY_STRIDE, COVISIBILITY_DEPTH_TOLERANCE_M)
 
     def local_model(j: int, i: int):
         lo, hi = max(0, j - LOOP_MODEL_WINDOW), min(i - min_gap, j + LOOP_MODEL_WINDOW)
@@ -404,22 +490,28 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
             continue
         near = loop_candidates(T_kf, i, min_gap, radius_m)
         alike = appearance_candidates(thumbs, i, min_gap)
-        cands = np.concatenate([near, [j for j in alike if j not in set(near.tolist())]]).astype(np.int64)
+        covisible = covisible_candidates(points_world, depth_small, T_kf, i, view, min_gap)
+        cands = np.array(list(dict.fromkeys([*near.tolist(), *covisible.tolist(), *alike.tolist()])), np.int64)
         if len(cands) == 0:
             continue
         n_cand += len(cands)
         frame = tracker.prepare(manifest.read_rgb(int(kf[i])), manifest.read_depth_m(int(kf[i]), allow_empty=True))
+        by_pose = set(near.tolist()) | set(alike.tolist())
         for j in cands:
             model, priors = local_model(int(j), i)
             if len(model) == 0:
                 continue
+            # A covisible keyframe was found from keyframe i's own pose, so that pose is the
+            # guess; the candidate's pose and the prior-free search serve the others (a camera
+            # near an old one, or a view that looks alike, wherever the drift put it).
+            guesses = [T_kf[i], T_kf[j]] if int(j) in by_pose else [T_kf[i]]
             factory = None
-            if use_relocalizer and n_reloc < LOOP_MAX_RELOCALIZATIONS:
+            if use_relocalizer and n_reloc < LOOP_MAX_RELOCALIZATIONS and int(j) in by_pose:
                 def factory(model=model, priors=priors):
                     nonlocal n_reloc
                     n_reloc += 1
                     return Relocalizer(tracker, model, priors)
-            found = verify_loop(tracker, frame, model, [T_kf[i], T_kf[j]], factory)
+            found = verify_loop(tracker, frame, model, guesses, factory)
             if found is None:
                 continue
             T_i_in_old, frac, res, method = found
