@@ -952,6 +952,46 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
     return 0
 
 
+def _world_folder(spec: str) -> Path:
+    """A bundle folder, or the name of a partition whose Dagster world bundle is on disk."""
+    target = Path(spec).expanduser()
+    if target.is_dir():
+        return target
+    from assets.io_managers import artifacts_root
+
+    name = validate_dataset_name(spec)
+    target = artifacts_root() / "world_bundle" / name
+    if not target.is_dir():
+        raise ConfigError(f"'{spec}' is neither a bundle folder nor a partition with a world bundle "
+                          f"(looked in {target})")
+    return target
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """A world for other tools: a COLMAP model or nerfstudio transforms.json with the frames (GPU
+    trainers), a TSDF mesh, or a ROS occupancy grid; the library decides what and how."""
+    from atlas_pipeline.interop.exports import DEFAULT_POSES, check_format, write_export
+    from atlas_pipeline.interop.frames import check_frame_step, check_pose_source, source_from_bundle
+    from atlas_pipeline.interop.mesh import check_voxel
+    from atlas_pipeline.interop.occupancy import check_resolution
+
+    fmt = check_format(args.format)
+    poses = check_pose_source(args.poses or DEFAULT_POSES[fmt])
+    step = check_frame_step(args.frame_step)
+    check_voxel(args.voxel)
+    check_resolution(args.resolution)
+    world = _world_folder(args.world)
+    dataset = _dataset(args.input, args.camera) if args.input else None
+    _prepare_output_dir(args.output, "export", [world, dataset.path if dataset else None], args.force)
+    src = source_from_bundle(world, poses, dataset, step)
+    summary = write_export(args.output, src, fmt, args.force, inputs=(world,), voxel_m=args.voxel,
+                           resolution_m=args.resolution)
+    keys = ("format", "pose_source", "n_images", "n_points3D", "n_vertices", "n_triangles", "n_free", "n_occupied")
+    _out(json.dumps({"output": str(Path(args.output).expanduser().resolve()), "world": str(world.resolve()),
+                     **{k: summary[k] for k in keys if k in summary}}, indent=2))
+    return 0
+
+
 def cmd_lineage(args: argparse.Namespace) -> int:
     """Print the lineage of a world bundle (a folder, or a partition's Dagster bundle)."""
     from atlas_pipeline.scene_memory.bundle import format_lineage, read_lineage
@@ -1153,6 +1193,24 @@ def build_parser() -> argparse.ArgumentParser:
     dagster_args(st)
     st.add_argument("--json", action="store_true", help="machine-readable: {partition: {asset: [reasons]}}")
     st.set_defaults(func=cmd_status)
+
+    ex = sub.add_parser("export", help="a world for other tools: COLMAP / nerfstudio (GPU trainers), a mesh, an "
+                                       "occupancy grid")
+    ex.add_argument("world", help="world bundle folder, or a partition name (its Dagster world bundle)")
+    ex.add_argument("--format", required=True, choices=["colmap", "nerfstudio", "mesh", "occupancy"])
+    ex.add_argument("--output", required=True, help="folder to write (new, empty, or an export atlas-gs wrote)")
+    ex.add_argument("--force", action="store_true", help="move a foreign --output folder aside instead of refusing")
+    ex.add_argument("--poses", default=None, choices=["auto", "keyframes", "estimated", "ground_truth"],
+                    help="which frames at which poses (default: auto for colmap/nerfstudio -- the localization's "
+                         "placed frames if the bundle has one, else the keyframes; keyframes for mesh/occupancy)")
+    ex.add_argument("--input", default=None, help="the frames' recording (registered name or folder), when the "
+                                                  "bundle's own dataset is elsewhere")
+    ex.add_argument("--camera", default=None, help="camera preset for a folder --input (freiburg1/2/3, default)")
+    ex.add_argument("--frame-step", type=int, default=1, help="export every N-th of those frames (default 1)")
+    ex.add_argument("--voxel", type=float, default=0.02, help="mesh: TSDF voxel size in metres (default 0.02)")
+    ex.add_argument("--resolution", type=float, default=0.05,
+                    help="occupancy: cell size in metres (default 0.05)")
+    ex.set_defaults(func=cmd_export)
 
     li = sub.add_parser("lineage", help="print the lineage of a world bundle")
     li.add_argument("bundle", help="bundle folder, or a partition name (its Dagster world bundle)")
