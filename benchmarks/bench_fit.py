@@ -11,8 +11,8 @@ voxel Gaussians, colour refinement: not timed), then fits it to the keyframes th
 * ``old``: the fit as committed in ``OLD_COMMIT`` (float64 per-pixel kernels, a serial-per-worker
   backward, 600 steps at half size), read from git; skipped with a message where git or the commit
   is missing;
-* ``legacy``: that schedule (``OptimizationSettings.legacy()``: 600 steps at the fit scale, no
-  coarse level, no early stop, no densification) on today's kernels;
+* ``legacy``: that schedule (``first_schedule()``: 600 steps at the fit scale, no coarse level, no
+  early stop, no densification, dense Adam) on today's kernels;
 * ``new``: the default profile's schedule (``OptimizationSettings.from_mapping``) on today's kernels.
 
 Each fitted world is rendered at every ``--view-stride``-th held-out frame (never a keyframe) from
@@ -128,13 +128,23 @@ def held_out_psnr(manifest, field, keyframes: list[int], cfg, stride: int) -> tu
     return s["mean_psnr_db"], s["mean_psnr_masked_db"], s["n_views"]
 
 
+def first_schedule(**overrides):
+    """The fit's first schedule: up to 30 passes and 600 steps, every one at half size, no early stop,
+    no densification or pruning, dense Adam (``overrides`` replace any field)."""
+    from atlas_pipeline.gaussian_world.optimize import OptimizationSettings
+
+    return OptimizationSettings(**{"epochs": 30, "max_steps": 600, "min_steps_per_view": 0, "scale": 0.5,
+                                   "coarse_factor": 1, "coarse_max_steps": 0, "plateau_patience": 0,
+                                   "densify_interval": 0, "selective_adam": False, **overrides})
+
+
 def run_variant(variant: str, inputs: dict, cfg, old_mod) -> dict:
     from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
 
     args = (inputs["field"], inputs["images"], inputs["depths"], inputs["poses"], inputs["K"])
     quiet = {"log": lambda _: None}
     mc = cfg.mapping
-    first = OptimizationSettings.legacy(depth_weight=mc.optimization_depth_weight)  # the first schedule
+    first = first_schedule(depth_weight=mc.optimization_depth_weight)  # the first schedule
     if variant == "old":
         settings = old_mod.OptimizationSettings(epochs=first.epochs, max_steps=first.max_steps, scale=first.scale,
                                                 depth_weight=first.depth_weight)
@@ -152,7 +162,7 @@ def run_variant(variant: str, inputs: dict, cfg, old_mod) -> dict:
     else:
         settings = first if variant == "legacy" else OptimizationSettings.from_mapping(mc)
         for warm in (1, settings.coarse_factor):  # JIT at both scales (the compiled code is cached on disk)
-            optimize_gaussians(*args, OptimizationSettings.legacy(max_steps=1, scale=settings.scale / warm), **quiet)
+            optimize_gaussians(*args, first_schedule(max_steps=1, scale=settings.scale / warm), **quiet)
         c0, w0 = time.process_time(), time.perf_counter()
         res = optimize_gaussians(*args, settings, **quiet)
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0

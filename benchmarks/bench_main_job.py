@@ -34,14 +34,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_CPU_S = 100.0  # issue 13: atlas-gs run synthetic, JIT caches warm, 2 cores
-# The keyframe fit before issue 13 (OptimizationSettings.legacy): the reference schedule.
+# The keyframe fit's first schedule (bench_fit.first_schedule): the reference schedule.
 LEGACY_FIT = {
     "mapping.optimization_max_steps": "600",
     "mapping.optimization_coarse_factor": "1",
     "mapping.optimization_coarse_max_steps": "0",
     "mapping.optimization_plateau_patience": "0",
     "mapping.optimization_densify_interval": "0",
-    "mapping.optimization_selective_adam": "false",  # legacy(): dense Adam, as the first fit
+    "mapping.optimization_selective_adam": "false",  # dense Adam, as the first fit
 }
 
 

@@ -10,7 +10,7 @@ import numba
 import numpy as np
 import pytest
 
-from atlas_pipeline.gaussian_world import optimize as opt
+from atlas_pipeline.gaussian_world import fit_kernels, fit_levels
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.optimize import (
     CHILD_ID_BIT, FIT_STAGES, STOP_EPOCHS, STOP_PLATEAU, STOP_STEP_CAP, OptimizationSettings, optimize_gaussians,
@@ -95,14 +95,13 @@ def test_coarse_to_fine_changes_scale(small_manifest, small_world, monkeypatch):
     scale (80x60); the record says how many ran where."""
     imgs, deps, poses, K = _targets(_jitter(small_world, 0), small_manifest, [0, 4, 8])
     sizes = []
-    inner = opt._view_gradients
+    inner = fit_kernels.view_gradients
 
-    def spy(*args, **kwargs):
-        view = args[5]
-        sizes.append((view.width, view.height, args[6].shape[:2]))
-        return inner(*args, **kwargs)
+    def spy(gaussians, view, target, *args, **kwargs):
+        sizes.append((view.width, view.height, target.image.shape[:2]))
+        return inner(gaussians, view, target, *args, **kwargs)
 
-    monkeypatch.setattr(opt, "_view_gradients", spy)
+    monkeypatch.setattr(fit_kernels, "view_gradients", spy)
     s = OptimizationSettings(epochs=6, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=9,
                              plateau_patience=0, densify_interval=0)
     res = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
@@ -253,25 +252,25 @@ def test_input_field_is_left_alone(small_manifest, small_world):
     assert small_world.content_hash() == h
 
 
-def test_profile_defaults_are_the_fits_defaults_and_legacy_is_the_first_schedule():
+def test_profile_defaults_are_the_fits_defaults():
     from atlas_pipeline.config import load_profile
 
     assert OptimizationSettings.from_mapping(load_profile("default").mapping) == OptimizationSettings()
-    old = OptimizationSettings.legacy()
-    assert (old.epochs, old.max_steps, old.scale) == (30, 600, 0.5)
-    assert old.coarse_max_steps == 0 and old.plateau_patience == 0 and old.densify_interval == 0
 
 
-def test_legacy_schedule_runs_every_step_at_the_fit_scale(small_manifest, small_world):
+def test_a_schedule_without_coarse_level_or_densification_runs_every_step_at_the_fit_scale(
+        small_manifest, small_world):
     imgs, deps, poses, K = _targets(_jitter(small_world, 4), small_manifest, [0, 4])
-    res = optimize_gaussians(small_world, imgs, deps, poses, K, OptimizationSettings.legacy(epochs=3), **QUIET)
+    s = OptimizationSettings(epochs=3, max_steps=600, min_steps_per_view=0, coarse_factor=1, coarse_max_steps=0,
+                             plateau_patience=0, densify_interval=0, selective_adam=False)
+    res = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     assert np.array_equal(res.step_scale, [0.5] * 6) and res.record["coarse"] is None
     assert res.record["stop_reason"] == STOP_EPOCHS and res.record["n_cloned"] == res.record["n_split"] == 0
     assert np.isin(res.field.ids, small_world.ids).all()
 
 
 def test_long_sequences_get_proportionally_more_steps():
-    """Issue 14: the step budget grows with the keyframes past max_steps / min_steps_per_view, and
+    """The step budget grows with the keyframes past max_steps / min_steps_per_view, and
     the schedule's step counts with it; below that nothing changes."""
     from atlas_pipeline.gaussian_world.optimize import stretch_schedule
 
@@ -310,15 +309,15 @@ def test_levels_made_per_view_give_the_same_fit(small_manifest, small_world, mon
     s = OptimizationSettings(epochs=4, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=3,
                              plateau_patience=0, densify_interval=5, densify_until_step=10)
     held = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
-    monkeypatch.setattr(opt, "LEVEL_MEMORY_BUDGET_BYTES", 0)
+    monkeypatch.setattr(fit_levels, "LEVEL_MEMORY_BUDGET_BYTES", 0)
     made = []
-    real = opt.OnDemandViews.__init__
+    real = fit_levels.OnDemandViews.__init__
 
     def spy(self, n, make):
         made.append(n)
         real(self, n, make)
 
-    monkeypatch.setattr(opt.OnDemandViews, "__init__", spy)
+    monkeypatch.setattr(fit_levels.OnDemandViews, "__init__", spy)
     lazy = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     assert made  # the on-demand path ran
     assert lazy.field.equals(held.field) and np.array_equal(lazy.loss, held.loss) and lazy.record == held.record

@@ -192,7 +192,8 @@ def test_sensor_model_is_the_synthetic_kinects():
 def test_depth_loss_weight_scales_the_depth_term_only():
     """The fit's per-pixel depth weights scale the depth L1 term pixel by pixel; pixels without a
     reading add nothing however they are weighted."""
-    from atlas_pipeline.gaussian_world.optimize import render_loss_and_gradients
+    from atlas_pipeline.gaussian_world.optimize import LossWeights, render_loss_and_gradients
+    from atlas_pipeline.gaussian_world.raster import GaussianArrays
 
     rng = np.random.default_rng(2)
     n = 40
@@ -206,8 +207,8 @@ def test_depth_loss_weight_scales_the_depth_term_only():
     dep = np.where(rng.uniform(size=(24, 32)) < 0.7, 2.2, 0.0)
 
     def loss(w_depth, wmap=None):
-        return render_loss_and_gradients(pos, scl, q, col, op, np.eye(4), K, img, dep, 1.0, w_depth,
-                                         depth_weight_map=wmap)[0]
+        return render_loss_and_gradients(GaussianArrays(pos, scl, q, col, op), np.eye(4), K, img, dep,
+                                         LossWeights(1.0, w_depth), depth_weight_map=wmap)[0]
 
     base, full = loss(0.0), loss(1.0)
     assert full > base

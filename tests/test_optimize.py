@@ -6,17 +6,34 @@ import numba
 import numpy as np
 import pytest
 
-from atlas_pipeline.gaussian_world import optimize as opt
+from atlas_pipeline.gaussian_world import fit_adam, fit_kernels
 from atlas_pipeline.gaussian_world import raster as rc
 from atlas_pipeline.gaussian_world._raster_reference import fit_gradients_reference, project_reference
 from atlas_pipeline.gaussian_world.field import GaussianField
-from atlas_pipeline.gaussian_world.optimize import (
-    OptimizationSettings, _quat_mul_xyzw, _rotvec_to_quat_xyzw, optimize_gaussians, render_loss_and_gradients,
-    scaled_intrinsics,
-)
+from atlas_pipeline.gaussian_world.fit_kernels import LossWeights
+from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians, render_loss_and_gradients
+from atlas_pipeline.gaussian_world.raster import GaussianArrays, scale_intrinsics
 from atlas_pipeline.gaussian_world.render import render_gaussians
 
 K_TINY = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+
+
+def _quat_mul_xyzw(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a b`` of ``[N, 4]`` x y z w quaternions."""
+    ax, ay, az, aw = a.T
+    bx, by, bz, bw = b.T
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz], axis=1)
+
+
+def _rotvec_to_quat_xyzw(w: np.ndarray) -> np.ndarray:
+    """``[N, 3]`` rotation vectors to ``[N, 4]`` unit quaternions."""
+    angle = np.linalg.norm(w, axis=1)
+    half = 0.5 * angle
+    k = np.where(angle > 1e-12, np.sin(half) / np.maximum(angle, 1e-300), 0.5)  # sin(half)/angle -> 1/2
+    return np.concatenate([w * k[:, None], np.cos(half)[:, None]], axis=1)
 
 
 def _tiny_scene(seed: int, n: int = 24, opacity=(0.3, 0.9)):
@@ -36,7 +53,7 @@ def _tiny_scene(seed: int, n: int = 24, opacity=(0.3, 0.9)):
 
 
 def _loss(pos, scl, q, col, op, T, img, dep):
-    return render_loss_and_gradients(pos, scl, q, col, op, T, K_TINY, img, dep, 1.0, 0.5)
+    return render_loss_and_gradients(GaussianArrays(pos, scl, q, col, op), T, K_TINY, img, dep, LossWeights(1.0, 0.5))
 
 
 def _central(f, eps):
@@ -123,13 +140,12 @@ def _compiled_image_gradients(pos, scl, q, col, op, T, img, dep, w_rgb, w_depth,
     sp = rc.prepare_splats(*f32, rc.view_from_pose(T, K_TINY, w, h), rc.NEAR_M, keep_aux=True)
     slot, start = rc.pair_slots(sp.box, sp.tile_start, sp.tiles_x)
     npix = float(w * h)
-    loss, dout, k_end = opt._forward_tiles(sp.tile_start, sp.tile_ids, sp.feat, sp.order, sp.aux, sp.box, w, h,
-                                           sp.tiles_x, sp.n_tiles, np.zeros(3), np.float32(img), np.float32(dep),
-                                           np.ones(dep.shape, np.float32),
-                                           np.full(dep.shape, np.inf, np.float32) if limit is None else np.float32(limit),
-                                           w_rgb / npix, w_depth / npix, w_cover / npix, n_workers)
-    pair = opt._backward_tiles(sp.tile_start, sp.tile_ids, slot, k_end, sp.feat, sp.order, sp.aux, sp.box, w, h,
-                               sp.tiles_x, sp.n_tiles, dout, n_workers)
+    target = fit_kernels.FitTarget(np.float32(img), np.float32(dep), np.ones(dep.shape, np.float32),
+                                   np.full(dep.shape, np.inf, np.float32) if limit is None else np.float32(limit),
+                                   np.zeros(3))
+    weights = fit_kernels.LossWeights(w_rgb / npix, w_depth / npix, w_cover / npix)
+    loss, dout, k_end = fit_kernels.forward_tiles(sp, target, weights, n_workers)
+    pair = fit_kernels.backward_tiles(sp, slot, k_end, dout, n_workers)
     g2d = np.array([pair[start[k]:start[k + 1]].astype(np.float64).sum(axis=0) for k in range(len(sp.order))])
     slopes = sp.aux[sp.order][:, [rc.AUX_SLOPE_U, rc.AUX_SLOPE_V]].astype(np.float32).astype(np.float64)
     return sp, loss, g2d, slopes
@@ -230,7 +246,8 @@ def test_gradients_do_not_depend_on_the_thread_count():
     try:
         for threads in (1, before):
             numba.set_num_threads(threads)
-            out.append(render_loss_and_gradients(pos, scl, q, col, op, T, K_TINY, img, dep, 1.0, 0.5, w_cover=2.0))
+            out.append(render_loss_and_gradients(GaussianArrays(pos, scl, q, col, op), T, K_TINY, img, dep,
+                                                      LossWeights(1.0, 0.5, 2.0)))
     finally:
         numba.set_num_threads(before)
     (l1, g1), (l2, g2) = out
@@ -240,14 +257,15 @@ def test_gradients_do_not_depend_on_the_thread_count():
 def test_loss_counts_the_background_without_gaussians():
     _, _, _, _, _, T, img, dep = _tiny_scene(2)
     z = np.zeros((0, 3))
-    loss, g = render_loss_and_gradients(z, z, np.zeros((0, 4)), z, np.zeros(0), T, K_TINY, img, dep, 1.0, 0.5)
+    loss, g = render_loss_and_gradients(GaussianArrays(z, z, np.zeros((0, 4)), z, np.zeros(0)), T, K_TINY, img, dep,
+                                         LossWeights(1.0, 0.5))
     expect = np.abs(img).sum() / (48 * 64)  # black background; no rendered depth to compare
     assert loss == pytest.approx(expect) and g["position"].shape == (0, 3)
 
 
 def test_scaled_intrinsics_keep_pixel_centres():
     K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
-    Ks = scaled_intrinsics(K, 0.5, 0.5)
+    Ks = scale_intrinsics(K, 0.5, 0.5)
     # the image centre (319.5, 239.5) at full size is the centre (159.5, 119.5) at half size
     assert Ks[0, 2] == pytest.approx(159.5) and Ks[1, 2] == pytest.approx(119.5) and Ks[0, 0] == 250.0
 
@@ -269,6 +287,12 @@ def _perturbed(f: GaussianField, seed: int) -> GaussianField:
                          np.clip(f.opacities * 0.5, 0.05, 1.0), f.ids)
 
 
+# Every step at the full image, no coarse level, early stop or densification: plain descent.
+FIRST_SCHEDULE = OptimizationSettings(epochs=15, max_steps=600, min_steps_per_view=0, scale=1.0, coarse_factor=1,
+                                      coarse_max_steps=0, plateau_patience=0, densify_interval=0,
+                                      selective_adam=False)
+
+
 @pytest.mark.slow
 def test_optimisation_recovers_a_perturbed_world(small_manifest, small_world):
     """Views rendered from the true field are the targets; a field with wrong colours, scales,
@@ -281,7 +305,7 @@ def test_optimisation_recovers_a_perturbed_world(small_manifest, small_world):
     start = _perturbed(truth, 0)
     res = optimize_gaussians(start, [t[0] for t in targets], [t[1] for t in targets],
                              [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
-                             OptimizationSettings.legacy(epochs=15, scale=1.0), log=lambda _: None)
+                             FIRST_SCHEDULE, log=lambda _: None)
     assert len(res.loss) == 60 and res.loss[-4:].mean() < 0.5 * res.loss[:4].mean()
     # ids survive the fit (only Gaussians that became invisible may go)
     assert np.isin(res.field.ids, truth.ids).all() and len(res.field) == len(truth) - res.n_pruned
@@ -404,7 +428,7 @@ def test_profile_sets_the_normal_offset_bound():
 def _adam_state(n: int, seed: int):
     """Random fit state of ``n`` Gaussians for ``_adam_step``: (gparam, m1, m2, params...)."""
     rng = np.random.default_rng(seed)
-    P = opt._N_PARAM
+    P = fit_kernels.N_PARAM
     gparam = rng.normal(0, 1e-3, (P, n)).astype(np.float32)
     m1 = rng.normal(0, 1e-4, (P, n)).astype(np.float32)
     m2 = rng.uniform(1e-8, 1e-6, (P, n)).astype(np.float32)
@@ -419,16 +443,16 @@ def _adam_state(n: int, seed: int):
 
 def _step(state, t, seen, n_steps, lr=None):
     gparam, m1, m2, pos, log_s, quat, logit, col, scl, opa = state
-    lr = np.full(opt._N_PARAM, 1e-3) if lr is None else lr
-    ibc1, ibc2 = opt._bias_corrections(0.9, t), opt._bias_corrections(0.999, t)
-    opt._adam_step(gparam, m1, m2, lr, 0.9, 0.999, ibc1, ibc2, t, 1e-15, np.log(1e-4), np.log(0.1), pos, log_s, quat,
-                   logit, col, scl, opa, seen, n_steps)
+    lr = np.full(fit_kernels.N_PARAM, 1e-3) if lr is None else lr
+    ibc1, ibc2 = fit_adam.bias_corrections(0.9, t), fit_adam.bias_corrections(0.999, t)
+    hyper = fit_adam.AdamHyper(lr, 0.9, 0.999, 1e-15, ibc1, ibc2, t, np.log(1e-4), np.log(0.1))
+    fit_adam.adam_step(gparam, m1, m2, hyper, fit_adam.FitParams(pos, log_s, quat, logit, col, scl, opa), seen, n_steps)
 
 
 def test_selective_adam_leaves_unseen_gaussians_alone():
     """Selective Adam (the default): Gaussians the view did not draw keep their parameters and
     moments bit for bit; the drawn ones count a step and move."""
-    n = 3 * opt._ADAM_BLOCK + 17  # several blocks and a partial one
+    n = 3 * fit_adam.ADAM_BLOCK + 17  # several blocks and a partial one
     state = _adam_state(n, 0)
     before = [a.copy() for a in state]
     seen = (np.random.default_rng(1).random(n) < 0.3).astype(np.uint8)
@@ -436,7 +460,7 @@ def test_selective_adam_leaves_unseen_gaussians_alone():
     _step(state, 500, seen, n_steps)
     off, on = seen == 0, seen == 1
     for a, b in zip(state[1:], before[1:]):  # moments and parameters
-        axis_rows = a.shape[0] == opt._N_PARAM and a.ndim == 2
+        axis_rows = a.shape[0] == fit_kernels.N_PARAM and a.ndim == 2
         sel_off = (slice(None), off) if axis_rows else off
         assert np.array_equal(a[sel_off], b[sel_off])
     assert np.array_equal(n_steps, seen.astype(np.int32))
@@ -451,9 +475,9 @@ def test_selective_adam_corrects_bias_by_each_gaussians_own_steps():
     state[1][:] = 0.0
     state[2][:] = 0.0
     pos0 = state[3].copy()
-    lr = np.full(opt._N_PARAM, 1e-3)
+    lr = np.full(fit_kernels.N_PARAM, 1e-3)
     _step(state, 5000, np.ones(n, np.uint8), np.zeros(n, np.int32), lr)  # a late global step
-    expected = pos0 - 1e-3 * np.sign(state[0][opt._P_POS:opt._P_POS + 3].T)
+    expected = pos0 - 1e-3 * np.sign(state[0][fit_kernels.P_POS:fit_kernels.P_POS + 3].T)
     np.testing.assert_allclose(state[3], expected, atol=1e-6)
 
 
@@ -469,7 +493,7 @@ def test_dense_adam_is_standard_adam_with_the_fits_step():
     m1n, m2n = b1 * m1 + (1 - b1) * g, b2 * m2 + (1 - b2) * g * g
     step = -1e-3 * (m1n / (1 - b1 ** t)) / (np.sqrt(m2n / (1 - b2 ** t)) + 1e-15)
     _step(state, t, np.zeros(0, np.uint8), np.zeros(0, np.int32))
-    np.testing.assert_allclose(state[3], pos + step[opt._P_POS:opt._P_POS + 3].T, rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(state[3], pos + step[fit_kernels.P_POS:fit_kernels.P_POS + 3].T, rtol=1e-4, atol=1e-7)
     assert not np.allclose(state[3][::2], pos[::2])  # unseen ones moved on their momentum
 
 

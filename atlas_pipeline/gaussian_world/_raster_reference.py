@@ -184,7 +184,7 @@ def fit_gradients_reference(
     depth_limit: np.ndarray | None = None,  # [H, W] metres; None = no limit
 ) -> tuple[float, np.ndarray]:
     """Reference of the keyframe fit's forward and image-space backward pass
-    (``optimize._forward_tiles`` / ``_backward_tiles`` / the slot sums): ``(loss, g2d [M, 10])``.
+    (``fit_kernels.forward_tiles`` / ``backward_tiles`` / the slot sums): ``(loss, g2d [M, 10])``.
 
     ``loss = sum_p w_rgb |f(p) - image(p)|_1 + w_depth |D(p) / acc(p) - depth(p)|`` (over pixels with
     a reading and ``acc >= DEPTH_MIN_ALPHA``) ``+ w_cover T_s(p)`` (pixels with a reading; ``T_s`` the

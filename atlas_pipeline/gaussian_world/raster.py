@@ -18,26 +18,15 @@ splatting), in named stages as gsplat's ``rendering.py`` has them:
 5. ``bin_tiles``: per ``TILE_SIZE`` x ``TILE_SIZE`` tile, the Gaussians whose box touches it, still
    front to back. ``pair_slots`` (5b, for backward passes) numbers every (tile, Gaussian) pair
    Gaussian by Gaussian, so per-pair results written by tile can be summed per Gaussian after.
-6. ``composite_tiles``: per pixel, front to back,
-   ``alpha_i = min(ALPHA_MAX, opacity_i exp(-0.5 d^T conic_i d))``, skipped below ``ALPHA_MIN``;
-   ``C += T alpha_i c_i``, ``D += T alpha_i z_i``, ``T *= 1 - alpha_i``; a pixel stops once
-   ``T < T_MIN`` (the contribution that crosses the threshold is kept). ``rgb = round(C + T bg)``,
-   ``alpha = 1 - T``, ``depth = D / alpha`` where ``alpha >= DEPTH_MIN_ALPHA``, else 0.
+6. compositing, in :mod:`atlas_pipeline.gaussian_world.composite`: the one tile-row kernel the
+   renderer and the keyframe fit both run.
 
-``prepare_splats`` runs stages 3-5 (what every caller needs before its own tile loop).
-
-The renderer runs the same stages in bounded memory (``render.render_gaussians``; same image bit
-for bit): ``project_visible`` projects ``PROJECT_CHUNK`` Gaussians at a time and keeps only the
-drawn ones (compacted, input order); ``sort_visible`` puts them front to back in place (no sorted
-copy); ``tile_pair_counts`` counts the (tile, Gaussian) pairs per tile without listing them;
-``tile_batches`` cuts the tiles (row-major) into runs of at most ``max_tile_pairs`` pairs;
-``bin_tile_batch`` lists one run's pairs and ``composite_tile_batch`` draws it into the output
-images. Peak memory is then O(N) with a small constant plus O(pairs per batch), whatever the
-view (``render.render_peak_bytes`` states it). Compiled
-kernels elsewhere (the fits' backward passes) build on the device helpers ``world_to_camera``,
-``rotmat_from_quat``, ``jacobian_clamp_limits``, ``projection_rows``, ``pixel_covariance``,
-``pixel_alpha``, ``exp_neg_fast`` and ``tile_pixel_bounds``, so their forward model is this one by
-construction.
+``prepare_splats`` runs stages 3-5 (what every caller needs before its own tile loop). The
+renderer runs the same stages in bounded memory (:mod:`atlas_pipeline.gaussian_world.raster_bounded`;
+same image bit for bit). Compiled kernels elsewhere (the fits' backward passes) build on the device
+helpers ``world_to_camera``, ``rotmat_from_quat``, ``jacobian_clamp_limits``, ``projection_rows``,
+``pixel_covariance``, ``pixel_alpha`` and ``tile_pixel_bounds``, so their forward model is this one
+by construction.
 
 Pixel centres are at integer pixel coordinates: a point at ``(u, v) = K p / z`` lands in the centre
 of pixel ``(round(u), round(v))``, pixel ``i`` covers ``[i - 0.5, i + 0.5)``. ``scale_intrinsics`` /
@@ -55,7 +44,6 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from atlas_pipeline.cores import kernel_threads
 
 logger = logging.getLogger(__name__)
 
@@ -66,13 +54,13 @@ __all__ = [
     "FEAT_GREEN", "FEAT_BLUE", "FEAT_Z", "N_FEAT", "AUX_X", "AUX_Y", "AUX_Z", "AUX_P", "AUX_A", "AUX_B",
     "AUX_CXX", "AUX_CXY", "AUX_CYY", "AUX_TXZ", "AUX_TYZ", "AUX_SLOPE_U", "AUX_SLOPE_V", "N_AUX",
     "PLANE_FLATNESS", "PLANE_MAX_SLOPE",
-    "RasterInputs", "PinholeView", "Projection", "TileBins", "SplatTiles",
-    "validate_inputs", "view_from_pose", "project_gaussians", "sort_by_depth", "gather_sorted", "bin_tiles",
-    "pair_slots", "prepare_splats", "composite_tiles", "scale_intrinsics", "scaled_image_size", "scale_camera",
-    "PROJECT_CHUNK", "MAX_TILE_PAIRS", "VisibleSplats", "project_visible", "sort_visible", "tile_pair_counts",
-    "tile_batches", "bin_tile_batch", "composite_tile_batch",
+    "RasterInputs", "RasterView", "GaussianArrays", "Projection", "TileBins", "SplatTiles",
+    "validate_inputs", "view_from_pose", "project_kernel", "project_gaussians", "radix_argsort_positive",
+    "sort_by_depth", "gather_sorted", "bin_tiles",
+    "pair_slots", "prepare_splats", "scale_intrinsics", "scaled_image_size", "scale_camera",
+    "PROJECT_CHUNK", "MAX_TILE_PAIRS",
     "world_to_camera", "rotmat_from_quat", "jacobian_clamp_limits", "projection_rows", "pixel_covariance",
-    "plane_depth_slopes", "pixel_alpha", "tile_pixel_bounds", "exp_neg_fast",
+    "plane_depth_slopes", "pixel_alpha", "tile_pixel_bounds",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -93,7 +81,7 @@ BOX_SLACK_PX = 1e-3  # widening of the alpha-cut box, so rounding never drops a 
 CULL_SLACK_PX = 2.0  # margin of the projection's off-image test: covers the box's ceil (1 px) and rounding
 MEDIAN_DEPTH_T = 0.5  # the median depth is read where the transmittance crosses this
 NEAR_M = 0.05  # default near plane (metres)
-# Bounded-memory rendering (``project_visible`` ... ``composite_tile_batch``):
+# Bounded-memory rendering (``raster_bounded``):
 PROJECT_CHUNK = 1 << 18  # Gaussians projected at a time: 17 MB of per-chunk buffers at any N, and
 #                          few enough launches of the threaded kernel (each costs ms on a busy machine)
 MAX_TILE_PAIRS = 1 << 22  # (tile, Gaussian) pairs listed at once: 16 MB of int32; a 640x480 view of
@@ -136,7 +124,7 @@ class RasterInputs(NamedTuple):
     near_m: float
 
 
-class PinholeView(NamedTuple):
+class RasterView(NamedTuple):
     """The camera as the compiled stages read it."""
 
     R_cam_world: np.ndarray  # [3, 3] float64, world -> camera rotation
@@ -145,8 +133,19 @@ class PinholeView(NamedTuple):
     fy: float
     cx: float
     cy: float
-    width: int
-    height: int
+    width: int  # px
+    height: int  # px
+
+
+class GaussianArrays(NamedTuple):
+    """The Gaussians as the compiled stages read them (all float32 or all float64; colours may be
+    uint8)."""
+
+    positions: np.ndarray  # [N, 3] world frame (metres)
+    scales: np.ndarray  # [N, 3] standard deviations (metres)
+    rotations_xyzw: np.ndarray  # [N, 4]
+    colors: np.ndarray  # [N, 3]
+    opacities: np.ndarray  # [N] in [0, 1]
 
 
 def _as_float_array(name: str, x, shape_tail: tuple[int, ...], dtype=np.float32) -> np.ndarray:
@@ -245,11 +244,11 @@ def view_from_pose(
     K: np.ndarray,  # [3, 3]
     width: int,
     height: int,
-) -> PinholeView:
+) -> RasterView:
     """The camera of one raster pass (no checks: see ``validate_inputs``)."""
     T = np.asarray(T_world_cam, np.float64)
     Km = np.asarray(K, np.float64)
-    return PinholeView(
+    return RasterView(
         np.ascontiguousarray(T[:3, :3].T), np.ascontiguousarray(T[:3, 3]),
         float(Km[0, 0]), float(Km[1, 1]), float(Km[0, 2]), float(Km[1, 2]), int(width), int(height),
     )
@@ -375,10 +374,13 @@ def projection_rows(Rcw, fx, fy, x, y, z, lim_x_pos, lim_x_neg, lim_y_pos, lim_y
 
 
 @njit(cache=True, inline="always")
-def pixel_covariance(p00, p01, p02, p10, p11, p12, m00, m01, m02, m10, m11, m12, m20, m21, m22):
+def pixel_covariance(P, M):
     """``(a0, a1, a2, b0, b1, b2, cxx, cxy, cyy)``: rows ``a``, ``b`` of ``P M`` and the pixel
     covariance ``cov2d = (P M)(P M)^T + LOW_PASS_PX2 I`` (``[[cxx, cxy], [cxy, cyy]]``), with ``P``
-    from ``projection_rows`` and ``M = R S`` the Gaussian's rotation times its scales (row major)."""
+    ``(p00, p01, p02, p10, p11, p12)`` from ``projection_rows`` and ``M`` ``(m00 .. m22)`` row major,
+    the Gaussian's rotation times its scales ``R S``."""
+    p00, p01, p02, p10, p11, p12 = P
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = M
     a0 = p00 * m00 + p01 * m10 + p02 * m20
     a1 = p00 * m01 + p01 * m11 + p02 * m21
     a2 = p00 * m02 + p01 * m12 + p02 * m22
@@ -392,13 +394,15 @@ def pixel_covariance(p00, p01, p02, p10, p11, p12, m00, m01, m02, m10, m11, m12,
 
 
 @njit(cache=True, inline="always")
-def plane_depth_slopes(r00, r01, r02, r10, r11, r12, r20, r21, r22, sx, sy, sz, Rcw, x, y, z, fx, fy):
+def plane_depth_slopes(R, sx, sy, sz, Rcw, x, y, z, fx, fy):
     """``(dz/du, dz/dv)``: how the depth of the plane through the camera-frame mean ``(x, y, z)``,
-    normal to the Gaussian's shortest axis (rotation ``r``, scales ``s``), changes along the pixel
+    normal to the Gaussian's shortest axis (rotation ``R`` ``(r00 .. r22)`` row major, scales ``s``,
+    world -> camera ``Rcw`` ``[3, 3]``), changes along the pixel
     rays: ``z(u, v) ~ z + dz/du (u - u0) + dz/dv (v - v0)``. A Gaussian then reports the depth of its
     surface at a pixel, not of its centre (which on a slanted surface reads nearer for the front-most
     Gaussians). ``(0, 0)`` for Gaussians that are not flat (``PLANE_FLATNESS``) or seen edge-on;
     clamped at ``PLANE_MAX_SLOPE``."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
     a = 0 if (sx <= sy and sx <= sz) else (1 if sy <= sz else 2)
     smid = sx + sy + sz - min(sx, min(sy, sz)) - max(sx, max(sy, sz))
     smin = sx if a == 0 else (sy if a == 1 else sz)
@@ -472,16 +476,17 @@ class Projection(NamedTuple):
 
 
 @njit(cache=True, parallel=True)
-def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, height, near, aux):
-    """``Projection`` fields of ``pos``, ``scl`` ``[N, 3]``, ``quat`` ``[N, 4]``, ``col`` ``[N, 3]``,
-    ``opa`` ``[N]`` (float32 or float64), ``Rcw`` ``[3, 3]``, ``tcw`` ``[3]``; the ``AUX_*``
-    intermediates of each drawn Gaussian into ``aux`` ``[N, N_AUX]`` float64 when it has N rows
-    (``[0, N_AUX]``: not kept).
+def project_kernel(gaussians, view, near, aux):
+    """``Projection`` fields of ``gaussians`` (:class:`GaussianArrays`, float32 or float64) seen by
+    ``view`` (:class:`RasterView`); the ``AUX_*`` intermediates of each drawn Gaussian into ``aux``
+    ``[N, N_AUX]`` float64 when it has N rows (``[0, N_AUX]``: not kept).
 
     The box is the ``SIGMA_EXTENT``-sigma square cut to the bounding box of the ellipse
     ``d^T conic d <= 2 ln(opacity / ALPHA_MIN)``, outside of which ``alpha < ALPHA_MIN`` anyway, so
     the cut saves tiles without changing the image.
     """
+    pos, scl, quat, col, opa = gaussians
+    Rcw, tcw, fx, fy, cx, cy, width, height = view
     n = pos.shape[0]
     valid = np.zeros(n, dtype=np.bool_)
     depth = np.zeros(n, dtype=np.float64)
@@ -519,8 +524,8 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
         p00, p01, p02, p10, p11, p12, txz, tyz = projection_rows(
             Rcw, fx, fy, x, y, z, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
         a0, a1, a2, b0, b1, b2, cxx, cxy, cyy = pixel_covariance(
-            p00, p01, p02, p10, p11, p12,
-            r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz)
+            (p00, p01, p02, p10, p11, p12),
+            (r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz))
         det = cxx * cyy - cxy * cxy
         if not (det > 0.0):
             continue
@@ -574,7 +579,7 @@ def _project_kernel(pos, scl, quat, col, opa, Rcw, tcw, fx, fy, cx, cy, width, h
             aux[i, AUX_TXZ] = txz
             aux[i, AUX_TYZ] = tyz
             aux[i, AUX_SLOPE_U], aux[i, AUX_SLOPE_V] = plane_depth_slopes(
-                r00, r01, r02, r10, r11, r12, r20, r21, r22, sx, sy, sz, Rcw, x, y, z, fx, fy)
+                (r00, r01, r02, r10, r11, r12, r20, r21, r22), sx, sy, sz, Rcw, x, y, z, fx, fy)
     return valid, depth, feat, box, aux
 
 
@@ -584,16 +589,15 @@ def project_gaussians(
     rotations_xyzw: np.ndarray,  # [N, 4]
     colors: np.ndarray,  # [N, 3] any range (copied to the feature rows)
     opacities: np.ndarray,  # [N] in [0, 1]
-    view: PinholeView,
+    view: RasterView,
     near_m: float = NEAR_M,
     keep_aux: bool = False,
 ) -> Projection:
     """Stage 3: project every Gaussian (compiled, threaded). Arrays all float32 or all float64.
     ``keep_aux``: also return each drawn Gaussian's ``AUX_*`` intermediates (for a backward pass)."""
     aux = np.empty((len(positions) if keep_aux else 0, N_AUX))
-    return Projection(*_project_kernel(
-        positions, scales, rotations_xyzw, colors, opacities, view.R_cam_world, view.centre_world,
-        view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, aux))
+    gaussians = GaussianArrays(positions, scales, rotations_xyzw, colors, opacities)
+    return Projection(*project_kernel(gaussians, view, near_m, aux))
 
 
 # --------------------------------------------------------------------------------------------
@@ -602,7 +606,7 @@ def project_gaussians(
 
 
 @njit(cache=True)
-def _radix_argsort_positive(keys):
+def radix_argsort_positive(keys):
     """Stable argsort ``[M]`` int32 of positive float64 ``keys`` ``[M]`` (LSD radix sort on the bits).
 
     For positive doubles the IEEE bit pattern read as an unsigned integer is monotone in the value,
@@ -648,7 +652,7 @@ def sort_by_depth(
 ) -> np.ndarray:
     """Stage 4: ``[M]`` int64 rows of the valid Gaussians, front to back, ties in input order."""
     ids = np.flatnonzero(valid)
-    return ids[_radix_argsort_positive(depth[ids])]
+    return ids[radix_argsort_positive(depth[ids])]
 
 
 @njit(cache=True, parallel=True)
@@ -787,7 +791,7 @@ def prepare_splats(
     rotations_xyzw: np.ndarray,  # [N, 4]
     colors: np.ndarray,  # [N, 3]
     opacities: np.ndarray,  # [N]
-    view: PinholeView,
+    view: RasterView,
     near_m: float = NEAR_M,
     keep_aux: bool = False,
 ) -> SplatTiles | None:
@@ -803,410 +807,19 @@ def prepare_splats(
                       view.width, view.height, proj.aux)
 
 
-# --------------------------------------------------------------------------------------------
-# Bounded memory: stages 3-5 without per-input-Gaussian buffers or a whole-view pair list
-# --------------------------------------------------------------------------------------------
+# Stage 6 and the bounded-memory stages live in their own modules; their names stay readable here
+# (``raster.composite_tiles``), loaded on first use since those modules import this one.
+_MOVED = {
+    "composite": ("composite_tiles", "composite_tile_batch", "exp_neg_fast"),
+    "raster_bounded": ("VisibleSplats", "project_visible", "sort_visible", "tile_pair_counts", "tile_batches",
+                       "bin_tile_batch"),
+}
 
 
-class VisibleSplats(NamedTuple):
-    """The drawn Gaussians of one view, compacted (``project_visible``; ``sort_visible`` puts them
-    front to back in place)."""
+def __getattr__(name: str):
+    for module, names in _MOVED.items():
+        if name in names:
+            import importlib
 
-    feat: np.ndarray  # [M, N_FEAT] float32 feature rows
-    box: np.ndarray  # [M, 4] int32 inclusive pixel boxes (x0, x1, y0, y1)
-    depth: np.ndarray  # [M] float64 camera z
-
-
-@njit(cache=True)
-def _compact_rows(valid, depth, feat, box, depth_out, feat_out, box_out, m):
-    """Append the rows of ``feat`` ``[C, N_FEAT]`` / ``box`` ``[C, 4]`` / ``depth`` ``[C]`` where
-    ``valid`` ``[C]`` to the outputs at row ``m``, in order; returns the new row count."""
-    for i in range(valid.shape[0]):
-        if valid[i]:
-            depth_out[m] = depth[i]
-            for j in range(feat.shape[1]):
-                feat_out[m, j] = feat[i, j]
-            for j in range(4):
-                box_out[m, j] = box[i, j]
-            m += 1
-    return m
-
-
-def _shrink_rows(a: np.ndarray, m: int) -> np.ndarray:
-    """``a[:m]`` without a copy: the buffer is reallocated to ``m`` rows (``ndarray.resize``; a large
-    buffer gives back its tail pages), so a capacity of N rows of which M were written costs M."""
-    a.resize((m,) + a.shape[1:], refcheck=False)
-    return a
-
-
-def project_visible(
-    positions: np.ndarray,  # [N, 3]
-    scales: np.ndarray,  # [N, 3]
-    rotations_xyzw: np.ndarray,  # [N, 4]
-    colors: np.ndarray,  # [N, 3] (float32, or uint8: converted per row)
-    opacities: np.ndarray,  # [N]
-    view: PinholeView,
-    near_m: float = NEAR_M,
-    chunk: int = PROJECT_CHUNK,
-) -> VisibleSplats:
-    """Stage 3 in bounded memory: ``project_gaussians`` on ``chunk`` Gaussians at a time, keeping the
-    drawn rows only (input order). The rows equal ``project_gaussians``'s valid rows bit for bit.
-
-    Memory: the outputs are allocated for N rows but only the M drawn ones are written and kept
-    (64 bytes per drawn Gaussian: ``N_FEAT`` float32, 4 int32, a float64 depth), plus the per-chunk
-    buffers (65 bytes per chunk row).
-    """
-    n = positions.shape[0]
-    feat = np.empty((n, N_FEAT), np.float32)
-    box = np.empty((n, 4), np.int32)
-    depth = np.empty(n, np.float64)
-    no_aux = np.empty((0, N_AUX))
-    m = 0
-    for i in range(0, n, max(1, int(chunk))):
-        c = slice(i, i + chunk)
-        valid, d, f, b, _ = _project_kernel(
-            positions[c], scales[c], rotations_xyzw[c], colors[c], opacities[c], view.R_cam_world,
-            view.centre_world, view.fx, view.fy, view.cx, view.cy, view.width, view.height, near_m, no_aux)
-        m = _compact_rows(valid, d, f, b, depth, feat, box, m)
-    return VisibleSplats(_shrink_rows(feat, m), _shrink_rows(box, m), _shrink_rows(depth, m))
-
-
-@njit(cache=True)
-def _permute_rows_inplace(order, feat, box, depth):
-    """``feat[:] = feat[order]``, ``box[:] = box[order]``, ``depth[:] = depth[order]`` in place,
-    cycle by cycle (``order`` ``[M]`` int32, a permutation, is used as the visited mark and
-    restored)."""
-    m = order.shape[0]
-    nf = feat.shape[1]
-    ftmp = np.empty(nf, feat.dtype)
-    btmp = np.empty(4, box.dtype)
-    for start in range(m):
-        if order[start] < 0 or order[start] == start:
-            continue
-        for j in range(nf):
-            ftmp[j] = feat[start, j]
-        for j in range(4):
-            btmp[j] = box[start, j]
-        dtmp = depth[start]
-        k = start
-        while True:
-            src = order[k]
-            order[k] = -1 - src  # visited
-            if src == start:
-                for j in range(nf):
-                    feat[k, j] = ftmp[j]
-                for j in range(4):
-                    box[k, j] = btmp[j]
-                depth[k] = dtmp
-                break
-            for j in range(nf):
-                feat[k, j] = feat[src, j]
-            for j in range(4):
-                box[k, j] = box[src, j]
-            depth[k] = depth[src]
-            k = src
-    for k in range(m):
-        if order[k] < 0:
-            order[k] = -1 - order[k]
-
-
-def sort_visible(vis: VisibleSplats) -> np.ndarray:
-    """Stage 4 in place: rows of ``vis`` front to back, ties in input order (the order of
-    ``sort_by_depth``); returns that order ``[M]`` int32 (rows of the unsorted ``vis``). No sorted
-    copy: 8 bytes per drawn Gaussian for the radix sort."""
-    if len(vis.depth) == 0:
-        return np.zeros(0, np.int32)
-    order = _radix_argsort_positive(vis.depth)
-    _permute_rows_inplace(order, vis.feat, vis.box, vis.depth)
-    return order
-
-
-@njit(cache=True)
-def _tile_pair_counts_kernel(box, tiles_x, tiles_y):
-    """Pairs per tile ``[tiles_y, tiles_x]`` int64 of ``box`` ``[M, 4]`` (2D difference array: O(M)
-    work whatever the footprints)."""
-    diff = np.zeros((tiles_y + 1, tiles_x + 1), dtype=np.int64)
-    for k in range(box.shape[0]):
-        tx0 = box[k, 0] // TILE_SIZE
-        tx1 = box[k, 1] // TILE_SIZE + 1
-        ty0 = box[k, 2] // TILE_SIZE
-        ty1 = box[k, 3] // TILE_SIZE + 1
-        diff[ty0, tx0] += 1
-        diff[ty0, tx1] -= 1
-        diff[ty1, tx0] -= 1
-        diff[ty1, tx1] += 1
-    for ty in range(tiles_y + 1):
-        for tx in range(1, tiles_x + 1):
-            diff[ty, tx] += diff[ty, tx - 1]
-    for ty in range(1, tiles_y + 1):
-        for tx in range(tiles_x + 1):
-            diff[ty, tx] += diff[ty - 1, tx]
-    return diff[:tiles_y, :tiles_x].copy()
-
-
-def tile_pair_counts(
-    box: np.ndarray,  # [M, 4] int32 boxes (x0, x1, y0, y1)
-    width: int,
-    height: int,
-) -> np.ndarray:
-    """Stage 5a: ``[n_tiles]`` int64 number of boxes touching each tile (row major), the lengths of
-    ``bin_tiles``'s lists, without listing them."""
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
-    return _tile_pair_counts_kernel(box, tiles_x, tiles_y).reshape(-1)
-
-
-def tile_batches(
-    counts: np.ndarray,  # [n_tiles] pairs per tile
-    max_tile_pairs: int | None = MAX_TILE_PAIRS,
-) -> list[tuple[int, int]]:
-    """Stage 5b: runs ``[(t0, t1)]`` of consecutive tiles (row major) covering every tile, each with at
-    most ``max_tile_pairs`` pairs (a run of one tile may hold more: a tile is never split). None:
-    one run."""
-    n_tiles = len(counts)
-    if max_tile_pairs is None or n_tiles == 0:
-        return [(0, n_tiles)]
-    cum = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])  # [n_tiles + 1]
-    out = []
-    t0 = 0
-    while t0 < n_tiles:
-        # the last tile whose run from t0 stays within the budget; at least one tile
-        t1 = int(np.searchsorted(cum, cum[t0] + int(max_tile_pairs), side="right")) - 1
-        t1 = min(n_tiles, max(t1, t0 + 1))
-        out.append((t0, t1))
-        t0 = t1
-    return out
-
-
-@njit(cache=True)
-def _bin_tile_batch_kernel(box, tiles_x, t0, t1, tile_start, tile_ids):
-    """Fill ``tile_ids`` with the rows of ``box`` ``[M, 4]`` touching tiles ``t0 .. t1 - 1``, per tile
-    in row order (``tile_start`` ``[t1 - t0 + 1]``: the run's offsets)."""
-    fill = tile_start[:-1].copy()
-    ty_a = t0 // tiles_x
-    ty_b = (t1 - 1) // tiles_x
-    for k in range(box.shape[0]):
-        tx0 = box[k, 0] // TILE_SIZE
-        tx1 = box[k, 1] // TILE_SIZE
-        for ty in range(max(box[k, 2] // TILE_SIZE, ty_a), min(box[k, 3] // TILE_SIZE, ty_b) + 1):
-            row = ty * tiles_x
-            for tx in range(max(tx0, t0 - row), min(tx1, t1 - 1 - row) + 1):
-                t = row + tx - t0
-                tile_ids[fill[t]] = k
-                fill[t] += 1
-
-
-def bin_tile_batch(
-    box: np.ndarray,  # [M, 4] int32 boxes of the sorted Gaussians
-    counts: np.ndarray,  # [n_tiles] from tile_pair_counts
-    width: int,
-    t0: int,
-    t1: int,
-    out: np.ndarray | None = None,  # [>= P] int32 buffer to fill (reused across runs)
-) -> tuple[np.ndarray, np.ndarray]:
-    """Stage 5c: ``(tile_start [t1 - t0 + 1] int64, tile_ids [P] int32)`` of tiles ``t0 .. t1 - 1``:
-    the slice of ``bin_tiles``'s lists for those tiles (same rows, same order)."""
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    tile_start = np.zeros(t1 - t0 + 1, np.int64)
-    np.cumsum(counts[t0:t1], out=tile_start[1:])
-    p = int(tile_start[-1])
-    tile_ids = np.empty(p, np.int32) if out is None else out[:p]
-    _bin_tile_batch_kernel(box, tiles_x, t0, t1, tile_start, tile_ids)
-    return tile_start, tile_ids
-
-
-# --------------------------------------------------------------------------------------------
-# Stage 6: compositing
-# --------------------------------------------------------------------------------------------
-
-
-@njit(cache=True, inline="always")
-def exp_neg_fast(x):
-    """``exp(x)`` for float32 ``x`` in ``[POWER_MIN, 0]`` to ~2e-6 relative error, plain arithmetic.
-
-    ``math.exp`` is a libm call that blocks SIMD; this (Taylor polynomial of ``exp(x / 16)``,
-    squared four times) lets the compiler vectorise a whole tile row.
-    """
-    y = x * np.float32(1.0 / 16.0)
-    p = np.float32(1.0 / 5040.0)
-    p = p * y + np.float32(1.0 / 720.0)
-    p = p * y + np.float32(1.0 / 120.0)
-    p = p * y + np.float32(1.0 / 24.0)
-    p = p * y + np.float32(1.0 / 6.0)
-    p = p * y + np.float32(0.5)
-    p = p * y + np.float32(1.0)
-    p = p * y + np.float32(1.0)
-    p = p * p
-    p = p * p
-    p = p * p
-    return p * p
-
-
-@njit(cache=True, inline="always")
-def _to_u8(x):
-    """Round half up and clip to a uint8 colour level."""
-    return np.uint8(min(255.0, max(0.0, math.floor(x + 0.5))))
-
-
-@njit(cache=True)
-def _composite_worker(
-    worker, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, t0, n_tiles, bg,
-    rgb, depth_out, alpha_out, median_out,
-):
-    """Composite tiles ``t0 + worker, t0 + worker + n_workers, ...`` (of ``t0 .. t0 + n_tiles - 1``)
-    front to back into the output images.
-
-    ``feat`` ``[M, N_FEAT]`` / ``box`` ``[M, 4]`` are the sorted Gaussians, ``tile_start`` /
-    ``tile_ids`` from ``bin_tiles`` (``t0 = 0``) or ``bin_tile_batch`` (indexed from ``t0``); writes
-    rgb ``[H, W, 3]`` uint8, depth, alpha and median depth ``[H, W]`` float32 in place.
-
-    For each (tile, Gaussian) pair every touched tile row is processed as one 16-wide branch-free
-    vector (lanes outside the Gaussian's box, below ``ALPHA_MIN`` or already terminated get alpha
-    0): several times faster than a scalar loop over the box. Kept out of the ``prange`` body so the
-    parallel transform cannot get in the way of that vectorisation.
-    """
-    t_min = np.float32(T_MIN)
-    a_min = np.float32(ALPHA_MIN)
-    a_max = np.float32(ALPHA_MAX)
-    p_min = np.float32(POWER_MIN)  # lanes clamped here are rejected by the alpha test
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    # unsigned loop index: no negative-index wraparound code, so the row loop vectorises
-    lanes = np.uint64(TILE_SIZE)
-    T = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-    Cr = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-    Cg = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-    Cb = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-    D = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-    Dm = np.empty((TILE_SIZE, TILE_SIZE), dtype=np.float32)
-    t_median = np.float32(MEDIAN_DEPTH_T)
-    for t in range(worker, n_tiles, n_workers):
-        px0, py0, px1, py1 = tile_pixel_bounds(t0 + t, tiles_x, width, height)
-        T[:] = 1.0
-        Cr[:] = 0.0
-        Cg[:] = 0.0
-        Cb[:] = 0.0
-        D[:] = 0.0
-        Dm[:] = 0.0
-        n_active = (px1 - px0 + 1) * (py1 - py0 + 1)
-        for k in range(tile_start[t], tile_start[t + 1]):
-            if n_active <= 0:  # every pixel of the tile has terminated
-                break
-            g = tile_ids[k]
-            ux = feat[g, FEAT_U] - np.float32(px0)  # mean relative to the tile's left column
-            v = feat[g, FEAT_V]
-            nha = np.float32(-0.5) * feat[g, FEAT_CONIC_A]
-            cb = feat[g, FEAT_CONIC_B]
-            nhc = np.float32(-0.5) * feat[g, FEAT_CONIC_C]
-            op = feat[g, FEAT_OPACITY]
-            cr = feat[g, FEAT_RED]
-            cgr = feat[g, FEAT_GREEN]
-            cbl = feat[g, FEAT_BLUE]
-            z = feat[g, FEAT_Z]
-            lx0 = np.float32(max(box[g, 0], px0) - px0)
-            lx1 = np.float32(min(box[g, 1], px1) - px0)
-            for py in range(max(box[g, 2], py0), min(box[g, 3], py1) + 1):
-                dy = np.float32(py) - v
-                qy = nhc * dy * dy
-                by = cb * dy
-                r = py - py0
-                Tv = T[r]
-                Crv = Cr[r]
-                Cgv = Cg[r]
-                Cbv = Cb[r]
-                Dv = D[r]
-                Dmv = Dm[r]
-                done = np.uint64(0)
-                for j in range(lanes):
-                    lj = np.float32(j)
-                    dx = lj - ux
-                    power = nha * dx * dx + qy - by * dx
-                    power = power if power > p_min else p_min
-                    e = op * exp_neg_fast(power)
-                    alpha = e if e < a_max else a_max
-                    Tl = Tv[j]
-                    ok = (alpha >= a_min) & (Tl >= t_min) & (lj >= lx0) & (lj <= lx1)
-                    a = alpha if ok else zero
-                    wgt = a * Tl
-                    Crv[j] += wgt * cr
-                    Cgv[j] += wgt * cgr
-                    Cbv[j] += wgt * cbl
-                    Dv[j] += wgt * z
-                    Tn = Tl * (one - a)
-                    Dmv[j] = z if (Tl > t_median) & (Tn <= t_median) else Dmv[j]
-                    Tv[j] = Tn
-                    done += np.uint64(ok & (Tn < t_min))
-                n_active -= np.int64(done)
-        for py in range(py0, py1 + 1):
-            r = py - py0
-            for px in range(px0, px1 + 1):
-                c = px - px0
-                Tl = T[r, c]
-                rgb[py, px, 0] = _to_u8(Cr[r, c] + Tl * bg[0])
-                rgb[py, px, 1] = _to_u8(Cg[r, c] + Tl * bg[1])
-                rgb[py, px, 2] = _to_u8(Cb[r, c] + Tl * bg[2])
-                acc = one - Tl
-                alpha_out[py, px] = acc
-                depth_out[py, px] = D[r, c] / acc if acc >= DEPTH_MIN_ALPHA else 0.0
-                median_out[py, px] = Dm[r, c]
-
-
-@njit(cache=True, parallel=True)
-def _composite_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, bg, n_workers):
-    """All tiles, ``n_workers`` threads. Returns rgb ``[H, W, 3]`` uint8, depth, alpha and median
-    depth ``[H, W]`` float32."""
-    rgb = np.empty((height, width, 3), dtype=np.uint8)
-    depth_out = np.empty((height, width), dtype=np.float32)
-    alpha_out = np.empty((height, width), dtype=np.float32)
-    median_out = np.empty((height, width), dtype=np.float32)
-    # Worker w takes tiles w, w + n_workers, ...: interleaving balances busy and empty regions.
-    for w in prange(n_workers):
-        _composite_worker(
-            w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, 0, n_tiles, bg,
-            rgb, depth_out, alpha_out, median_out,
-        )
-    return rgb, depth_out, alpha_out, median_out
-
-
-@njit(cache=True, parallel=True)
-def _composite_batch_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, t0, n_tiles, bg, n_workers,
-                            rgb, depth_out, alpha_out, median_out):
-    """Tiles ``t0 .. t0 + n_tiles - 1`` into the given output images, ``n_workers`` threads."""
-    for w in prange(n_workers):
-        _composite_worker(
-            w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, t0, n_tiles, bg,
-            rgb, depth_out, alpha_out, median_out,
-        )
-
-
-def composite_tiles(
-    splats: SplatTiles,
-    background: np.ndarray,  # [3] in [0, 255]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Stage 6: ``(rgb [H, W, 3] uint8, depth_m, alpha, depth_median_m [H, W] float32)``, threaded
-    over tiles (compiled)."""
-    n_workers = min(splats.n_tiles, kernel_threads())
-    return _composite_kernel(
-        splats.tile_start, splats.tile_ids, splats.feat, splats.box, splats.width, splats.height,
-        splats.tiles_x, splats.n_tiles, np.asarray(background, np.float32), n_workers,
-    )
-
-
-def composite_tile_batch(
-    feat: np.ndarray,  # [M, N_FEAT] float32 sorted front to back
-    box: np.ndarray,  # [M, 4] int32 in that order
-    tile_start: np.ndarray,  # [t1 - t0 + 1] int64 from bin_tile_batch
-    tile_ids: np.ndarray,  # [P] int32 from bin_tile_batch
-    t0: int,
-    background: np.ndarray,  # [3] in [0, 255]
-    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],  # rgb [H, W, 3] uint8, depth, alpha, median [H, W]
-) -> None:
-    """Stage 6 for one run of tiles (``bin_tile_batch``): writes those tiles' pixels of ``out``; every
-    tile is drawn exactly as ``composite_tiles`` draws it."""
-    rgb, depth_out, alpha_out, median_out = out
-    height, width = rgb.shape[:2]
-    n_tiles = len(tile_start) - 1
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    n_workers = max(1, min(n_tiles, kernel_threads()))
-    _composite_batch_kernel(tile_start, tile_ids, feat, box, width, height, tiles_x, int(t0), n_tiles,
-                            np.asarray(background, np.float32), n_workers, rgb, depth_out, alpha_out, median_out)
+            return getattr(importlib.import_module(f"atlas_pipeline.gaussian_world.{module}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit, prange
 
 from atlas_pipeline.gaussian_world import raster
+from atlas_pipeline.gaussian_world.composite import composite_tiles
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.raster import T_MIN, pixel_alpha, tile_pixel_bounds
 
@@ -85,7 +86,7 @@ def _accumulate_view(field: GaussianField, colors: np.ndarray, image: np.ndarray
     n = len(field)
     if sp is None:
         return np.zeros((n, 3)), np.zeros(n), float("nan")
-    rgb = raster.composite_tiles(sp, inp.background)[0]
+    rgb = composite_tiles(sp, inp.background)[0]
     # Residual of the unrounded colour image would be slightly better; the uint8 one is within 0.5.
     residual = rgb.astype(np.float32) - image.astype(np.float32)
     g_s, w_s = _backward(sp.tile_start, sp.tile_ids, sp.feat, sp.box, sp.width, sp.height, sp.tiles_x, sp.n_tiles,

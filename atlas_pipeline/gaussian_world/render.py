@@ -46,7 +46,7 @@ most ``render_peak_bytes(N, W, H)`` beyond the caller's arrays::
 
 with the worst case M = N (every Gaussian in view): at most 76 bytes per Gaussian. The image is the
 same bit for bit as the one-pass stages the fits use (``raster.prepare_splats`` /
-``raster.composite_tiles``; ``tests/test_big_world.py``).
+``composite.composite_tiles``; ``tests/test_big_world.py``).
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from atlas_pipeline.gaussian_world import raster
+from atlas_pipeline.gaussian_world import raster, raster_bounded
+from atlas_pipeline.gaussian_world.composite import composite_tile_batch
 from atlas_pipeline.gaussian_world._raster_reference import composite_reference, project_reference, sort_reference
 from atlas_pipeline.gaussian_world.raster import TILE_SIZE
 
@@ -166,23 +167,23 @@ def render_gaussians(
     if max_tile_pairs is not None and int(max_tile_pairs) < 1:
         raise ValueError(f"max_tile_pairs must be a positive integer or None, got {max_tile_pairs!r}")
     view = raster.view_from_pose(inp.T_world_cam, inp.K, inp.width, inp.height)
-    vis = raster.project_visible(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities,
+    vis = raster_bounded.project_visible(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities,
                                  view, inp.near_m)
     if len(vis.depth) == 0:
         return _empty_result(inp.width, inp.height, inp.background)
     bg = inp.background
     del inp  # the converted copies (if any) are not needed past the projection
-    raster.sort_visible(vis)
+    raster_bounded.sort_visible(vis)
     h, w = view.height, view.width
     out = (np.empty((h, w, 3), np.uint8), np.empty((h, w), np.float32), np.empty((h, w), np.float32),
            np.empty((h, w), np.float32))
-    counts = raster.tile_pair_counts(vis.box, w, h)  # [n_tiles]
-    batches = raster.tile_batches(counts, max_tile_pairs)
+    counts = raster_bounded.tile_pair_counts(vis.box, w, h)  # [n_tiles]
+    batches = raster_bounded.tile_batches(counts, max_tile_pairs)
     biggest = max(int(counts[t0:t1].sum()) for t0, t1 in batches)
     buf = np.empty(biggest, np.int32)  # reused by every batch
     for t0, t1 in batches:
-        tile_start, tile_ids = raster.bin_tile_batch(vis.box, counts, w, t0, t1, buf)
-        raster.composite_tile_batch(vis.feat, vis.box, tile_start, tile_ids, t0, bg, out)
+        tile_start, tile_ids = raster_bounded.bin_tile_batch(vis.box, counts, w, t0, t1, buf)
+        composite_tile_batch(vis.feat, vis.box, tile_start, tile_ids, t0, bg, out)
     rgb, depth_m, alpha, depth_median_m = out
     return RenderResult(rgb=rgb, depth_m=depth_m, alpha=alpha, depth_median_m=depth_median_m)
 
