@@ -959,7 +959,11 @@ def _world_folder(spec: str) -> Path:
         return target
     from assets.io_managers import artifacts_root
 
-    name = validate_dataset_name(spec)
+    try:
+        name = validate_dataset_name(spec)
+    except AtlasError:
+        raise ConfigError(f"'{spec}' is neither a bundle folder nor a partition with a world bundle "
+                          "(no such folder)") from None
     target = artifacts_root() / "world_bundle" / name
     if not target.is_dir():
         raise ConfigError(f"'{spec}' is neither a bundle folder nor a partition with a world bundle "
