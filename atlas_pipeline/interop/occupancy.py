@@ -19,7 +19,7 @@ map server loads.
 The map's cells are ``resolution_m`` wide (default :data:`OCCUPANCY_RESOLUTION_M`, 5 cm: Nav2's
 usual costmap resolution). The PGM (binary P5) holds 0 for occupied, 254 for free and 205 for
 unknown, its first row the map's far (+y) edge; the YAML says ``mode: trinary``, ``negate: 0``,
-``occupied_thresh: 0.65`` and ``free_thresh: 0.25`` (map_server: occupancy ``(255 - p) / 255``),
+``occupied_thresh: 0.65`` and ``free_thresh: 0.19`` (map_server: occupancy ``(255 - p) / 255``, so 205 stays unknown),
 and ``origin``: the map-frame pose ``[x, y, yaw]`` of the lower-left pixel.
 """
 
@@ -60,7 +60,8 @@ GRID_MARGIN_CELLS = 2
 # ROS map_server values (trinary): occupancy = (255 - p) / 255 with negate 0
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1  # the grid's cell states (nav_msgs/OccupancyGrid's values)
 PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN = 254, 0, 205
-OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.25
+# unknown (205) reads (255 - 205) / 255 = 0.196: free_thresh must stay below it or unknown loads as free
+OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.19
 _PREVIEW_SCALE = 4  # preview pixels per cell
 _PREVIEW_COLOURS = {FREE: (255, 255, 255), OCCUPIED: (20, 20, 20), UNKNOWN: (170, 170, 180)}
 _CAMERA_COLOUR = (220, 40, 40)
