@@ -94,3 +94,49 @@ def test_a_missing_or_wrong_chunk_is_named(small_manifest, tmp_path):
     f.frame(0)
     with pytest.raises(ArtifactError, match=r"fused-00001.npz: points_cam \[3, 3\]"):
         f.frame(6)
+
+
+class _CountingManifest:
+    """A manifest stand-in whose frames are their index; frame ``bad`` cannot be read."""
+
+    def __init__(self, n: int, bad: int | None = None):
+        self.n, self.bad, self.reads = n, bad, []
+
+    def read_rgb(self, i):
+        if i == self.bad:
+            raise ValueError(f"frame {i}: truncated PNG")
+        self.reads.append(i)
+        return np.full((2, 2, 3), i, np.uint8)
+
+    def read_depth_m(self, i, allow_empty=False):
+        assert allow_empty  # an all-zero depth frame is the tracker's to mark lost, not the reader's to refuse
+        return np.full((2, 2), float(i), np.float32)
+
+
+def test_read_ahead_yields_every_frame_in_order_and_reads_only_a_few_ahead():
+    from atlas_pipeline.perception.rgbd import READ_AHEAD_FRAMES, read_ahead
+
+    m = _CountingManifest(10)
+    order = [5, 6, 7, 4, 3, 2, 1, 0]  # forward from an anchor, then backward
+    got = []
+    for i, rgb, depth in read_ahead(m, order):
+        assert int(rgb[0, 0, 0]) == i and float(depth[0, 0]) == i
+        got.append(i)
+        assert len(m.reads) <= len(got) + READ_AHEAD_FRAMES  # memory: a few frames, not the sequence
+    assert got == order
+    # A caller that stops early leaves at most the frames in flight read.
+    m = _CountingManifest(100)
+    for i, _, _ in read_ahead(m, range(100)):
+        if i == 3:
+            break
+    assert len(m.reads) <= 4 + READ_AHEAD_FRAMES
+
+
+def test_read_ahead_raises_a_read_error_at_its_frame():
+    from atlas_pipeline.perception.rgbd import read_ahead
+
+    got = []
+    with pytest.raises(ValueError, match="frame 4: truncated PNG"):
+        for i, _, _ in read_ahead(_CountingManifest(10, bad=4), range(10)):
+            got.append(i)
+    assert got == [0, 1, 2, 3]

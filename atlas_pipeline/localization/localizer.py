@@ -47,6 +47,7 @@ from atlas_pipeline.localization.sequence import (
     SequenceTracker,
 )
 from atlas_pipeline.localization.tracker import SurfelModel
+from atlas_pipeline.perception.rgbd import read_ahead
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.tum import FrameManifest
 from atlas_pipeline.safe_arrays import load_json_object_checked
@@ -317,9 +318,7 @@ def localize_sequence(
             continue
         if order.start != anchor_index:
             st.reset(anchor_index, T_est[anchor_index] if np.isfinite(T_est[anchor_index]).all() else None)
-        for i in order:
-            rgb = manifest.read_rgb(i)
-            depth = manifest.read_depth_m(i, allow_empty=True)
+        for i, rgb, depth in read_ahead(manifest, order):
             given = T_world_cam_start if (i == anchor_index and T_world_cam_start is not None) else None
             est = st.process(i, rgb, depth, T_given=given, timestamp_s=float(manifest.timestamps_s[i]),
                              colour_delay_s=manifest.colour_delay_s(i))

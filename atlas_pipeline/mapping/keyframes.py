@@ -13,7 +13,7 @@ from atlas_pipeline.config import LocalizationConfig, MappingConfig
 from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
-from atlas_pipeline.perception.rgbd import FusedFrames
+from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.safe_arrays import load_json_object_checked, load_npz_checked, save_npz_deterministic
 from atlas_pipeline.sensors.tum import FrameManifest
@@ -112,13 +112,11 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
                          new_map_after_lost_frames=mapping.new_map_after_lost_frames)
     progress = Progress("tracking and mapping", n, log)
     started = False
-    for i in range(n):
-        if frames is not None:
-            if i >= len(frames):  # fewer frames given (a warm-up): the rest are not attempted
-                break
-            rgb, depth = frames[i]
-        else:
-            rgb, depth = manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)
+    # Frames given in memory (fewer than the sequence: a warm-up, the rest not attempted), or
+    # read ahead from disk.
+    source = (((i, *f) for i, f in enumerate(frames[:n])) if frames is not None
+              else read_ahead(manifest, range(n)))
+    for i, rgb, depth in source:
         # The first frame with depth anchors the world at the identity.
         anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
         est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]),

@@ -28,7 +28,7 @@ import numpy as np
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
-from atlas_pipeline.perception.rgbd import FusedFrames
+from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
 
 if TYPE_CHECKING:
@@ -261,9 +261,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     status: list[str] = []
     history = list(world.history)
     progress = Progress("tracking into the saved world", n, log)
-    for i in range(n):
-        rgb = manifest.read_rgb(i)
-        depth = manifest.read_depth_m(i, allow_empty=True)
+    for i, rgb, depth in read_ahead(manifest, range(n)):
         est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]),
                          colour_delay_s=manifest.colour_delay_s(i))
         poses[i] = est.T_world_cam

@@ -15,7 +15,7 @@ import tempfile
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -34,7 +34,7 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "fuse", "iter_rgbd"]
+__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "fuse", "iter_rgbd", "read_ahead"]
 
 
 def _undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iters: int = 10):
@@ -92,6 +92,39 @@ def backproject(
     pts = rays[valid] * z[valid][:, None]
     cols = rgb[::stride, ::stride][valid] if rgb is not None else None
     return pts.astype(np.float32, copy=False), cols
+
+
+# Frames decoded ahead of the one being tracked. PNG decoding (a third of a 640x480 frame's
+# tracking time) releases the GIL, so one reader thread overlaps it with tracking; two frames in
+# flight bound the memory to a few MB whatever the sequence length.
+READ_AHEAD_FRAMES = 2
+
+
+def read_ahead(manifest: FrameManifest, indices) -> "Iterator[tuple[int, np.ndarray, np.ndarray]]":
+    """Yield ``(frame_index, rgb [H, W, 3] uint8, depth_m [H, W] float32)`` for ``indices`` in order,
+    each decoded by a reader thread while the caller works on the previous ones. Depth may be all
+    zero (``allow_empty``: the tracker marks such a frame lost). A read error is raised at the frame
+    it belongs to; frames not consumed are dropped when the caller stops early."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def read(i: int):
+        return manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)
+
+    order = list(indices)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="atlas-read") as pool:
+        pending = [(i, pool.submit(read, i)) for i in order[:READ_AHEAD_FRAMES]]
+        nxt = len(pending)
+        try:
+            while pending:
+                i, fut = pending.pop(0)
+                if nxt < len(order):
+                    pending.append((order[nxt], pool.submit(read, order[nxt])))
+                    nxt += 1
+                rgb, depth = fut.result()
+                yield i, rgb, depth
+        finally:
+            for _, fut in pending:
+                fut.cancel()
 
 
 def iter_rgbd(manifest: FrameManifest, indices=None):
