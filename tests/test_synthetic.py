@@ -18,6 +18,14 @@ from atlas_pipeline.geometry import (
     rotation_angle_rad,
 )
 from atlas_pipeline.sensors import synthetic as syn
+from atlas_pipeline.sensors import synthetic_colour as syn_colour
+from atlas_pipeline.sensors import synthetic_kinect as syn_kinect
+from atlas_pipeline.sensors import synthetic_path as syn_path
+from atlas_pipeline.sensors import synthetic_raytrace as syn_raytrace
+from atlas_pipeline.sensors import synthetic_scene as syn_scene
+from atlas_pipeline.sensors import synthetic_spec as syn_spec
+from atlas_pipeline.sensors import synthetic_textures as syn_textures
+from atlas_pipeline.sensors import synthetic_writer as syn_writer
 from atlas_pipeline.sensors.synthetic import (
     SyntheticSpec,
     build_scene,
@@ -176,7 +184,7 @@ def test_depth_backprojects_onto_scene_surfaces(dataset):
         wall_d = np.minimum(pw[:, :2] - scene.room_min[:2], scene.room_max[:2] - pw[:, :2])
         near_obj = wall_d.min(axis=1) < 0.01
         for obj in scene.objects:
-            near_obj |= syn._object_distance(obj, pw) < 0.01
+            near_obj |= syn_scene._object_distance(obj, pw) < 0.01
         floor = (pw[:, 2] < 0.02) & ~near_obj
         assert floor.sum() > 50
         assert np.abs(pw[floor, 2]).max() < 0.001
@@ -230,8 +238,8 @@ def test_albedo_is_a_function_of_the_surface_point():
     rng = np.random.default_rng(1)
     P = np.column_stack([rng.uniform(-2, 2, 500), rng.uniform(-2, 2, 500), np.zeros(500)])
     sid = np.zeros(500, dtype=np.int64)
-    a = syn._albedo(scene, P, sid)
-    b = syn._albedo(scene, P[::-1].copy(), sid)[::-1]
+    a = syn_textures._albedo(scene, P, sid)
+    b = syn_textures._albedo(scene, P[::-1].copy(), sid)[::-1]
     np.testing.assert_array_equal(a, b)  # per-point: independent of batch and order
     assert a.std(axis=0).min() > 0.03  # the floor is textured, not flat
 
@@ -343,7 +351,7 @@ def test_crash_leaves_no_partial_dataset(tmp_path, monkeypatch):
             raise RuntimeError("simulated crash")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(syn, "render_synthetic_frame", flaky)
+    monkeypatch.setattr(syn_writer, "render_synthetic_frame", flaky)
     out = tmp_path / "ds"
     with pytest.raises(RuntimeError, match="simulated crash"):
         generate_synthetic_dataset(out, tiny_spec(n_frames=5))
@@ -351,11 +359,11 @@ def test_crash_leaves_no_partial_dataset(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
     # An existing complete dataset survives a failed regeneration for another spec.
-    monkeypatch.setattr(syn, "render_synthetic_frame", real)
+    monkeypatch.setattr(syn_writer, "render_synthetic_frame", real)
     good = tiny_spec(n_frames=2)
     generate_synthetic_dataset(out, good)
     calls["n"] = 0
-    monkeypatch.setattr(syn, "render_synthetic_frame", flaky)
+    monkeypatch.setattr(syn_writer, "render_synthetic_frame", flaky)
     with pytest.raises(RuntimeError):
         generate_synthetic_dataset(out, tiny_spec(n_frames=5, seed=9))
     assert (out / ".complete").read_text().strip() == syn.spec_hash(good)
@@ -370,7 +378,7 @@ def test_object_culling_does_not_change_the_image(monkeypatch):
     poses = camera_path(spec, np.array([0.0, 0.7, 1.9, 4.0]))
     fast = [render_synthetic_frame(spec, scene, T) for T in poses]
     monkeypatch.setattr(
-        syn, "_screen_rect", lambda obj, R, o, spec: (slice(0, spec.height), slice(0, spec.width))
+        syn_raytrace, "_screen_rect", lambda obj, R, o, spec: (slice(0, spec.height), slice(0, spec.width))
     )
     for T, (rgb, depth) in zip(poses, fast):
         rgb_ref, depth_ref = render_synthetic_frame(spec, scene, T)
@@ -442,16 +450,16 @@ def test_preset_determinism_byte_identical(tmp_path, name):
 def test_every_new_field_changes_the_hash():
     base = SyntheticSpec()
     h0 = syn.spec_hash(base)
-    new_fields = [n for n in syn._FIELD_DEFAULTS if n not in syn._V1_FIELDS]
+    new_fields = [n for n in syn_spec._FIELD_DEFAULTS if n not in syn_spec._V1_FIELDS]
     assert len(new_fields) >= 20
     hashes = set()
     for n in new_fields:
-        d = syn._FIELD_DEFAULTS[n]
+        d = syn_spec._FIELD_DEFAULTS[n]
         special = {"loop_revolutions": 2, "motion_blur_samples": 3, "orbit_rate_deg_per_s": 20.0,
                    "pan_rate_deg_per_s": 60.0, "place": "suite"}
         v = special[n] if n in special else (d + 0.01 if isinstance(d, float) else d + 1)
         s = SyntheticSpec(**{n: v})
-        assert syn._spec_dict(s)[n] == v
+        assert syn_spec._spec_dict(s)[n] == v
         hashes.add(syn.spec_hash(s))
     assert h0 not in hashes and len(hashes) == len(new_fields)
     # YAML-style ints are canonicalised for the new fields too.
@@ -529,8 +537,8 @@ def test_depth_noise_grows_with_incidence_angle():
 def _sensor_and_clean(spec: SyntheticSpec, t: float = 0.5, index: int = 0):
     scene = build_scene(spec.seed)
     T = camera_path(spec, np.array([t]))[0]
-    lay = syn._render_layers(spec, scene, T)
-    rgb, depth = syn._sensor_frame(spec, scene, t, index)
+    lay = syn_raytrace._render_layers(spec, scene, T)
+    rgb, depth = syn_colour._sensor_frame(spec, scene, t, index)
     return lay, rgb, depth, scene, T
 
 
@@ -540,21 +548,21 @@ def test_missing_depth_at_edges_shadows_shiny_and_dark():
     lay, _, depth, _, _ = _sensor_and_clean(spec, t=0.0)
     clean = lay.depth_m
     assert (clean > 0).all()
-    edge = syn._depth_edges(clean)
+    edge = syn_kinect._depth_edges(clean)
     assert edge.any()
     missing = depth == 0
     assert missing[edge].mean() > 0.3  # occlusion boundaries lose many readings
-    far_from_edges = ~syn._dilate(syn._dilate(edge))
+    far_from_edges = ~syn_kinect._dilate(syn_kinect._dilate(edge))
     assert missing[far_from_edges].mean() < missing[edge].mean() / 3
     # Projector shadows: a band left of the foreground, on the background.
-    shadow = syn._projector_shadow(clean, spec.fx, spec.projector_baseline_m)
+    shadow = syn_kinect._projector_shadow(clean, spec.fx, spec.projector_baseline_m)
     assert shadow.any() and missing[shadow].all()
     v, u = np.nonzero(shadow)
     right = np.clip(u + 3, 0, spec.width - 1)
     assert np.median(clean[v, right] - clean[v, u]) < 0  # nearer surface on the right of a shadow
     # Shiny spheres seen head-on and dark surfaces have no reading.
     head_on = lay.shiny & (lay.cos_incidence > np.cos(np.radians(spec.shiny_dropout_deg)))
-    head_on &= ~syn._dilate(edge)  # edge pixels may read a jittered neighbour instead
+    head_on &= ~syn_kinect._dilate(edge)  # edge pixels may read a jittered neighbour instead
     assert head_on.any() and missing[head_on].all()
     shape = clean.shape
     dark = syn.apply_depth_sensor_model(spec, clean, np.ones(shape), np.zeros(shape), np.zeros(shape, bool))
@@ -570,21 +578,21 @@ def test_colour_shift_blur_drift_and_noise():
     T = camera_path(tiny_spec(**base), np.array([0.5]))[0]
     clean, _ = render_synthetic_frame(tiny_spec(**base), scene, T)
     # Misregistration: colour moves by (dx, dy) against depth; integer shifts are exact.
-    rgb, _ = syn._sensor_frame(tiny_spec(**base, rgb_shift_x_px=2.0, rgb_shift_y_px=-1.0), scene, 0.5, 0)
+    rgb, _ = syn_colour._sensor_frame(tiny_spec(**base, rgb_shift_x_px=2.0, rgb_shift_y_px=-1.0), scene, 0.5, 0)
     np.testing.assert_array_equal(rgb[:-1, 2:], clean[1:, :-2])
     # Motion blur: the mean of sub-frame renders; smoother, same mean brightness.
-    rgb, _ = syn._sensor_frame(tiny_spec(**base, motion_blur_samples=5, exposure_time_s=0.03), scene, 0.5, 0)
+    rgb, _ = syn_colour._sensor_frame(tiny_spec(**base, motion_blur_samples=5, exposure_time_s=0.03), scene, 0.5, 0)
     assert abs(rgb.mean() - clean.mean()) < 1.0
     grad = lambda im: np.abs(np.diff(im.astype(float).mean(axis=2), axis=1)).mean()  # noqa: E731
     assert grad(rgb) < 0.95 * grad(clean)
     # Sensor noise: ~2 levels of std.
-    rgb, _ = syn._sensor_frame(tiny_spec(**base, rgb_noise_std=2.0), scene, 0.5, 0)
+    rgb, _ = syn_colour._sensor_frame(tiny_spec(**base, rgb_noise_std=2.0), scene, 0.5, 0)
     diff = rgb.astype(float) - clean
     interior = (clean > 5) & (clean < 250)
     assert diff[interior].std() == pytest.approx(2.0, rel=0.2)
     # Exposure and white balance drift over time: the gain changes, red and blue differently.
     spec = tiny_spec(**base, exposure_drift=0.15, white_balance_drift=0.05)
-    gains = np.array([syn._colour_gain(spec, t, 0.45) for t in np.linspace(0.0, 10.0, 41)])
+    gains = np.array([syn_colour._colour_gain(spec, t, 0.45) for t in np.linspace(0.0, 10.0, 41)])
     assert np.ptp(gains[:, 1]) > 0.1 and np.ptp(gains[:, 0] / gains[:, 1]) > 0.03
     assert np.ptp(gains[:, 2] / gains[:, 1]) > 0.03
 
@@ -594,7 +602,7 @@ def test_dropped_frames_leave_timestamp_gaps(tmp_path):
     t = syn.frame_times_s(spec)
     slots = np.round(np.diff(t) * spec.fps).astype(int)
     np.testing.assert_allclose(np.diff(t) * spec.fps, slots, atol=1e-9)  # still on the sensor clock
-    assert t[0] == 0.0 and slots.min() == 1 and slots.max() <= 1 + syn._MAX_DROP_BURST
+    assert t[0] == 0.0 and slots.min() == 1 and slots.max() <= 1 + syn_path._MAX_DROP_BURST
     assert 0.005 < (slots > 1).mean() < 0.1
     # The files carry the gaps; the first frames of a longer sequence are the same frames.
     tiny = tiny_spec(n_frames=12, dropped_frame_rate=0.3)
@@ -668,9 +676,9 @@ def test_default_motion_is_untouched_by_the_motion_code():
     that only change the sensor share the default path exactly (same code)."""
     spec = SyntheticSpec()
     t = np.linspace(0.0, 2.0, 25)
-    m = syn._motion_of(spec)
-    ph = syn._path_phases(spec.seed)
-    general = np.array([syn._pose_at_motion(float(x), ph, m) for x in t])
+    m = syn_path._motion_of(spec)
+    ph = syn_path._path_phases(spec.seed)
+    general = np.array([syn_path._pose_at_motion(float(x), ph, m) for x in t])
     np.testing.assert_allclose(general, camera_path(spec, t), atol=1e-9)
     noisy = SyntheticSpec(**syn.SYNTHETIC_PRESETS["synthetic-noisy"])
     assert not noisy.custom_motion and noisy.sensor_model

@@ -157,7 +157,7 @@ def _route_clearance_m(xy: np.ndarray) -> float:
 
 def build_suite_scene(seed: int):
     """The suite (module docstring) with ``OBJECTS_PER_ROOM`` objects per room placed from ``seed``."""
-    from atlas_pipeline.sensors.synthetic import _N_ROOM_SURFACES, SceneObject, textured_scene
+    from atlas_pipeline.sensors.synthetic_scene import _N_ROOM_SURFACES, SceneObject, textured_scene
 
     rng = np.random.default_rng([seed, 0x5117E])
     objects: list[SceneObject] = []
