@@ -47,6 +47,7 @@ from dagster import (
 from pydantic import Field as PField
 
 from assets.io_managers import ArtifactIOManager, artifacts_root
+from assets.export_assets import EXPORT_GROUP, build_export_assets
 from assets.pipeline_assets import build_pipeline_assets, dataset_version
 from assets.resources import atlas_config, dataset_entry
 from assets.runs import reap_dead_runs
@@ -225,16 +226,20 @@ def build_definitions(artifacts_dir: str | Path | None = None, profile: str | No
     chosen = executor_name(executor)
     run_executor = select_executor(chosen, dask_scheduler)
     everything = define_asset_job(
-        "atlas_gs_all", selection=AssetSelection.all(include_sources=True),
+        "atlas_gs_all", selection=AssetSelection.all(include_sources=True) - AssetSelection.groups(EXPORT_GROUP),
         description="Observe the dataset's files, then materialize every Atlas-GS asset of one dataset partition "
                     "and run its checks (assets whose inputs, settings and code are unchanged are reused).",
         executor_def=run_executor,
     )
     atlas = atlas_config(profile, overrides)
     partitions = dataset_partitions(partition_names)
+    exports = define_asset_job(
+        "atlas_gs_exports", selection=AssetSelection.groups(EXPORT_GROUP),
+        description="Materialize the exports of one partition (COLMAP, nerfstudio, mesh, occupancy grid) from its "
+                    "materialized dataset, world and localization.", executor_def=run_executor)
     return Definitions(
-        assets=build_pipeline_assets(partitions, atlas.load()),
-        jobs=[everything, register_dataset],
+        assets=build_pipeline_assets(partitions, atlas.load()) + build_export_assets(partitions),
+        jobs=[everything, exports, register_dataset],
         sensors=[registry_sensor(partitions.get_partition_keys())],
         # By default one process per run: the partition lock (ArtifactIOManager.lock_partition) is
         # held by the run's process, and the numba kernels use the cores themselves.

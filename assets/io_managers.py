@@ -51,6 +51,9 @@ from atlas_pipeline.io_utils import (  # ARTIFACT_KIND: output-policy kind of ev
     stage_dir,
     write_json_atomic,
 )
+from atlas_pipeline.interop.mesh import WorldMesh
+from atlas_pipeline.interop.occupancy import OccupancyMap
+from atlas_pipeline.interop.trainer_export import TrainerExport
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.perception.rgbd import FusedFrames
@@ -90,6 +93,9 @@ ARTIFACT_TYPES: dict[str, Any] = {
     "DemoVideos": DemoVideos,
     "WorldBundleArtifact": WorldBundleArtifact,
     "PhotometricReport": PhotometricReport,
+    "TrainerExport": TrainerExport,
+    "WorldMesh": WorldMesh,
+    "OccupancyMap": OccupancyMap,
 }
 
 

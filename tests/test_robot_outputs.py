@@ -105,3 +105,33 @@ def test_mesh_and_occupancy_figures_on_the_synthetic_room():
     o = r["occupancy"]
     assert o["mean_iou"] >= MIN_MEAN_IOU and o["iou_free"] >= MIN_MEAN_IOU, o
     assert o["floor_tilt_deg"] < 0.5 and abs(o["floor_offset_mm"]) < 10
+
+
+@pytest.mark.slow
+def test_export_assets_materialize_after_a_run_and_are_reused(isolated):
+    """The ``exports`` group on a partition a run materialized: each artifact typed and on disk, the
+    mesh and grid with an inline preview; a second run reuses all four. Not part of atlas_gs_all."""
+    import zipfile
+
+    from dagster import DagsterInstance
+
+    from assets.cli import main
+    from assets.definitions import build_definitions
+
+    assert main(["run", "synth-small", "--set", "mapping.optimization_epochs=0"]) == 0
+    defs = build_definitions()
+    job = defs.resolve_job_def("atlas_gs_exports")
+    with DagsterInstance.get() as inst:
+        res = job.execute_in_process(partition_key="synth-small", instance=inst)
+        assert res.success
+        mats = {m.asset_key.path[-1]: m for m in res.asset_materializations_for_node("world_mesh")}
+        assert "preview" in mats["world_mesh"].metadata
+        again = job.execute_in_process(partition_key="synth-small", instance=inst)
+        for node in ("colmap_export", "nerfstudio_export", "world_mesh", "occupancy_map"):
+            assert all(m.metadata["reused"].value for m in again.asset_materializations_for_node(node)), node
+    art = isolated / "artifacts"
+    with zipfile.ZipFile(art / "colmap_export" / "synth-small" / "colmap.zip") as zf:
+        assert {"sparse/0/cameras.bin", "sparse/0/images.txt", "export.json"} <= set(zf.namelist())
+    assert (art / "occupancy_map" / "synth-small" / "map.yaml").is_file()
+    assert (art / "world_mesh" / "synth-small" / "mesh.glb").is_file()
+    assert "colmap_export" not in {n.name for n in defs.resolve_job_def("atlas_gs_all").graph.node_defs}
