@@ -68,7 +68,9 @@ from __future__ import annotations
 from atlas_pipeline.sensors.synthetic_kinect import apply_depth_sensor_model, depth_noise_sigma_m
 from atlas_pipeline.sensors.synthetic_path import camera_path, frame_times_s
 from atlas_pipeline.sensors.synthetic_raytrace import render_synthetic_frame
-from atlas_pipeline.sensors.synthetic_scene import ROOM_MAX, ROOM_MIN, SceneObject, SyntheticScene, build_scene, scene_of
+from atlas_pipeline.sensors.synthetic_scene import (
+    ROOM_MAX, ROOM_MIN, SceneObject, SyntheticScene, build_scene, scene_of,
+)
 from atlas_pipeline.sensors.synthetic_spec import (
     GENERATOR_VERSION, HANDHELD_MOTION, KINECT_V1_SENSOR, LOOP_MOTION, PLACES, SUITE_PRESETS, SYNTHETIC_PRESETS,
     TIMESTAMP_START_S, SyntheticSpec, spec_hash,

@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.geometry import (
@@ -47,8 +46,13 @@ from atlas_pipeline.geometry import (
     so3_exp,
     so3_log,
 )
+from atlas_pipeline.viz.camera_path_occupancy import Occupancy, build_occupancy
+from atlas_pipeline.viz.camera_path_settings import (
+    DEFAULT_IMAGE_SIZE, DEFAULT_K, DEFAULT_SETTINGS, CameraPathSettings,
+)
 
-__all__ = ["CameraPath", "Occupancy", "plan_camera_path", "flythrough_poses", "build_occupancy", "image_sharpness",
+__all__ = ["CameraPath", "CameraPathSettings", "DEFAULT_SETTINGS", "Occupancy", "plan_camera_path", "flythrough_poses",
+           "build_occupancy", "image_sharpness",
            "PATH_ORBIT", "PATH_ARC", "PATH_FLYTHROUGH", "PATH_CENTRE_ORBIT"]
 
 PATH_ORBIT = "orbit"
@@ -56,105 +60,6 @@ PATH_ARC = "arc"
 PATH_FLYTHROUGH = "flythrough"
 PATH_CENTRE_ORBIT = "centre_orbit"
 
-# ---- occupancy ------------------------------------------------------------------------------
-# Gaussians fainter than this do not block the camera or its view (pruning leftovers, floaters).
-OCC_MIN_OPACITY = 0.05
-# Percentiles of the means that bound the grid: a few stray far points do not blow it up.
-OCC_BOUNDS_PERCENTILES = (0.5, 99.5)
-# The grid's voxel is at least the map voxel and at least the 75th percentile of the spacing
-# between neighbouring means, so a surface sampled sparsely (far from the sensor) has no holes
-# that rays leak through.
-OCC_SPACING_PERCENTILE = 75.0
-# Occupied voxels are dilated by this many voxels (a 3x3x3 neighbourhood): closes the remaining
-# pinholes and keeps the camera a little off the surface.
-OCC_DILATE_VOXELS = 1
-# At most this many cells (about 16 MB of booleans); the voxel grows when the map is larger.
-OCC_MAX_CELLS = 16_000_000
-# Means used to estimate the spacing (a random subset: the KD-tree on all of them is not needed).
-OCC_SPACING_SAMPLE = 20_000
-
-# ---- pose checks ----------------------------------------------------------------------------
-# A path camera keeps at least this far from the nearest Gaussian mean (metres) ...
-CLEARANCE_M = 0.25
-# ... or this share of the keyframes' median clearance, if that is smaller (a recording made in a
-# narrow space may never have been 0.25 m from a wall).
-CLEARANCE_KEYFRAME_SHARE = 0.6
-# The segment from the camera to its target must be free for this share of its length: nothing
-# right in front of the camera (a wall it stands behind). Nearer the target an object may hide
-# part of it, as objects did for the recording camera.
-LOS_MIN_FREE_SHARE = 0.4
-# Cells of the coverage estimate (a grid over the field of view; see _SplatView).
-SPLAT_GRID = (32, 24)
-# Gaussians used for it (a random subset, each standing for N / n of them).
-SPLAT_SAMPLE = 30_000
-# Means nearer the camera than this are not splatted (the renderer's default near plane).
-SPLAT_NEAR_M = 0.05
-# A path view must cover at least this share of the cells the keyframes' views covered (median):
-# the video should be as filled as the recording's views were.
-COVERAGE_MIN_RATIO = 0.8
-# A path view's median distance to the surface it sees is at least this share of the keyframes'
-# median: closer views magnify the Gaussians, and the renders blur.
-DEPTH_MIN_RATIO = 0.6
-# The camera stays in the box of the map's means and the keyframe centres, grown by this (metres).
-BOX_MARGIN_M = 0.1
-# Camera assumed when the intrinsics are not given: the Kinect v1 / TUM RGB-D default.
-DEFAULT_K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
-DEFAULT_IMAGE_SIZE = (640, 480)
-
-# ---- render verification --------------------------------------------------------------------
-# The chosen orbit / arc is rendered (VERIFY_FRAMES frames spread over it, this wide) and compared
-# with the keyframes rendered alike (at most VERIFY_KEYFRAMES of them): each frame must cover
-# this share of the keyframes' median coverage and be this sharp relative to their median.
-VERIFY_WIDTH = 160
-VERIFY_FRAMES = 24
-VERIFY_KEYFRAMES = 8
-VERIFY_COVERAGE_RATIO = 0.85
-VERIFY_SHARPNESS_RATIO = 0.75
-# Rounds of (plan, render, rule out the azimuths of failing frames) before the fly-through.
-VERIFY_ROUNDS = 3
-
-# ---- orbit / arc planning -------------------------------------------------------------------
-# Target: the first hits of a small ray bundle around each keyframe's optical axis.
-TARGET_BUNDLE = 5  # 5 x 5 rays
-TARGET_BUNDLE_HALF_FOV_SHARE = 0.3  # within the central 30 % of the half field of view
-# Weight (per keyframe) of the point at the keyframes' viewing distance against the least-squares
-# convergence of their optical axes: small, so converging axes decide where they converge.
-TARGET_PRIOR_WEIGHT = 0.05
-# Weight of the keyframes' mean up against the direction perpendicular to their x axes.
-UP_PRIOR_WEIGHT = 0.01
-# Radii tried per pose, as shares of the keyframes' distance to the target (largest first). No
-# closer than 70 %: nearer, the target (the teddy) outgrows the frame and its Gaussians blur.
-SHRINK_STEPS = (1.0, 0.94, 0.88, 0.82, 0.76, 0.7)
-# A full orbit is tried only when the keyframes saw the target from all around: the largest gap
-# between their azimuths is at most this.
-FULL_ORBIT_MAX_GAP_DEG = 120.0
-# Arcs may reach this far beyond the keyframes' azimuth span on each side (degrees).
-ARC_MARGIN_DEG = 40.0
-# An arc whose poses fail between the grid azimuths is trimmed by a grid step at each end, at
-# most this many times.
-ARC_MAX_TRIMS = 4
-# Azimuth step of the grid candidate paths are screened on before their poses are checked.
-ANGLE_GRID_DEG = 3.0
-# The narrowest arc still worth calling a sweep (half-width, degrees); below it, fly through.
-MIN_ARC_HALF_DEG = 8.0
-# The centre orbit (no keyframes: its radius comes from the map's extent, not from where a camera
-# was) may be pulled in much further.
-CENTRE_SHRINK_STEPS = tuple(np.round(np.linspace(1.0, 0.2, 17), 3))
-# Per-pose radius shares are smoothed along the path over this share of its frames (a sliding
-# minimum, then a mean over half of it), so the camera glides instead of jumping where a pose
-# shrank.
-SHRINK_SMOOTH_SHARE = 0.1
-# At most this many keyframe poses drive the planning (evenly subsampled): a whole trajectory
-# may be passed in place of the keyframes.
-MAX_PLANNING_POSES = 64
-
-# ---- fly-through ----------------------------------------------------------------------------
-# Rotation counts as this many metres per radian when spacing frames along the path, so a camera
-# that mostly turns in place still moves evenly.
-FLY_METRES_PER_RAD = 0.5
-# At most this many poses are flown through (evenly subsampled): a dense trajectory passed in place
-# of the keyframes would otherwise carry its tracking jitter into the video.
-FLY_MAX_POSES = 32
 # Path length floor between two keyframes (metres): coincident keyframes stay distinct knots.
 _EPS_LEN_M = 1e-6
 
@@ -198,126 +103,6 @@ class CameraPath:
 
 
 # ---------------------------------------------------------------------------------------------
-# Occupancy
-
-
-@dataclass
-class Occupancy:
-    """A boolean voxel grid of the map, with ray casting and clearance queries.
-
-    Attributes:
-        origin_world: ``[3]`` corner of voxel (0, 0, 0).
-        voxel_m: edge length of a voxel (metres).
-        occupied: ``[X, Y, Z]`` bool, dilated occupancy.
-        box_min, box_max: ``[3]`` box a camera centre must stay in (map and keyframes).
-        tree: KD-tree of the occupying means (clearance queries).
-    """
-
-    origin_world: np.ndarray
-    voxel_m: float
-    occupied: np.ndarray
-    box_min: np.ndarray
-    box_max: np.ndarray
-    tree: cKDTree | None
-
-    def is_occupied(self, points_world: np.ndarray) -> np.ndarray:
-        """``[...]`` bool for points ``[..., 3]``; outside the grid counts as free."""
-        p = np.asarray(points_world, dtype=np.float64)
-        ijk = np.floor((p - self.origin_world) / self.voxel_m).astype(np.int64)
-        shape = np.array(self.occupied.shape)
-        inside = np.all((ijk >= 0) & (ijk < shape), axis=-1)
-        ijk = np.where(inside[..., None], ijk, 0)
-        flat = (ijk[..., 0] * shape[1] + ijk[..., 1]) * shape[2] + ijk[..., 2]
-        return inside & self.occupied.ravel()[flat]
-
-    def clearance_m(self, points_world: np.ndarray) -> np.ndarray:
-        """``[N]`` distance from points ``[N, 3]`` to the nearest occupying mean (inf: empty map)."""
-        p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
-        if self.tree is None:
-            return np.full(len(p), np.inf)
-        d, _ = self.tree.query(p)
-        return np.asarray(d, dtype=np.float64)
-
-    def in_box(self, points_world: np.ndarray) -> np.ndarray:
-        p = np.asarray(points_world, dtype=np.float64)
-        return np.all((p >= self.box_min) & (p <= self.box_max), axis=-1)
-
-    def first_hit_m(self, origins_world: np.ndarray, dirs_world: np.ndarray,
-                    max_dist_m: np.ndarray | float) -> np.ndarray:
-        """Distance ``[R]`` along unit rays (origins, dirs ``[R, 3]``) to the first occupied voxel
-        within ``max_dist_m`` (scalar or ``[R]``); ``inf`` where the ray hits nothing.
-
-        Marches at half a voxel; the first half voxel is skipped (the origin's own cell).
-        """
-        o = np.asarray(origins_world, dtype=np.float64).reshape(-1, 3)
-        d = np.asarray(dirs_world, dtype=np.float64).reshape(-1, 3)
-        dmax = np.broadcast_to(np.asarray(max_dist_m, dtype=np.float64), (len(o),))
-        out = np.full(len(o), np.inf)
-        if len(o) == 0:
-            return out
-        step = 0.5 * self.voxel_m
-        n_steps = int(np.ceil(float(dmax.max()) / step)) if np.isfinite(dmax.max()) else 0
-        if n_steps <= 0:
-            return out
-        t = step * np.arange(1, n_steps + 1)  # [S]
-        # Chunks of rays keep the [R, S, 3] sample block to a few tens of MB.
-        chunk = max(1, int(2_000_000 // n_steps))
-        for a in range(0, len(o), chunk):
-            b = min(len(o), a + chunk)
-            pts = o[a:b, None, :] + t[None, :, None] * d[a:b, None, :]  # [r, S, 3]
-            occ = self.is_occupied(pts) & (t[None, :] <= dmax[a:b, None])  # [r, S]
-            hit = occ.any(axis=1)
-            first = np.argmax(occ, axis=1)
-            out[a:b] = np.where(hit, t[first], np.inf)
-        return out
-
-
-def build_occupancy(positions_world: np.ndarray, opacities: np.ndarray, voxel_size_m: float,
-                    extra_points_world: np.ndarray | None = None) -> Occupancy:
-    """Occupancy grid of the Gaussian means ``[N, 3]`` (opacities ``[N]``) at about the map voxel.
-
-    ``extra_points_world`` ``[M, 3]`` (the keyframe centres) are kept inside the grid and the box.
-    """
-    pos = np.asarray(positions_world, dtype=np.float64).reshape(-1, 3)
-    op = np.asarray(opacities, dtype=np.float64).reshape(-1)
-    pos = pos[(op >= OCC_MIN_OPACITY) & np.isfinite(pos).all(axis=1)]
-    extra = np.zeros((0, 3)) if extra_points_world is None else np.asarray(extra_points_world, np.float64)
-    extra = extra.reshape(-1, 3)
-    voxel = float(voxel_size_m)
-    if len(pos) == 0:
-        lo = extra.min(axis=0) if len(extra) else np.zeros(3)
-        hi = extra.max(axis=0) if len(extra) else np.zeros(3)
-        return Occupancy(lo - 1.0, 1.0, np.zeros((1, 1, 1), bool), lo - BOX_MARGIN_M, hi + BOX_MARGIN_M, None)
-    lo, hi = np.percentile(pos, OCC_BOUNDS_PERCENTILES, axis=0)
-    keep = np.all((pos >= lo) & (pos <= hi), axis=1)
-    pos = pos[keep]
-    if len(extra):
-        lo, hi = np.minimum(lo, extra.min(axis=0)), np.maximum(hi, extra.max(axis=0))
-    box_min, box_max = lo - BOX_MARGIN_M, hi + BOX_MARGIN_M
-    if len(pos) > 1:
-        rng = np.random.default_rng(0)
-        sample = pos if len(pos) <= OCC_SPACING_SAMPLE else pos[rng.choice(len(pos), OCC_SPACING_SAMPLE, False)]
-        nn, _ = cKDTree(pos).query(sample, k=2)
-        voxel = max(voxel, float(np.percentile(nn[:, 1], OCC_SPACING_PERCENTILE)))
-    pad = (OCC_DILATE_VOXELS + 2) * voxel
-    origin = lo - pad
-    extent = (hi + pad) - origin
-    while np.prod(np.ceil(extent / voxel)) > OCC_MAX_CELLS:
-        voxel *= 1.25
-        pad = (OCC_DILATE_VOXELS + 2) * voxel
-        origin, extent = lo - pad, (hi + pad) - (lo - pad)
-    shape = np.maximum(np.ceil(extent / voxel).astype(np.int64), 1)
-    occ = np.zeros(tuple(shape), dtype=bool)
-    ijk = np.clip(np.floor((pos - origin) / voxel).astype(np.int64), 0, shape - 1)
-    occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    if OCC_DILATE_VOXELS > 0:
-        from scipy.ndimage import binary_dilation
-
-        occ = binary_dilation(occ, structure=np.ones((3, 3, 3), bool), iterations=OCC_DILATE_VOXELS)
-    return Occupancy(origin, voxel, occ, box_min, box_max, cKDTree(pos))
-
-
-# ---------------------------------------------------------------------------------------------
 # Ray bundles and views
 
 
@@ -357,39 +142,41 @@ class _SplatView:
     nearest mean per cell gives the depth of the surface seen.
     """
 
-    means_world: np.ndarray  # [n, 3] (a random subset of at most SPLAT_SAMPLE)
+    means_world: np.ndarray  # [n, 3] (a random subset of at most CameraPathSettings.splat_sample)
     area_opacity_m2: np.ndarray  # [n] opacity * 2 pi sigma^2
     opacity: np.ndarray  # [n]
     weight: float  # N / n: each sampled Gaussian stands for this many
     tan_half: tuple[float, float]  # tangents of the half fields of view (x, y)
+    grid: tuple[int, int]  # cells (columns, rows) over the field of view
+    near_m: float  # means nearer the camera are not splatted
 
     @classmethod
     def from_gaussians(cls, positions: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
-                       fov_rad: tuple[float, float]) -> "_SplatView":
+                       fov_rad: tuple[float, float], cfg: CameraPathSettings) -> "_SplatView":
         op = np.asarray(opacities, dtype=np.float64).reshape(-1)
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         sig = np.asarray(scales, dtype=np.float64).reshape(len(pos), -1).mean(axis=1)
-        keep = (op >= OCC_MIN_OPACITY) & np.isfinite(pos).all(axis=1) & np.isfinite(sig)
+        keep = (op >= cfg.occ_min_opacity) & np.isfinite(pos).all(axis=1) & np.isfinite(sig)
         pos, op, sig = pos[keep], op[keep], sig[keep]
         n_all = len(pos)
-        if n_all > SPLAT_SAMPLE:
-            idx = np.random.default_rng(0).choice(n_all, SPLAT_SAMPLE, replace=False)
+        if n_all > cfg.splat_sample:
+            idx = np.random.default_rng(0).choice(n_all, cfg.splat_sample, replace=False)
             pos, op, sig = pos[idx], op[idx], sig[idx]
         weight = n_all / max(len(pos), 1)
         tan_half = (math.tan(0.5 * fov_rad[0]), math.tan(0.5 * fov_rad[1]))
-        return cls(pos, op * 2.0 * np.pi * sig**2, op, weight, tan_half)
+        return cls(pos, op * 2.0 * np.pi * sig**2, op, weight, tan_half, cfg.splat_grid, cfg.splat_near_m)
 
     def stats(self, T_world_cam: np.ndarray) -> _ViewStats:
         """Coverage and surface depth of poses ``[P, 4, 4]``."""
         T = np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4)
-        cols, rows = SPLAT_GRID
+        cols, rows = self.grid
         cell_area = (2.0 * self.tan_half[0] / cols) * (2.0 * self.tan_half[1] / rows)  # tangent units
         cov = np.zeros(len(T))
         depth = np.full(len(T), np.inf)
         for k, Tk in enumerate(T):
             p = (self.means_world - Tk[:3, 3]) @ Tk[:3, :3]  # [n, 3] camera frame
             z = p[:, 2]
-            front = z > SPLAT_NEAR_M
+            front = z > self.near_m
             zf = z[front]
             u = p[front, 0] / zf / self.tan_half[0]
             v = p[front, 1] / zf / self.tan_half[1]
@@ -469,6 +256,7 @@ class _Checker:
     clearance_min_m: float
     coverage_min: float  # absolute share of view cells
     depth_min_m: float
+    los_min_free_share: float  # share of the segment to the target that must be free
 
     def geometry_ok(self, eyes_world: np.ndarray, target_world: np.ndarray) -> np.ndarray:
         """``[P]`` bool: camera centres ``[P, 3]`` in free space, in the box, seeing ``target_world``."""
@@ -481,7 +269,7 @@ class _Checker:
             seg = target_world[None, :] - eyes[idx]
             dist = np.linalg.norm(seg, axis=1)
             hit = self.occ.first_hit_m(eyes[idx], seg / dist[:, None], dist)
-            ok[idx[hit < LOS_MIN_FREE_SHARE * dist]] = False
+            ok[idx[hit < self.los_min_free_share * dist]] = False
         return ok
 
     def view_ok(self, eyes_world: np.ndarray, target_world: np.ndarray, up_world: np.ndarray) -> np.ndarray:
@@ -514,6 +302,8 @@ class _Circle:
     e2: np.ndarray  # [3] unit, azimuth 90 degrees
     radius_m: float
     height_m: float
+    shrink_steps: tuple[float, ...]  # radius shares tried per pose, largest first
+    shrink_smooth_share: float  # share of the frames the per-pose shares are smoothed over
 
     def offsets(self, angles_rad: np.ndarray) -> np.ndarray:
         """``[A, 3]`` camera centre minus target at azimuths ``[A]`` (unshrunk)."""
@@ -522,14 +312,14 @@ class _Circle:
                 + self.height_m * self.up[None, :])
 
     def valid_shares(self, checker: _Checker, angles_rad: np.ndarray,
-                     steps: tuple[float, ...] = SHRINK_STEPS) -> np.ndarray:
+                     steps: tuple[float, ...] | None = None) -> np.ndarray:
         """``[A]`` per azimuth, the largest radius share of ``steps`` at which the pose clears the map
         and sees the target, if its view there also passes (NaN: no valid share). Only geometry
         pulls a camera in: pulling in to fill an emptier view would trade it for close-ups."""
         offs = self.offsets(angles_rad)
         share = np.full(len(offs), np.nan)
         todo = np.arange(len(offs))
-        for s in steps:
+        for s in self.shrink_steps if steps is None else steps:
             if not len(todo):
                 break
             ok = checker.geometry_ok(self.target + s * offs[todo], self.target)
@@ -540,7 +330,7 @@ class _Circle:
         share[found[bad]] = np.nan
         return share
 
-    def poses(self, checker: _Checker, angles_rad: np.ndarray, steps: tuple[float, ...] = SHRINK_STEPS,
+    def poses(self, checker: _Checker, angles_rad: np.ndarray, steps: tuple[float, ...] | None = None,
               fill_invalid: float | None = None) -> tuple[np.ndarray, int] | None:
         """Poses ``[F, 4, 4]`` at azimuths ``[F]`` (a closed loop), each shrunk toward the target until
         valid, and how many were shrunk; ``None`` if some pose is valid at no radius of ``steps``
@@ -552,7 +342,7 @@ class _Circle:
             if fill_invalid is None:
                 return None
             share = np.where(np.isnan(share), fill_invalid, share)
-        smooth = _smooth_shrink(share, int(round(SHRINK_SMOOTH_SHARE * len(share))), closed=True)
+        smooth = _smooth_shrink(share, int(round(self.shrink_smooth_share * len(share))), closed=True)
         offs = self.offsets(angles_rad)
         # Keep the smoothed share where it is still valid; elsewhere the share found valid there.
         changed = np.flatnonzero(smooth != share)
@@ -563,8 +353,8 @@ class _Circle:
         return np.stack([look_at(e, self.target, self.up) for e in eyes]), int(np.sum(share < 1.0))
 
 
-def _keyframe_target(occ: Occupancy, T_kf: np.ndarray, fov: tuple[float, float],
-                     max_dist_m: float) -> np.ndarray | None:
+def _keyframe_target(occ: Occupancy, T_kf: np.ndarray, fov: tuple[float, float], max_dist_m: float,
+                     cfg: CameraPathSettings) -> np.ndarray | None:
     """``[3]`` what the keyframes looked at; ``None`` if no ray around their optical axes hit the map.
 
     Each keyframe looked at the surface its central rays hit first, at its viewing distance ``d_k``
@@ -573,7 +363,7 @@ def _keyframe_target(occ: Occupancy, T_kf: np.ndarray, fov: tuple[float, float],
     ``d_k`` along each axis, which alone fixes it when the axes are near parallel (a forward-facing
     recording).
     """
-    dirs_cam = _bundle_dirs_cam(fov, TARGET_BUNDLE, TARGET_BUNDLE, TARGET_BUNDLE_HALF_FOV_SHARE)
+    dirs_cam = _bundle_dirs_cam(fov, cfg.target_bundle, cfg.target_bundle, cfg.target_bundle_half_fov_share)
     dirs = np.einsum("pij,rj->pri", T_kf[:, :3, :3], dirs_cam)  # [K, R, 3]
     origins = np.broadcast_to(T_kf[:, None, :3, 3], dirs.shape)
     hit = occ.first_hit_m(origins.reshape(-1, 3), dirs.reshape(-1, 3), max_dist_m).reshape(len(T_kf), -1)
@@ -585,13 +375,13 @@ def _keyframe_target(occ: Occupancy, T_kf: np.ndarray, fov: tuple[float, float],
     eyes, z = T_kf[:, :3, 3], T_kf[:, :3, 2]  # [K, 3] centres and optical axes
     prior = np.median(eyes + d_k[:, None] * z, axis=0)
     P = np.eye(3)[None] - z[:, :, None] * z[:, None, :]  # [K, 3, 3] projections off each axis
-    lam = TARGET_PRIOR_WEIGHT * len(T_kf)
+    lam = cfg.target_prior_weight * len(T_kf)
     A = P.sum(axis=0) + lam * np.eye(3)
     b = np.einsum("kij,kj->i", P, eyes) + lam * prior
     return np.linalg.solve(A, b)
 
 
-def _keyframe_up(T_kf: np.ndarray) -> np.ndarray:
+def _keyframe_up(T_kf: np.ndarray, prior_weight: float) -> np.ndarray:
     """``[3]`` unit up vector of the keyframes (TUM worlds have no fixed gravity axis).
 
     Their mean up (-y of the OpenCV camera) leans toward where they look when they look down or
@@ -603,7 +393,7 @@ def _keyframe_up(T_kf: np.ndarray) -> np.ndarray:
     y_mean = -T_kf[:, :3, 1].mean(axis=0)
     y_mean /= max(np.linalg.norm(y_mean), 1e-12)
     xs = T_kf[:, :3, 0]  # [K, 3]
-    M = xs.T @ xs / len(xs) + UP_PRIOR_WEIGHT * (np.eye(3) - np.outer(y_mean, y_mean))
+    M = xs.T @ xs / len(xs) + prior_weight * (np.eye(3) - np.outer(y_mean, y_mean))
     _, vecs = np.linalg.eigh(M)
     up = vecs[:, 0]
     return up if up @ y_mean >= 0 else -up
@@ -612,7 +402,7 @@ def _keyframe_up(T_kf: np.ndarray) -> np.ndarray:
 def plan_camera_path(world: GaussianField, T_world_cam_keyframes: np.ndarray | None, n_frames: int,
                      voxel_size_m: float, *, K: np.ndarray | None = None,
                      image_size: tuple[int, int] | None = None, fallback_height_m: float = 1.0,
-                     fallback_radius_scale: float = 1.2) -> CameraPath:
+                     fallback_radius_scale: float = 1.2, settings: CameraPathSettings = DEFAULT_SETTINGS) -> CameraPath:
     """A path of ``n_frames`` poses that frames the world (see the module docstring).
 
     Args:
@@ -627,6 +417,7 @@ def plan_camera_path(world: GaussianField, T_world_cam_keyframes: np.ndarray | N
         fallback_height_m, fallback_radius_scale: the centre orbit's height above the map centre and
             radius as a multiple of the map's horizontal half-extent (``video.orbit_height_m``,
             ``video.orbit_radius_scale``), used only without keyframe poses.
+        settings: the planner's thresholds (:class:`CameraPathSettings`).
 
     Returns:
         :class:`CameraPath` with ``T_world_cam`` ``[n_frames, 4, 4]``.
@@ -638,19 +429,20 @@ def plan_camera_path(world: GaussianField, T_world_cam_keyframes: np.ndarray | N
     opacities = world.opacities
     if len(pos) == 0:
         raise ValueError("cannot plan a camera path through an empty world")
-    T_kf = _subsample(_finite_poses(T_world_cam_keyframes), MAX_PLANNING_POSES)
+    cfg = settings
+    T_kf = _subsample(_finite_poses(T_world_cam_keyframes), cfg.max_planning_poses)
     fov = _fov_rad(K, image_size)
-    occ = build_occupancy(pos, opacities, voxel_size_m, T_kf[:, :3, 3] if len(T_kf) else None)
+    occ = build_occupancy(pos, opacities, voxel_size_m, T_kf[:, :3, 3] if len(T_kf) else None, cfg)
     max_dist_m = float(np.linalg.norm(occ.box_max - occ.box_min))
     if len(T_kf) == 0:
-        return _centre_orbit(occ, pos, n_frames, fallback_height_m, fallback_radius_scale)
+        return _centre_orbit(occ, pos, n_frames, fallback_height_m, fallback_radius_scale, cfg)
 
     notes: list[str] = []
-    target = _keyframe_target(occ, T_kf, fov, max_dist_m)
+    target = _keyframe_target(occ, T_kf, fov, max_dist_m, cfg)
     if target is None:
         notes.append("no keyframe ray hit the map")
-        return _flythrough(T_world_cam_keyframes, n_frames, notes)
-    up = _keyframe_up(T_kf)
+        return _flythrough(T_world_cam_keyframes, n_frames, notes, cfg)
+    up = _keyframe_up(T_kf, cfg.up_prior_weight)
     e1, e2 = _plane_basis(up)
     offs = T_kf[:, :3, 3] - target  # [K, 3]
     h = offs @ up
@@ -659,46 +451,47 @@ def plan_camera_path(world: GaussianField, T_world_cam_keyframes: np.ndarray | N
     radius_m, height_m = float(np.median(r)), float(np.median(h))
     if radius_m < 1e-3 and abs(height_m) < 1e-3:
         notes.append("keyframes sit on their target")
-        return _flythrough(T_world_cam_keyframes, n_frames, notes)
+        return _flythrough(T_world_cam_keyframes, n_frames, notes, cfg)
 
     # Calibrate the checks on the keyframes themselves: the path should be as good as they were.
-    view = _SplatView.from_gaussians(pos, world.scales, opacities, fov)
+    view = _SplatView.from_gaussians(pos, world.scales, opacities, fov, cfg)
     kf_stats = view.stats(T_kf)
     kf_clear = occ.clearance_m(T_kf[:, :3, 3])
     kf_depth = kf_stats.depth_m[np.isfinite(kf_stats.depth_m)]
     checker = _Checker(
         occ, view,
-        clearance_min_m=min(CLEARANCE_M, CLEARANCE_KEYFRAME_SHARE * float(np.median(kf_clear))),
-        coverage_min=COVERAGE_MIN_RATIO * float(np.median(kf_stats.coverage)),
-        depth_min_m=DEPTH_MIN_RATIO * float(np.median(kf_depth)) if len(kf_depth) else 0.0,
+        clearance_min_m=min(cfg.clearance_m, cfg.clearance_keyframe_share * float(np.median(kf_clear))),
+        coverage_min=cfg.coverage_min_ratio * float(np.median(kf_stats.coverage)),
+        depth_min_m=cfg.depth_min_ratio * float(np.median(kf_depth)) if len(kf_depth) else 0.0,
+        los_min_free_share=cfg.los_min_free_share,
     )
 
     az = np.arctan2(horiz @ e2, horiz @ e1)  # [K] keyframe azimuths
     centre_az, span, gap = _circular_span(az[r > 1e-6] if np.any(r > 1e-6) else az)
-    full = math.degrees(gap) <= FULL_ORBIT_MAX_GAP_DEG
-    circle = _Circle(target, up, e1, e2, radius_m, height_m)
+    full = math.degrees(gap) <= cfg.full_orbit_max_gap_deg
+    circle = _Circle(target, up, e1, e2, radius_m, height_m, cfg.shrink_steps, cfg.shrink_smooth_share)
     common = dict(target_world=target, radius_m=radius_m, height_m=height_m, up_world=up)
-    step = math.radians(ANGLE_GRID_DEG)
+    step = math.radians(cfg.angle_grid_deg)
     # Screen on a grid of azimuths first (cheap; most failing paths fail there): the whole circle
     # when the keyframes saw the target from all around, else their span plus a margin.
     if full:
         n_grid = int(math.ceil(2.0 * math.pi / step))
         grid = centre_az + 2.0 * np.pi * (np.arange(n_grid) - n_grid // 2) / n_grid  # [G]
     else:
-        n_side = int(math.ceil(min(math.pi - step, 0.5 * span + math.radians(ARC_MARGIN_DEG)) / step))
+        n_side = int(math.ceil(min(math.pi - step, 0.5 * span + math.radians(cfg.arc_margin_deg)) / step))
         grid = centre_az + step * np.arange(-n_side, n_side + 1)
         notes.append(f"full orbit not tried: keyframes saw the target from {math.degrees(span):.0f} deg")
     grid_ok = ~np.isnan(circle.valid_shares(checker, grid))
     renders: _RenderCheck | None = None
-    for _ in range(VERIFY_ROUNDS):
-        sweep = _best_sweep(circle, checker, grid, grid_ok, full, az, n_frames, notes)
+    for _ in range(cfg.verify_rounds):
+        sweep = _best_sweep(circle, checker, grid, grid_ok, full, az, n_frames, notes, cfg)
         if sweep is None:
             break
         poses, angles, kind, sweep_deg, n_shrunk = sweep
         # The geometric checks estimate what a view shows; the renderer says it.
         if renders is None:
-            renders = _RenderCheck.from_keyframes(world, T_kf, K, image_size)
-        idx = _spread_over_azimuths(angles, VERIFY_FRAMES)
+            renders = _RenderCheck.from_keyframes(world, T_kf, K, image_size, cfg)
+        idx = _spread_over_azimuths(angles, cfg.verify_frames)
         bad = idx[~renders.ok(poses[idx])]
         if not len(bad):
             return CameraPath(poses, kind, sweep_deg=sweep_deg, n_shrunk=n_shrunk, notes=notes, **common)
@@ -707,7 +500,7 @@ def plan_camera_path(world: GaussianField, T_world_cam_keyframes: np.ndarray | N
         d = np.abs(np.angle(np.exp(1j * (grid[:, None] - angles[bad][None, :]))))  # [G, B]
         grid_ok &= ~np.any(d <= step, axis=1)
     notes.append("no valid orbit or arc: flying through the keyframes")
-    return _flythrough(T_world_cam_keyframes, n_frames, notes)
+    return _flythrough(T_world_cam_keyframes, n_frames, notes, cfg)
 
 
 def _spread_over_azimuths(angles_rad: np.ndarray, n: int) -> np.ndarray:
@@ -719,7 +512,7 @@ def _spread_over_azimuths(angles_rad: np.ndarray, n: int) -> np.ndarray:
 
 
 def _best_sweep(circle: "_Circle", checker: "_Checker", grid: np.ndarray, grid_ok: np.ndarray, full: bool,
-                keyframe_az: np.ndarray, n_frames: int, notes: list[str]
+                keyframe_az: np.ndarray, n_frames: int, notes: list[str], cfg: CameraPathSettings
                 ) -> tuple[np.ndarray, np.ndarray, str, float, int] | None:
     """The orbit (when every grid azimuth is valid) or the best arc over the valid grid azimuths:
     ``(poses [F, 4, 4], azimuths [F], kind, sweep_deg, n_shrunk)``; ``None`` when there is none."""
@@ -729,7 +522,7 @@ def _best_sweep(circle: "_Circle", checker: "_Checker", grid: np.ndarray, grid_o
         if res is not None:
             return res[0], angles, PATH_ORBIT, 360.0, res[1]
         notes.append("orbit: some pose has no valid radius")
-    step = float(grid[1] - grid[0]) if len(grid) > 1 else math.radians(ANGLE_GRID_DEG)
+    step = float(grid[1] - grid[0]) if len(grid) > 1 else math.radians(cfg.angle_grid_deg)
     # Arcs: the runs of valid grid azimuths, those holding the most keyframe azimuths first, then
     # the widest. A run is trimmed a step at each end while a pose between grid points fails.
     runs = _runs(grid_ok, circular=full, grid=grid, keyframe_az=keyframe_az)
@@ -738,10 +531,10 @@ def _best_sweep(circle: "_Circle", checker: "_Checker", grid: np.ndarray, grid_o
     i0, i1 = runs[0]  # a shorter run would show less of what the keyframes saw
     a0 = float(grid[i0])
     a1 = a0 + ((i1 - i0) % len(grid)) * step
-    for _ in range(ARC_MAX_TRIMS):
+    for _ in range(cfg.arc_max_trims):
         half = 0.5 * (a1 - a0)
-        if half < math.radians(MIN_ARC_HALF_DEG):
-            notes.append(f"arc of {2.0 * math.degrees(half):.0f} deg: under {2.0 * MIN_ARC_HALF_DEG:.0f} deg")
+        if half < math.radians(cfg.min_arc_half_deg):
+            notes.append(f"arc of {2.0 * math.degrees(half):.0f} deg: under {2.0 * cfg.min_arc_half_deg:.0f} deg")
             return None
         # Back and forth, with smooth turnarounds; the last frame leads back into the first.
         angles = 0.5 * (a0 + a1) + half * np.sin(2.0 * np.pi * np.arange(n_frames) / n_frames)
@@ -766,19 +559,19 @@ class _RenderCheck:
 
     @classmethod
     def from_keyframes(cls, world: GaussianField, T_kf: np.ndarray, K: np.ndarray | None,
-                       image_size: tuple[int, int] | None) -> "_RenderCheck":
+                       image_size: tuple[int, int] | None, cfg: CameraPathSettings) -> "_RenderCheck":
         if K is None or image_size is None:
             K, image_size = DEFAULT_K, DEFAULT_IMAGE_SIZE
-        s = VERIFY_WIDTH / float(image_size[0])
+        s = cfg.verify_width / float(image_size[0])
         Ks = np.array(K, dtype=np.float64)
         Ks[:2] *= s
         Ks[0, 2] = (K[0, 2] + 0.5) * s - 0.5  # pixel centres kept
         Ks[1, 2] = (K[1, 2] + 0.5) * s - 0.5
-        size = (VERIFY_WIDTH, max(1, int(round(image_size[1] * s))))
+        size = (cfg.verify_width, max(1, int(round(image_size[1] * s))))
         chk = cls(world, Ks, size, 0.0, 0.0)
-        cov, sharp = chk.measure(_subsample(T_kf, VERIFY_KEYFRAMES))
-        chk.coverage_min = VERIFY_COVERAGE_RATIO * float(np.median(cov))
-        chk.sharpness_min = VERIFY_SHARPNESS_RATIO * float(np.median(sharp))
+        cov, sharp = chk.measure(_subsample(T_kf, cfg.verify_keyframes))
+        chk.coverage_min = cfg.verify_coverage_ratio * float(np.median(cov))
+        chk.sharpness_min = cfg.verify_sharpness_ratio * float(np.median(sharp))
         return chk
 
     def measure(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -838,7 +631,8 @@ def _runs(ok: np.ndarray, circular: bool, grid: np.ndarray, keyframe_az: np.ndar
     return sorted(runs, key=score, reverse=True)
 
 
-def _centre_orbit(occ: Occupancy, pos: np.ndarray, n_frames: int, height_m: float, radius_scale: float) -> CameraPath:
+def _centre_orbit(occ: Occupancy, pos: np.ndarray, n_frames: int, height_m: float, radius_scale: float,
+                  cfg: CameraPathSettings) -> CameraPath:
     """The old orbit around the map's robust centre (world z up, ``radius_scale`` times the map's
     horizontal half extent, ``height_m`` above the centre), each pose pulled toward the centre until
     it is clear of the map and sees the centre (to the nearest tried radius where none works)."""
@@ -846,10 +640,10 @@ def _centre_orbit(occ: Occupancy, pos: np.ndarray, n_frames: int, height_m: floa
     centre = 0.5 * (p5 + p95)
     radius_m = radius_scale * max(float(np.linalg.norm((p95 - p5)[:2])) / 2.0, 0.5)
     up = np.array([0.0, 0.0, 1.0])
-    circle = _Circle(centre, up, *_plane_basis(up), radius_m, height_m)
-    checker = _Checker(occ, None, CLEARANCE_M, 0.0, 0.0)
+    circle = _Circle(centre, up, *_plane_basis(up), radius_m, height_m, cfg.shrink_steps, cfg.shrink_smooth_share)
+    checker = _Checker(occ, None, cfg.clearance_m, 0.0, 0.0, cfg.los_min_free_share)
     angles = 2.0 * np.pi * np.arange(n_frames) / n_frames
-    res = circle.poses(checker, angles, CENTRE_SHRINK_STEPS, fill_invalid=CENTRE_SHRINK_STEPS[-1])
+    res = circle.poses(checker, angles, cfg.centre_shrink_steps, fill_invalid=cfg.centre_shrink_steps[-1])
     assert res is not None  # fill_invalid given
     return CameraPath(res[0], PATH_CENTRE_ORBIT, centre, radius_m, height_m, up, 360.0, res[1])
 
@@ -882,12 +676,13 @@ def _catmull_rom_centripetal(P: np.ndarray, seg: np.ndarray, a: np.ndarray) -> n
     return ((t2 - t) * B1 + (t - t1) * B2) / (t2 - t1)
 
 
-def _flythrough(T_world_cam_keyframes: np.ndarray, n_frames: int, notes: list[str]) -> CameraPath:
-    poses = flythrough_poses(_subsample(_finite_poses(T_world_cam_keyframes), FLY_MAX_POSES), n_frames)
+def _flythrough(T_world_cam_keyframes: np.ndarray, n_frames: int, notes: list[str],
+                cfg: CameraPathSettings) -> CameraPath:
+    poses = flythrough_poses(_subsample(_finite_poses(T_world_cam_keyframes), cfg.fly_max_poses), n_frames, cfg)
     return CameraPath(poses, PATH_FLYTHROUGH, notes=notes)
 
 
-def flythrough_poses(T_world_cam: np.ndarray, n_frames: int) -> np.ndarray:
+def flythrough_poses(T_world_cam: np.ndarray, n_frames: int, cfg: CameraPathSettings = DEFAULT_SETTINGS) -> np.ndarray:
     """``[n_frames, 4, 4]`` poses gliding through ``T_world_cam`` ``[K, 4, 4]`` (time order; non-finite
     poses dropped) at an even pace, from the first pose to the last: positions on a centripetal
     Catmull-Rom spline through the keyframe centres, orientations on a SQUAD spline through the
@@ -901,7 +696,7 @@ def flythrough_poses(T_world_cam: np.ndarray, n_frames: int) -> np.ndarray:
     P = T[:, :3, 3]  # [K, 3]
     R = T[:, :3, :3]  # [K, 3, 3]
     rel = np.einsum("kji,kjl->kil", R[:-1], R[1:])  # [K-1, 3, 3] R_k^T R_{k+1}
-    seg_len = (np.linalg.norm(np.diff(P, axis=0), axis=1) + FLY_METRES_PER_RAD * rotation_angle_rad(rel)
+    seg_len = (np.linalg.norm(np.diff(P, axis=0), axis=1) + cfg.fly_metres_per_rad * rotation_angle_rad(rel)
                + _EPS_LEN_M)  # [K-1]
     knots = np.concatenate([[0.0], np.cumsum(seg_len)])
     s = np.linspace(0.0, knots[-1], n_frames)
