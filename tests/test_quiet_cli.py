@@ -10,7 +10,6 @@ import io
 import json
 import logging
 import threading
-import time
 
 import pytest
 import yaml
@@ -57,16 +56,31 @@ def test_progress_not_a_terminal_is_periodic():
     assert stream.getvalue() == ""  # shorter than one period: no line at all
 
 
-def test_progress_on_a_terminal_redraws_one_line_with_rate_and_eta():
+class _Clock:
+    """A ``time`` stand-in whose ``perf_counter`` moves only when the test says so."""
+
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def perf_counter(self) -> float:
+        return self.now_s
+
+
+def test_progress_on_a_terminal_redraws_one_line_with_rate_and_eta(monkeypatch):
+    import atlas_pipeline.progress as progress
+
+    clock = _Clock()
+    monkeypatch.setattr(progress, "time", clock)
     stream = io.StringIO()
     with use_terminal(Terminal(stream, is_tty=True, width=120)) as term:
         p = Progress("rendering orbit video", 3, lambda m: None)
+        clock.now_s += 1.0
         p.update()
-        time.sleep(0.15)  # past the redraw interval
+        clock.now_s += 1.5 * progress.BAR_REDRAW_S  # past the redraw interval
         p.update()
         assert "\n" not in stream.getvalue()  # redrawn in place, never a new line
         term.write_line("a log line")  # clears the bar first
-        time.sleep(0.15)
+        clock.now_s += 1.5 * progress.BAR_REDRAW_S
         p.update()
     text = stream.getvalue()
     draws = [d for d in text.split("\r") if d]

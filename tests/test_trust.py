@@ -258,16 +258,26 @@ def test_dataset_add_refuses_existing_names_unless_replace(isolated, small_synth
     assert main(["dataset", "add", "synth-small", str(small_synthetic), *intr, "--replace"]) == 0
 
 
-@pytest.mark.parametrize("argv", [
-    ["dataset", "add", "x", ".", "--intrinsics", "1 2 3"],
-    ["dataset", "add", "x", ".", "--intrinsics", "1 2 3 nan"],
-    ["dataset", "add", "x", ".", "--intrinsics", "a b c d"],
-    ["localize", "--world", "w", "--input", "synth-small", "--start-pose", "0 0 0 0 0 0"],
-    ["import-ply", "x.ply", "--output", "o", "--voxel", "nan"],
-    ["build", "--input", "synth-small", "--output", "o", "--set", "fusion.max_depth_m=[1"],
+@pytest.mark.parametrize("argv, message", [
+    (["dataset", "add", "x", "{data}", "--intrinsics", "1 2 3"], "--intrinsics needs 4 finite numbers"),
+    (["dataset", "add", "x", "{data}", "--intrinsics", "1 2 3 nan"], "--intrinsics needs 4 finite numbers"),
+    (["dataset", "add", "x", "{data}", "--intrinsics", "a b c d"], "--intrinsics needs 4 finite numbers"),
+    (["import-ply", "x.ply", "--output", "o", "--voxel", "nan"], "--voxel must be a finite number > 0"),
+    (["build", "--input", "synth-small", "--output", "o", "--set", "fusion.max_depth_m=[1"],
+     "--set 'fusion.max_depth_m=[1': the value is not valid YAML"),
 ])
-def test_bad_values_are_errors_not_tracebacks(isolated, argv):
-    assert main(argv) == 2
+def test_bad_values_are_errors_not_tracebacks(isolated, small_synthetic, capsys, argv, message):
+    """Each bad value reaches the option it is about (a real dataset folder, so layout detection
+    passes) and the error names that option."""
+    assert main([a.format(data=small_synthetic) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_bad_start_pose_is_an_error_naming_the_option(world, capsys):
+    assert main(["localize", "--world", str(world), "--input", "synth-small", "--start-pose", "0 0 0 0 0 0"]) == 2
+    err = capsys.readouterr().err
+    assert "--start-pose" in err and "Traceback" not in err
 
 
 # ---- 7. fail fast, name the path -----------------------------------------------------------------
