@@ -585,6 +585,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     JSON output (``--json``, or stdout not a terminal) is one document: the partition's summary
     object, or with ``--all`` a list of them in registry order (``[]`` when nothing was run)."""
     from assets.definitions import artifacts_root
+    from assets.runs import compute_log_mirrors_detached
     from assets.staleness import stale_assets, stale_selection
 
     defs, instance, partitions, atlas, overrides = _dagster_setup(args)
@@ -624,7 +625,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 continue
             selection = stale_selection(stale)
         try:
-            result = _execute_partition(args, job, defs, instance, p, selection, run_config, tags)
+            with compute_log_mirrors_detached():  # Ctrl-C reaches the run, which stops them, not them
+                result = _execute_partition(args, job, defs, instance, p, selection, run_config, tags)
         finally:
             defs.resources["artifact_io"].unlock_partition(p)
         summary = {"partition": p, "success": result.success, "run_id": result.run_id, **ran(result)}
@@ -764,6 +766,8 @@ def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
     """``atlas-gs run`` of one partition in a pool process: (exit code, its stdout)."""
     import contextlib
 
+    from assets.runs import interrupts_end_the_command
+
     root = logging.getLogger()
     for inherited in [h for h in root.handlers if isinstance(h, _CliHandler)]:
         root.removeHandler(inherited)  # a forked worker's copy of the parent's: every line twice
@@ -774,7 +778,8 @@ def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
                 from atlas_pipeline.cores import kernel_threads
 
                 kernel_threads()  # this run's share from its start
-            code = int(cmd_run(args) or 0)
+            with interrupts_end_the_command(say=False):  # Ctrl-C reaches the whole group: the parent says it
+                code = int(cmd_run(args) or 0)
         except AtlasError as exc:
             logger.error("%s", exc)
             code = EXIT_ERROR
@@ -1290,11 +1295,12 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)  # --help prints here
     except BrokenPipeError:
         return _stdout_closed()
-    from assets.runs import signal_dispositions_kept
+    from assets.runs import interrupts_end_the_command, signal_dispositions_kept
 
     with _CliOutput(args.verbose), signal_dispositions_kept():  # a Dagster run changes them (assets.runs)
         try:
-            return int(args.func(args) or 0)
+            with interrupts_end_the_command():  # Ctrl-C: one line, status 130
+                return int(args.func(args) or 0)
         except AtlasError as exc:
             logger.error("%s", exc)
             return EXIT_ERROR

@@ -16,11 +16,13 @@ A run in a process's main thread changes that process's signal handlers for good
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
 import signal
 import socket
+import subprocess
 import sys
 import threading
 from collections.abc import Iterator
@@ -28,7 +30,7 @@ from contextlib import contextmanager
 
 from dagster import DagsterInstance, DagsterRunStatus, RunsFilter
 
-from atlas_pipeline.io_utils import process_alive
+from atlas_pipeline.io_utils import discard_own_staging, process_alive
 
 logger = logging.getLogger("atlas_gs.runs")
 
@@ -155,3 +157,83 @@ def signal_dispositions_kept() -> Iterator[None]:
         for s, handler in saved.items():
             if handler is not None and signal.getsignal(s) is not handler:  # None: set outside Python
                 signal.signal(s, handler)
+
+
+# ---- Ctrl-C: one line and status 130 -------------------------------------------------------------
+
+INTERRUPTED_EXIT = 130  # 128 + SIGINT: what a shell reports for a command Ctrl-C ended
+INTERRUPTED_MESSAGE = "interrupted; nothing half-written is left"
+
+
+def end_interrupted(say: bool = True) -> None:
+    """Ctrl-C's end of a command: this process's staging removed, one line (unless ``say`` is
+    False: a pool worker, whose parent says it), status 130, at once.
+
+    Raising KeyboardInterrupt instead (Python's default, and Dagster's interrupt inside a step)
+    lands in whatever runs: inside numba's kernels and compiler callbacks it is dropped (the command
+    goes on), turns into a SystemError, or crashes the process. Every output is written under a
+    temporary name and renamed whole, and a folder swap under way is repaired by the next open, so
+    ending here leaves no half-written file; a Dagster run left in progress is marked failed when
+    atlas-gs next opens the instance (:func:`reap_dead_runs`)."""
+    discard_own_staging()
+    if say:
+        with contextlib.suppress(OSError):
+            os.write(2, (INTERRUPTED_MESSAGE + "\n").encode())
+    os._exit(INTERRUPTED_EXIT)
+
+
+@contextmanager
+def interrupts_end_the_command(say: bool = True) -> Iterator[None]:
+    """Within the block, SIGINT ends the command (:func:`end_interrupted`), also during a Dagster
+    run executed in this process (whose own interrupt handling is kept off meanwhile). Outside the
+    main thread, or where SIGINT is ignored (a background job), nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield
+        return
+    try:
+        from dagster._utils import interrupts as dagster_interrupts
+    except ImportError:  # another Dagster layout: its runs handle Ctrl-C themselves
+        dagster_interrupts = None
+    replace = getattr(dagster_interrupts, "_replace_interrupt_signal", None)
+    previous = signal.signal(signal.SIGINT, lambda _signo, _frame: end_interrupted(say))
+    if replace is not None:
+        dagster_interrupts._replace_interrupt_signal = lambda _handler: None
+    try:
+        yield
+    finally:
+        if replace is not None:
+            dagster_interrupts._replace_interrupt_signal = replace
+        signal.signal(signal.SIGINT, previous)
+
+
+class _DetachedSubprocess:
+    """``subprocess`` as Dagster's compute-log module sees it: children start in their own process
+    group, so a terminal's Ctrl-C (SIGINT to the foreground group) reaches the run, which stops them,
+    and not Dagster's ``tail -F`` and orphan watcher, whose KeyboardInterrupt tracebacks it printed."""
+
+    def __getattr__(self, name: str):
+        return getattr(subprocess, name)
+
+    @staticmethod
+    def Popen(*args, **kwargs):  # noqa: N802 - subprocess's name
+        kwargs.setdefault("process_group", 0)
+        return subprocess.Popen(*args, **kwargs)
+
+
+@contextmanager
+def compute_log_mirrors_detached() -> Iterator[None]:
+    """Dagster's compute-log mirrors (``tail -F`` and ``watch_orphans.py``) of the runs in the block
+    start in their own process groups (:class:`_DetachedSubprocess`)."""
+    try:
+        from dagster._core.execution import compute_logs
+    except ImportError:  # another Dagster layout: its children get Ctrl-C as before
+        yield
+        return
+    if getattr(compute_logs, "subprocess", None) is not subprocess:
+        yield
+        return
+    compute_logs.subprocess = _DetachedSubprocess()
+    try:
+        yield
+    finally:
+        compute_logs.subprocess = subprocess

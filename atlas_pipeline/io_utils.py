@@ -47,6 +47,7 @@ __all__ = [
     "commit_dir",
     "recover_dir",
     "sweep_stale_files",
+    "discard_own_staging",
     "folder_kind",
     "foreign_entries",
     "check_output_dir",
@@ -99,14 +100,37 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise _write_error(path.parent, exc) from exc
     sweep_stale_files(path)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
+    _OWN_STAGING.add(tmp)
     try:
         yield tmp
         os.replace(tmp, path)
     except OSError as exc:
         raise _write_error(path, exc) from exc
     finally:
+        _OWN_STAGING.discard(tmp)
         if tmp.exists():
             tmp.unlink()
+
+
+# Staging folders and temporary files this process is writing: what a command ended at once (Ctrl-C)
+# removes before it exits (discard_own_staging). A swap under way is not among them: its .new and
+# .old folders are what the next open rolls forward or back.
+_OWN_STAGING: set[Path] = set()
+
+
+def discard_own_staging() -> None:
+    """Remove this process's staging folders and temporary files now (an interrupted command's last
+    act); the targets they were to replace stay as they were."""
+    mine = f".{os.getpid()}-"
+    for p in list(_OWN_STAGING):
+        if mine not in p.name:  # a forked child's copy of its parent's entries
+            continue
+        with contextlib.suppress(OSError):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink(missing_ok=True)
+    _OWN_STAGING.clear()
 
 
 def sweep_stale_files(path: str | Path) -> list[str]:
@@ -147,6 +171,7 @@ def stage_dir(path: str | Path) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         recover_dir(path)
         tmp = _sibling(path, f"{os.getpid()}-{uuid.uuid4().hex[:8]}", "tmp")
+        _OWN_STAGING.add(tmp)
         tmp.mkdir(mode=0o755)
     except OSError as exc:
         raise _write_error(path, exc) from exc
@@ -184,6 +209,7 @@ def commit_dir(staged: Path, path: str | Path, kind: str, marker_extra: dict[str
     try:
         _write_marker(staged, kind, marker_extra)
         os.replace(staged, new)
+        _OWN_STAGING.discard(staged)
         _fsync_dir(path.parent)
         if os.path.lexists(path):
             os.replace(path, old)
@@ -200,6 +226,7 @@ def commit_dir(staged: Path, path: str | Path, kind: str, marker_extra: dict[str
 
 def discard_dir(staged: Path) -> None:
     """Remove a staging folder after a failure (best effort: recovery removes it otherwise)."""
+    _OWN_STAGING.discard(staged)
     shutil.rmtree(staged, ignore_errors=True)
 
 

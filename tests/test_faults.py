@@ -310,3 +310,82 @@ def test_status_of_a_deleted_partition_folder_says_so_and_its_advice_works(isola
     capsys.readouterr()
     code, text = _status(capsys, "mine")
     assert code == 0 and "all 9 assets current" in text, text
+
+
+# ---- Ctrl-C: one line, status 130 ------------------------------------------------------------------
+
+SIG_SYNTH = {**SMALL, "seed": 1, "n_frames": 120, "width": 320, "height": 240,
+             "fx": 262.5, "fy": 262.5, "cx": 159.5, "cy": 119.5}
+
+
+@pytest.fixture(scope="module")
+def interrupt_env(tmp_path_factory):
+    """A project of its own for the interrupted commands: a 120-frame recording (long enough to be
+    interrupted mid-way) and a world of it."""
+    import subprocess
+    import sys
+
+    root = tmp_path_factory.mktemp("interrupt")
+    reg = root / "datasets.local.yaml"
+    reg.write_text(yaml.safe_dump({"datasets": {"sig": SIG_SYNTH}}))
+    env = {**os.environ, "ATLAS_DATA_DIR": str(root / "data"), "ATLAS_ARTIFACTS_DIR": str(root / "artifacts"),
+           "ATLAS_LOCAL_REGISTRY": str(reg), "DAGSTER_HOME": str(root / "dagster_home")}
+    subprocess.run([sys.executable, "-c", CLI, "build", "--input", "sig", "--output", str(root / "world"), *FAST],
+                   env=env, check=True, capture_output=True, cwd=root)
+    return root, env
+
+
+CLI = "import sys; from assets.cli import command; sys.exit(command())"
+
+
+@pytest.mark.parametrize("argv, ready", [
+    (["-v", "build", "--input", "sig", "--output", "{root}/new-world"], "RGB-D frames"),
+    pytest.param(["run", "sig"], "keyframes", marks=pytest.mark.slow),
+    pytest.param(["-v", "localize", "--world", "{root}/world", "--input", "sig"], "RGB-D frames", marks=pytest.mark.slow),
+    pytest.param(["-v", "demo-video", "--world", "{root}/world", "--output", "{root}/orbit.mp4",
+                  "--set", "video.orbit_frames=2000"], "orbit video path", marks=pytest.mark.slow),
+    pytest.param(["view", "{root}/world", "--port", "0", "--no-dataset"], "open http", marks=pytest.mark.slow),
+])
+def test_ctrl_c_ends_with_one_line_and_status_130(interrupt_env, argv, ready):
+    """SIGINT to the whole process group (what a terminal's Ctrl-C sends), once the command is at work."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    root, env = interrupt_env
+    before = _snapshot(root)
+    argv = [a.format(root=root) for a in argv]
+    p = subprocess.Popen([sys.executable, "-c", CLI, *argv], env=env, cwd=root, start_new_session=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    at_work = threading.Event()
+
+    def read(stream) -> None:
+        for line in stream:
+            lines.append(line)
+            if ready in line:
+                at_work.set()
+
+    readers = [threading.Thread(target=read, args=(s,), daemon=True) for s in (p.stdout, p.stderr)]
+    for t in readers:
+        t.start()
+    assert at_work.wait(180), "".join(lines)
+    os.killpg(p.pid, signal.SIGINT)
+    p.wait(60)
+    for t in readers:  # until every process holding the pipes (Dagster's log mirrors too) is gone
+        t.join(30)
+    text = "".join(lines)
+    assert p.returncode == 130, text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
+    assert text.rstrip().splitlines()[-1] == "interrupted; nothing half-written is left", text
+    after = _snapshot(root)
+    new = sorted(set(after) - set(before))
+    # nothing half-written: no staging, no new output (a Dagster run's finished stages are whole artifacts)
+    assert not [n for n in new if ".tmp" in n or n.startswith(("new-world", "orbit"))], new
+    assert all(after[n] == before[n] for n in before if not n.startswith(("artifacts", "dagster_home", "data"))), \
+        "a file that was there changed"
+
+
+def _snapshot(folder: Path) -> dict[str, int]:
+    return {str(p.relative_to(folder)): p.stat().st_size for p in folder.rglob("*") if p.is_file()}
