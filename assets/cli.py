@@ -283,10 +283,9 @@ def _dataset(spec: str, camera: str | None = None) -> DatasetEntry:
 
 
 def _default_dagster_home() -> Path:
-    home = Path(os.environ.get("DAGSTER_HOME") or project_root() / ".dagster_home")
-    home.mkdir(parents=True, exist_ok=True)
-    os.environ["DAGSTER_HOME"] = str(home)
-    return home
+    from assets.runs import prepare_dagster_home
+
+    return prepare_dagster_home(project_root() / ".dagster_home")
 
 
 # ---- commands ---------------------------------------------------------------------------------
@@ -1309,6 +1308,13 @@ def main(argv: list[str] | None = None) -> int:
         except OSError as exc:  # an OS error the library did not wrap: still name the path
             where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f) or "(no path given by the OS)"
             logger.error("%s: %s", where, exc.strerror or exc)
+            return EXIT_ERROR
+        except Exception as exc:
+            from assets.runs import instance_storage_error
+
+            if (line := instance_storage_error(exc)) is None:
+                raise
+            logger.error("%s", line)
             return EXIT_ERROR
 
 

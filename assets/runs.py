@@ -27,10 +27,12 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 from dagster import DagsterInstance, DagsterRunStatus, RunsFilter
 
-from atlas_pipeline.io_utils import discard_own_staging, process_alive
+from atlas_pipeline.errors import ConfigError, WriteError
+from atlas_pipeline.io_utils import check_writable, discard_own_staging, process_alive
 
 logger = logging.getLogger("atlas_gs.runs")
 
@@ -237,3 +239,50 @@ def compute_log_mirrors_detached() -> Iterator[None]:
         yield
     finally:
         compute_logs.subprocess = subprocess
+
+
+# ---- DAGSTER_HOME ---------------------------------------------------------------------------------
+
+DAGSTER_HOME_ENV = "DAGSTER_HOME"
+
+
+def prepare_dagster_home(default: Path) -> Path:
+    """``$DAGSTER_HOME`` (else ``default``), checked before Dagster opens it, and set in the
+    environment: an absolute path (Dagster's rule), a folder (made when missing), writable with
+    room for the instance's database. Each fault is one :class:`ConfigError` or :class:`WriteError`
+    naming the path, and folders made here are removed again when a check fails."""
+    raw = os.environ.get(DAGSTER_HOME_ENV)
+    home = Path(raw).expanduser() if raw else Path(default)
+    name = f"{DAGSTER_HOME_ENV}={raw}" if raw else f"{DAGSTER_HOME_ENV} (default {home})"
+    if not home.is_absolute():
+        raise ConfigError(f"{name}: must be an absolute path (Dagster's rule), e.g. "
+                          f"{DAGSTER_HOME_ENV}={Path.cwd() / home}; nothing was created")
+    if os.path.lexists(home) and not home.is_dir():
+        raise ConfigError(f"{name}: {home} is a file, not a folder; point {DAGSTER_HOME_ENV} at a folder "
+                          "(it is made when missing)")
+    made = [p for p in (home, *home.parents) if not os.path.lexists(p)]
+    try:
+        check_writable(home)  # makes the folder, writes a probe, asks for free space
+    except WriteError as exc:
+        for p in made:  # deepest first: only what this made, only while empty
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise ConfigError(f"{name}: {exc}") from None
+    os.environ[DAGSTER_HOME_ENV] = str(home)
+    return home
+
+
+def instance_storage_error(exc: BaseException) -> str | None:
+    """One line for an error of the instance's database (SQLite under ``$DAGSTER_HOME``: a disk
+    that filled during the command, a read-only or damaged file), None for any other error."""
+    try:
+        from sqlalchemy.exc import DatabaseError, OperationalError
+    except ImportError:
+        return None
+    if not isinstance(exc, (OperationalError, DatabaseError)):
+        return None
+    reason = str(getattr(exc, "orig", None) or exc).splitlines()[0]
+    fix = "free space there" if "full" in reason.lower() else \
+        f"move the folder aside (a new {DAGSTER_HOME_ENV} starts an empty instance)"
+    return (f"{DAGSTER_HOME_ENV}={os.environ.get(DAGSTER_HOME_ENV, '?')}: the Dagster instance's database "
+            f"failed: {reason} ({fix}, or point {DAGSTER_HOME_ENV} elsewhere)")

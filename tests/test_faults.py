@@ -389,3 +389,36 @@ def test_ctrl_c_ends_with_one_line_and_status_130(interrupt_env, argv, ready):
 
 def _snapshot(folder: Path) -> dict[str, int]:
     return {str(p.relative_to(folder)): p.stat().st_size for p in folder.rglob("*") if p.is_file()}
+
+
+# ---- DAGSTER_HOME ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("home, says", [
+    ("relative/home", ["DAGSTER_HOME=relative/home", "must be an absolute path"]),
+    ("{tmp}/a-file", ["a-file is a file, not a folder"]),
+    ("{tmp}/a-file/home", ["a-file", "Not a directory"]),
+    ("{tmp}/full/home", ["DAGSTER_HOME={tmp}/full/home", "MiB free"]),
+    ("{tmp}/damaged", ["DAGSTER_HOME={tmp}/damaged", "file is not a database", "move the folder aside"]),
+])
+def test_a_bad_dagster_home_is_one_line_naming_the_path(isolated, capsys, monkeypatch, home, says):
+    from atlas_pipeline import io_utils
+
+    tmp = isolated
+    (tmp / "a-file").write_text("mine")
+    if "full" in home:  # the disk holding it has 1 MiB left
+        real = io_utils.shutil.disk_usage
+        monkeypatch.setattr(io_utils.shutil, "disk_usage", lambda p: real(p)._replace(free=1 << 20))
+    if "damaged" in home:
+        (tmp / "damaged" / "history").mkdir(parents=True)
+        (tmp / "damaged" / "history" / "runs.db").write_bytes(os.urandom(4096))
+    monkeypatch.chdir(tmp)
+    before = sorted(p.relative_to(tmp) for p in tmp.rglob("*"))
+    monkeypatch.setenv("DAGSTER_HOME", home.format(tmp=tmp))
+    assert main(["status", "synth-small"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    for word in says:
+        assert word.format(tmp=tmp) in err, (word, err)
+    assert sorted(p.relative_to(tmp) for p in tmp.rglob("*") if "dagster" not in str(p.relative_to(tmp))) == \
+        [b for b in before if "dagster" not in str(b)]  # no folder left behind
