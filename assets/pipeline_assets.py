@@ -13,12 +13,15 @@ records every input that shapes an artifact.
 import hashlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import pyarrow as pa
 from dagster import (
     AssetExecutionContext,
+    AssetIn,
+    Failure,
+    StaticPartitionMapping,
     AssetsDefinition,
     AssetSpec,
     DataVersion,
@@ -45,6 +48,8 @@ from assets.resources import AtlasConfig, dataset_entry
 from assets.storage import is_remote, local_scratch
 from assets.versioning import (
     DATASET_FILES,
+    FIRST_VISIT_WORLD,
+    REVISIT_STAGE,
     STAGES,
     artifact,
     lineage,
@@ -59,12 +64,12 @@ from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
 from atlas_pipeline.io_utils import discard_dir
-from atlas_pipeline.localization.localizer import LocalizationReport, localize, tracking_map
+from atlas_pipeline.localization.localizer import LocalizationReport, localize, localize_visit, tracking_map
 from atlas_pipeline.mapping.keyframes import KeyframeSet
-from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_world_with_visit, select_keyframes_stage
 from atlas_pipeline.perception.rgbd import FusedFrames, fuse
 from atlas_pipeline.scene_memory.metadata import WorldBundleArtifact, bundle_lineage, bundle_metadata
-from atlas_pipeline.sensors.registry import ensure_dataset_files, load_dataset
+from atlas_pipeline.sensors.registry import ensure_dataset_files, load_dataset, load_registry, revisits
 from atlas_pipeline.sensors.tum import FrameManifest
 from atlas_pipeline.transition_log.transitions import log_transitions
 from atlas_pipeline.versioning import dataset_signature
@@ -255,7 +260,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         yield out
         yield check_ate(artifact(context, out).summary, cfg.localization.max_ate_m)
 
-    @stage("transitions", "3", "State-action-state transitions, one row per consecutive frame pair (Parquet).",
+    @stage("transitions", "4", "State-action-state transitions, one row per consecutive frame pair (Parquet).",
            check=TRANSITIONS_SCHEMA_OK)
     def transitions(context: AssetExecutionContext, atlas: AtlasConfig, localization_report: LocalizationReport,
                     gaussian_world: GaussianWorld):
@@ -335,5 +340,58 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         yield out
         yield check_bundle_roundtrip(artifact(context, out).field)
 
+    keys = set(partitions_def.get_partition_keys())
+    first_visit_of = {second: first for first, second in revisits(load_registry()).items()
+                      if first in keys and second in keys}
+
+    @asset(name=REVISIT_STAGE, code_version="1", partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP,
+           deps=[settings_key(REVISIT_STAGE)], output_required=False,
+           ins={"first_visit_world": AssetIn(
+               FIRST_VISIT_WORLD.path[-1], dagster_type=Optional[GaussianWorld],
+               partition_mapping=StaticPartitionMapping({a: b for b, a in first_visit_of.items()}))},
+           description="A second visit (registry entry with `extends`): the first visit's world extended with this "
+                       "recording (relocalized with no start pose, then tracked and mapped into it), the recording "
+                       "localized in the extended world, its transitions, written as a world bundle whose lineage "
+                       "names the first visit's world as parent. Skipped for a first visit.")
+    def revisit_bundle(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
+                       fused_frames: FusedFrames, first_visit_world: Optional[GaussianWorld]):
+        name = context.partition_key
+        first = first_visit_of.get(name)
+        if first is None:
+            context.log.info(f"{name} is a first visit (no `extends` in the registry): nothing to extend")
+            return
+        if first_visit_world is None:
+            raise Failure(f"{name} extends {first}, whose world is not materialized: run "
+                          f"`atlas-gs run --partition {first}` first")
+        cfg = atlas.load()
+        dep_partitions = {FIRST_VISIT_WORLD: first}
+        if (out := reuse(context, cfg, dep_partitions=dep_partitions)) is None:
+            world, n_new = extend_world_with_visit(first_visit_world, raw_dataset, fused_frames, cfg, context.log.info)
+            report = localize_visit(raw_dataset, world, cfg, log=context.log.info)
+            table = log_transitions(report, name, len(world.field), cfg)
+            lin = lineage(context, dep_partitions)
+            parent = {"partition": first, "map_id": first_visit_world.map_id,
+                      "world": lin["upstream"].get(f"{FIRST_VISIT_WORLD.path[-1]}[{first}]")}
+            info = bundle_lineage(partition=name, run_id=context.run.run_id, profile=cfg.profile,
+                                  config_overrides=_run_overrides(context), raw_content_hash=raw_dataset.content_hash,
+                                  **lin, parent=parent)
+            meta = bundle_metadata(name, name, world, raw_dataset, cfg, info)
+            s = report.summary
+            out = versioned(context, WorldBundleArtifact(world.field, meta, report, table, tracking_map(world)), {
+                "extends": first, "parent_map_id": first_visit_world.map_id, "map_id": world.map_id,
+                "n_gaussians": len(world.field), "n_new_keyframes": int(n_new),
+                "n_tracked": s["n_tracked"], "n_lost": s["n_lost"], "n_relocalized": s.get("n_relocalized", 0),
+                "ate_rmse_m": _num(s.get("ate_rmse_m")), "frames_per_s": _num(s.get("frames_per_s")),
+                "trajectory_plot": MetadataValue.md(markdown_image(
+                    report.trajectory_plot_png(f"{name} in the world of {first}: top view"), "trajectory, top view")),
+            })
+        yield out
+
     return [dataset_files, settings, keyframes_settings, raw_dataset, fused_frames, keyframes, gaussian_world,
-            localization_report, transitions, demo_videos, render_evaluation, world_bundle]
+            localization_report, transitions, demo_videos, render_evaluation, world_bundle, revisit_bundle]
+
+
+def _run_overrides(context: AssetExecutionContext) -> dict[str, Any]:
+    """The run's ``--set`` values (its ``atlas/set/...`` tags)."""
+    prefix = "atlas/set/"
+    return {k[len(prefix):]: json.loads(v) for k, v in sorted(context.run.tags.items()) if k.startswith(prefix)}

@@ -422,3 +422,57 @@ def test_a_bad_dagster_home_is_one_line_naming_the_path(isolated, capsys, monkey
         assert word.format(tmp=tmp) in err, (word, err)
     assert sorted(p.relative_to(tmp) for p in tmp.rglob("*") if "dagster" not in str(p.relative_to(tmp))) == \
         [b for b in before if "dagster" not in str(b)]  # no folder left behind
+
+
+# ---- depth that drops out inside a recording ------------------------------------------------------
+
+
+def _zero_depth(root: Path, frames: list[int]) -> list[Path]:
+    import numpy as np
+    from PIL import Image
+
+    paths = sorted((root / "depth").iterdir())
+    for i in frames:
+        a = np.asarray(Image.open(paths[i]))
+        Image.fromarray(np.zeros_like(a)).save(paths[i])
+    return [paths[i] for i in frames]
+
+
+@pytest.mark.parametrize("frames, refused", [
+    ([4, 5], False),            # a few frames covered: those frames are lost, the run goes on
+    ([0], False),               # the very first frame: the anchor moves on to one with depth
+    ([1, 2, 3, 4, 5, 6, 7], True),  # 5 of 12 frames with depth: too few to map
+])
+def test_frames_without_depth_are_lost_frames(isolated, small_synthetic, capsys, caplog, frames, refused):
+    import pandas as pd
+
+    rec = isolated / "dropout"
+    shutil.copytree(small_synthetic, rec)
+    zeroed = _zero_depth(rec, frames)
+    camera = ["--intrinsics", "131.25 131.25 79.5 59.5", "--width", "160", "--height", "120"]
+    assert main(["dataset", "add", "dropout", str(rec), "--kind", "tum", *camera]) == 0
+    world = isolated / "world"
+    code = main(["build", "--input", "dropout", "--output", str(world), *FAST])
+    err = capsys.readouterr().err
+    if refused:
+        assert code == 2 and zeroed[0].name in err and "no valid pixel" in err and "too few" in err, err
+        assert not world.exists()
+        return
+    assert code == 0, err
+    assert zeroed[0].name in err and "no_depth" in err, err  # the warning names the frames and what happens
+    if frames == [0]:
+        return  # (a world's anchor frame is its first keyframe: localizing from frame 0 is another matter)
+    assert main(["localize", "--world", str(world), "--input", "dropout"]) == 0
+    assert main(["log-transitions", "--world", str(world), "--input", "dropout"]) == 0
+    capsys.readouterr()
+    report = json.loads((world / "localization.json").read_text())
+    assert [f["frame_id"] for f in report["frames"] if f["status"] == "lost"] == frames
+    assert report["summary"]["no_depth_frames"] == frames
+    df = pd.read_parquet(world / "transitions.parquet")
+    touched = {i for f in frames for i in (f - 1, f)}
+    for _, row in df.iterrows():
+        assert ("no_depth" in row["valid_reason"]) == (row["step"] in touched), row
+        if row["step"] in touched:
+            assert not row["valid"] and pd.isna(row["action_vx_mps"]), row
+        if row["frame_id_before"] in frames:  # no pose: the pose columns of a lost frame are NaN
+            assert pd.isna(row["before_x_m"]), row

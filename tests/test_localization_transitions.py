@@ -157,17 +157,19 @@ CASES = {
     "gap_at_the_bound_is_kept": ([A, TR, TR, TR], np.array([0.0, 1.0, 1.1, 1.2]), [], 0, ["ok", "ok", "ok"]),
     "gap_and_lost": ([A, TR, LO, TR], np.array([0.0, 0.1, 5.0, 5.1]), [], 0, ["ok", "after_lost;gap", "before_lost"]),
     "gap_in_ground_truth": (None, np.array([0.0, 30.0, 30.1, 30.2]), [], 0, ["gap", "ok", "ok"]),
+    # A frame whose depth image has no valid pixel is lost, and its rows say why (the sixth item).
+    "lost_without_depth": ([A, TR, LO, TR], TIMES, [], 0, ["ok", "after_lost;no_depth", "before_lost;no_depth"], [2]),
 }
 ACTION_DELTA = [c for c in TRANSITIONS_SCHEMA.names if c.startswith(("action_", "delta_"))]
 
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_validity_reasons_and_nan_for_unknowns(case):
-    status, ts, nan_frames, anchor, reasons = CASES[case]
+    status, ts, nan_frames, anchor, reasons, *no_depth = CASES[case]
     T = _trajectory()
     T[nan_frames] = np.nan
     source = "ground_truth" if status is None else "estimated"
-    df = build_transitions("p", "m", 1, ts, T, source, status, anchor).to_pandas()
+    df = build_transitions("p", "m", 1, ts, T, source, status, anchor, no_depth=no_depth[0] if no_depth else None).to_pandas()
 
     assert len(df) == N_FRAMES - 1 and df["valid_reason"].tolist() == reasons
     assert df["valid"].tolist() == [r == "ok" for r in reasons]
@@ -198,7 +200,7 @@ def test_valid_reason_is_documented_and_follows_valid():
     assert names[names.index("valid") + 1] == "valid_reason"
     doc = TRANSITIONS_SCHEMA.metadata[b"valid_reason"].decode()
     assert all(f"{r}:" in doc for r in VALID_REASONS)
-    reasons_seen = {r for case in CASES.values() for row in case[-1] for r in row.split(";")} - {"ok"}
+    reasons_seen = {r for case in CASES.values() for row in case[4] for r in row.split(";")} - {"ok"}
     assert reasons_seen == set(VALID_REASONS)  # the table above exercises every reason
 
 

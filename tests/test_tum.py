@@ -108,10 +108,14 @@ def test_wrong_image_size(broken_copy):
         _load(broken_copy)
 
 
-def test_depth_all_zero_is_refused_at_fusion(broken_copy):
+def test_depth_all_zero_is_a_lost_frame_unless_too_many(broken_copy):
     m = _load(broken_copy)
     iio.imwrite(m.depth_path(3), np.zeros((120, 160), np.uint16))
-    with pytest.raises(DatasetError, match=r"depth.*png: depth image has no valid pixel"):
+    fused = fuse_frames(m, FusionConfig())  # one frame without depth: fused with no points (tracking loses it)
+    assert fused.valid_fraction[3] == 0 and (np.delete(fused.valid_fraction, 3) > 0).all()
+    for i in range(m.n_frames):
+        iio.imwrite(m.depth_path(i), np.zeros((120, 160), np.uint16))
+    with pytest.raises(DatasetError, match=r"depth.*png: .*depth images have no valid pixel .* too few to map"):
         fuse_frames(m, FusionConfig())
 
 

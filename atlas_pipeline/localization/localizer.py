@@ -58,7 +58,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LocalizationReport", "localize_sequence", "localize", "tracking_map", "grade", "OUTCOME_COMPLETE", "OUTCOME_STOPPED_WORLD_MISMATCH",
+__all__ = ["LocalizationReport", "localize_sequence", "localize", "localize_visit", "tracking_map", "grade", "OUTCOME_COMPLETE", "OUTCOME_STOPPED_WORLD_MISMATCH",
            "MISMATCH_WINDOW_FRAMES", "MISMATCH_MAX_LOST_RUN_FRAMES"]
 
 # summary["outcome"] of a report.
@@ -311,6 +311,7 @@ def localize_sequence(
     guard = _MismatchGuard(MISMATCH_WINDOW_FRAMES, MISMATCH_MAX_LOST_RUN_FRAMES)
     stopped: str | None = None
     n_attempted = 0
+    no_depth: list[int] = []  # frames lost for want of any depth pixel (their transitions say no_depth)
     # Forward from the anchor, then backward for frames before it (a sequence whose first frames
     # precede the map's first keyframe). Only the frames in flight are held in memory.
     for order in (range(anchor_index, n), range(anchor_index - 1, -1, -1)):
@@ -326,6 +327,8 @@ def localize_sequence(
             fitness[i], rmse[i], times[i] = est.inlier_fraction, est.residual_m, est.time_s
             counts[est.status] = counts.get(est.status, 0) + 1
             n_attempted += 1
+            if est.status == STATUS_LOST and est.note == NOTE_NO_DEPTH:
+                no_depth.append(i)
             progress.update(extra=f"{counts[STATUS_LOST]} lost, {counts[STATUS_RELOCALIZED]} relocalized")
             guard.add(est)
             if stop_on_mismatch and (why := guard.stop_reason()) is not None:
@@ -344,7 +347,7 @@ def localize_sequence(
         "n_frames": n, "anchor_index": int(anchor_index), "start": "given" if T_world_cam_start is not None else "relocalized",
         "mean_time_per_frame_s": float(est_times.mean()) if len(est_times) else float("nan"),
         "outcome": OUTCOME_COMPLETE if stopped is None else OUTCOME_STOPPED_WORLD_MISMATCH,
-        "stopped_reason": stopped, "n_attempted": n_attempted,
+        "stopped_reason": stopped, "n_attempted": n_attempted, "no_depth_frames": sorted(no_depth),
     })
     summary["frames_per_s"] = 1.0 / summary["mean_time_per_frame_s"] if summary["mean_time_per_frame_s"] > 0 else float("nan")
     logger.info("localized %s: %s", manifest.dataset, {k: round(v, 4) if isinstance(v, float) else v for k, v in summary.items()})
@@ -400,6 +403,18 @@ def tracking_map(world: GaussianWorld) -> SurfelModel:
     model.builder = None
     model.appearance_map = VoxelAppearance.from_field(world.field, world.builder.voxel_size_m)
     return model
+
+
+def localize_visit(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
+                   log: Callable[[str], None] | None = None) -> LocalizationReport:
+    """A recording localized in a world it was not the first to build (a second visit): no start
+    pose, its first frame relocalized, the world's keyframe poses as relocalization priors.
+    Never stopped as a mismatch: the world was extended with these frames."""
+    return localize_sequence(
+        manifest, tracking_map(world), cfg.localization, T_world_cam_start=None, anchor_index=0,
+        map_id=world.map_id, depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
+        prior_poses=world.T_world_cam_keyframes, log=log, stop_on_mismatch=False,
+    )
 
 
 def localize(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,

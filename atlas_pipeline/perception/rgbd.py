@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 import shutil
 import tempfile
@@ -20,7 +21,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from atlas_pipeline.config import FusionConfig, PipelineConfig
-from atlas_pipeline.errors import ArtifactError
+from atlas_pipeline.errors import ArtifactError, DatasetError
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.safe_arrays import (
@@ -128,11 +129,37 @@ def read_ahead(manifest: FrameManifest, indices) -> "Iterator[tuple[int, np.ndar
 
 
 def iter_rgbd(manifest: FrameManifest, indices=None):
-    """Yield ``(frame_index, rgb [H, W, 3] uint8, depth_m [H, W] float32)``, one frame in memory at a time."""
+    """Yield ``(frame_index, rgb [H, W, 3] uint8, depth_m [H, W] float32)``, one frame in memory at
+    a time. Depth may be all zero: a sensor covered, too close or facing a window gives such frames
+    inside a recording, and they are lost frames, not a broken recording (:func:`check_usable_depth`)."""
     for i in range(manifest.n_frames) if indices is None else indices:
         rgb = manifest.read_rgb(i)
-        depth = manifest.read_depth_m(i)
+        depth = manifest.read_depth_m(i, allow_empty=True)
         yield i, rgb, depth
+
+
+# A recording is refused only when fewer of its frames than this have any depth pixel (fewer than
+# MIN_DEPTH_FRAMES, or under MIN_DEPTH_SHARE of them): the rest are lost frames (reason no_depth).
+MIN_DEPTH_FRAMES = 2
+MIN_DEPTH_SHARE = 0.5
+
+
+def check_usable_depth(manifest: FrameManifest, no_depth: list[int]) -> None:
+    """Refuse a recording whose frames ``no_depth`` (depth images with no valid pixel) leave too
+    few with depth; otherwise say which frames will be lost."""
+    n = manifest.n_frames
+    usable = n - len(no_depth)
+    if not no_depth:
+        return
+    first = manifest.depth_path(no_depth[0])
+    if usable < MIN_DEPTH_FRAMES or usable < MIN_DEPTH_SHARE * n:
+        raise DatasetError(first, f"{len(no_depth)} of the {n} depth images have no valid pixel (all zero; this "
+                                  f"is the first): {usable} frames with depth are too few to map (at least "
+                                  f"{max(MIN_DEPTH_FRAMES, math.ceil(MIN_DEPTH_SHARE * n))} needed)")
+    shown = ", ".join(str(i) for i in no_depth[:10]) + (", ..." if len(no_depth) > 10 else "")
+    logger.warning("%s: %d depth image(s) with no valid pixel (all zero; frames %s, first %s): those frames are "
+                   "lost (no pose, transitions valid = False, reason no_depth)", manifest.dataset, len(no_depth),
+                   shown, first.name)
 
 
 # Frames per points chunk (``fused-NNNNN.npz``): at 640x480 and stride 2 a chunk is ~37 MB, which
@@ -332,13 +359,17 @@ def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
     counts, valid = [], []
     n_sampled = len(range(0, manifest.camera.height, cfg.stride)) * len(range(0, manifest.camera.width, cfg.stride))
     try:
+        no_depth: list[int] = []
         for i, rgb, depth in iter_rgbd(manifest):
+            if not np.any(depth > 0):
+                no_depth.append(i)
             pts, cols = backproject(depth, rgb, manifest.camera, cfg.stride, cfg.min_depth_m, cfg.max_depth_m)
             spool.add(pts, cols)
             counts.append(len(pts))
             valid.append(len(pts) / n_sampled)
             progress.update()
         spool.flush()
+        check_usable_depth(manifest, no_depth)
     except BaseException:
         shutil.rmtree(spool.dir, ignore_errors=True)
         raise

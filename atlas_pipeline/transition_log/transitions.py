@@ -56,6 +56,8 @@ REASON_SEPARATOR = ";"
 VALID_REASONS = {
     "before_lost": "the frame before is lost: its pose is only a prediction (pose columns NaN)",
     "after_lost": "the frame after is lost: its pose is only a prediction (pose columns NaN)",
+    "no_depth": ("a frame of the pair has a depth image with no valid pixel (a sensor covered, too close, "
+                 "facing a window): it was not tracked, so it is lost"),
     "after_relocalized": "the frame after was relocalized: a jump, not a motion from the frame before",
     "before_relocalized": ("the frame before precedes the anchor (tracked backwards from it) and was "
                            "relocalized: a jump, not a motion from the frame after"),
@@ -129,6 +131,7 @@ def build_transitions(
     status: list[str] | None = None,
     anchor_index: int = 0,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
+    no_depth: list[int] | None = None,
 ) -> pa.Table:
     """Transitions table from a trajectory.
 
@@ -142,6 +145,7 @@ def build_transitions(
         anchor_index: the frame tracking started from; frames before it were tracked backwards, so
             for them the jump of a relocalization lies between a frame and the one after it.
         max_gap_s: frames further apart (``dt_s``) do not follow each other (``transitions.max_gap_s``).
+        no_depth: frames whose depth image had no valid pixel (lost for that reason: ``no_depth``).
 
     Returns:
         A table with :data:`TRANSITIONS_SCHEMA`, ``N - 1`` rows. ``valid`` is False (and
@@ -178,6 +182,8 @@ def build_transitions(
     # [N] a pose exists: finite, and from a frame that was processed at all
     finite = np.isfinite(T).all(axis=(1, 2)) & (st != STATUS_NOT_ATTEMPTED)
     lost = st == STATUS_LOST  # [N]
+    empty = np.zeros(n, bool)  # [N] no depth pixel at all
+    empty[[i for i in (no_depth or []) if 0 <= i < n]] = True
     relocalized = st == STATUS_RELOCALIZED  # [N]
     known = finite & ~lost  # [N] a pose worth reporting: a lost frame's pose is a guess
     dt = np.diff(ts)  # [N-1]
@@ -185,6 +191,7 @@ def build_transitions(
     flags = {
         "before_lost": lost[:-1],
         "after_lost": lost[1:],
+        "no_depth": empty[:-1] | empty[1:],
         "after_relocalized": relocalized[1:] & ~backward,
         "before_relocalized": relocalized[:-1] & backward,
         "before_pose_unknown": ~finite[:-1],
@@ -277,6 +284,7 @@ def log_transitions(report: LocalizationReport, partition: str, n_gaussians: int
     if source == "estimated":
         # Frames before the anchor were tracked backwards from it (see localize_sequence).
         return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source,
-                                 list(report.status), int(report.summary.get("anchor_index", 0)), max_gap_s)
+                                 list(report.status), int(report.summary.get("anchor_index", 0)), max_gap_s,
+                                 no_depth=list(report.summary.get("no_depth_frames") or []))
     return build_transitions(partition, report.map_id, n_gaussians, report.timestamps_s, poses, source,
                              max_gap_s=max_gap_s)
