@@ -11,6 +11,7 @@ import shutil
 import tarfile
 from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import yaml
@@ -476,3 +477,41 @@ def test_frames_without_depth_are_lost_frames(isolated, small_synthetic, capsys,
             assert not row["valid"] and pd.isna(row["action_vx_mps"]), row
         if row["frame_id_before"] in frames:  # no pose: the pose columns of a lost frame are NaN
             assert pd.isna(row["before_x_m"]), row
+
+
+# ---- the rotation error after an ill-posed alignment ----------------------------------------------
+
+
+def _path(kind: str, n: int = 12):
+    import numpy as np
+
+    from atlas_pipeline.geometry import pose_from_tq
+
+    rng = np.random.default_rng(3)
+    s = np.linspace(0, 0.3, n)
+    across = {"straight": 0.0, "near straight": 1e-3, "curved": 0.15}[kind]
+    t = np.stack([s, across * np.sin(s * 20), across * np.cos(s * 15)], 1)
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    gt = pose_from_tq(t, q)
+    est = gt.copy()
+    est[:, :3, 3] += 1e-3 * rng.standard_normal((n, 3))  # 1 mm of tracking noise, no rotation error
+    return est, gt
+
+
+@pytest.mark.parametrize("kind, reported", [("straight", False), ("near straight", False), ("curved", True)])
+def test_rotation_error_is_reported_only_where_the_alignment_fixes_the_rotation(kind, reported):
+    import math
+
+    from atlas_pipeline.localization.localizer import grade
+    from atlas_pipeline.localization.metrics import ate
+
+    est, gt = _path(kind)
+    a = ate(est, gt)
+    summary, _, err_r = grade(np.arange(len(est)) / 30.0, est, ["tracked"] * len(est), gt)
+    assert summary["rmse_rot_unaligned_deg"] < 1e-9  # the unaligned figure stays, and is right
+    if reported:
+        assert a["rot_note"] is None and "ate_rot_note" not in summary and summary["ate_rot_rmse_deg"] < 3.0
+    else:
+        assert math.isnan(a["rot_rmse_deg"]) and math.isnan(summary["ate_rot_rmse_deg"]) and np.isnan(err_r).all()
+        for word in ("near straight", "uncertain by", "unaligned rotation error"):
+            assert word in summary["ate_rot_note"], summary["ate_rot_note"]

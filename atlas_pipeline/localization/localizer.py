@@ -384,6 +384,7 @@ def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: 
         summary.update({
             "ate_rmse_m": a["rmse_m"], "ate_mean_m": a["mean_m"], "ate_median_m": a["median_m"],
             "ate_max_m": a["max_m"], "ate_rot_rmse_deg": a["rot_rmse_deg"],
+            **({"ate_rot_note": a["rot_note"]} if a["rot_note"] else {}),  # why the figure is NaN
             # Without alignment: meaningful when the world shares the ground truth's frame.
             "rmse_t_unaligned_m": float(np.sqrt(np.mean(raw_t**2))),
             "rmse_rot_unaligned_deg": float(np.sqrt(np.mean(raw_r**2))),

@@ -117,22 +117,53 @@ def align_rigid(poses_est: np.ndarray, poses_gt: np.ndarray) -> np.ndarray:
     return S
 
 
+# The alignment is fitted to positions, so its rotation about the path's own direction is fixed
+# only by how far the positions lie off that line: about sqrt(3 / (n (s2^2 + s3^2))) * rmse radians
+# for n positions spread s2, s3 across the path. On a near-straight path that is degrees or tens of
+# degrees, and the rotation error after the alignment measures the alignment, not the tracking:
+# beyond this bound it is not reported (NaN, with the reason in rot_note).
+ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG = 3.0
+
+
+def alignment_rot_uncertainty_deg(positions_gt: np.ndarray, rmse_m: float) -> float:
+    """How far (degrees) a rigid alignment fitted to ``positions_gt`` ``[M, 3]`` with residual
+    ``rmse_m`` may be turned about the path's main direction (inf when the path is a line)."""
+    xs = np.asarray(positions_gt, np.float64)
+    xs = xs - xs.mean(axis=0)
+    spread = np.linalg.svd(xs, compute_uv=False) / np.sqrt(len(xs))  # std along the principal axes
+    across = float(np.hypot(spread[1], spread[2])) if len(spread) >= 3 else 0.0
+    if across <= 0:
+        return float("inf")
+    return float(np.degrees(rmse_m / (np.sqrt(len(xs)) * across)))
+
+
 def ate(poses_est: np.ndarray, poses_gt: np.ndarray, align: bool = True) -> dict:
     """Absolute trajectory error of matched poses ``[M, 4, 4]`` (TUM ``evaluate_ate``, evo ``ape``
     with the translation part): positions compared after a rigid alignment of est onto gt.
 
-    Returns ``{"rmse_m", "mean_m", "median_m", "max_m", "rot_rmse_deg", "errors_t_m" [M],
-    "errors_rot_deg" [M], "alignment" [4, 4], "n"}``.
+    Returns ``{"rmse_m", "mean_m", "median_m", "max_m", "rot_rmse_deg", "rot_note", "errors_t_m" [M],
+    "errors_rot_deg" [M], "alignment" [4, 4], "alignment_rot_uncertainty_deg", "n"}``. The rotation
+    figures are NaN, and ``rot_note`` says why, when the alignment's rotation is ill-posed (a
+    near-straight path, :data:`ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG`); ``rot_note`` is None otherwise.
     """
     est = np.asarray(poses_est, np.float64)
     gt = np.asarray(poses_gt, np.float64)
-    S = align_rigid(est, gt) if align and len(est) >= 3 else np.eye(4)
+    aligning = align and len(est) >= 3
+    S = align_rigid(est, gt) if aligning else np.eye(4)
     aligned = S @ est
     e_t, e_r = pose_errors(aligned, gt)
     st = error_stats(e_t)
+    uncertainty = alignment_rot_uncertainty_deg(gt[:, :3, 3], st["rmse"]) if aligning else 0.0
+    note = None
+    if uncertainty > ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG:
+        note = (f"not reported: the path is near straight, so the alignment's rotation about it is uncertain by "
+                f"about {uncertainty:.3g} degrees (more than {ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG:g}); the "
+                "unaligned rotation error is meaningful when the world shares the ground truth's frame")
+        e_r = np.full_like(e_r, np.nan)
     return {"rmse_m": st["rmse"], "mean_m": st["mean"], "median_m": st["median"], "max_m": st["max"],
-            "rot_rmse_deg": error_stats(e_r)["rmse"], "errors_t_m": e_t, "errors_rot_deg": e_r,
-            "alignment": S, "n": int(len(est))}
+            "rot_rmse_deg": float("nan") if note else error_stats(e_r)["rmse"], "rot_note": note,
+            "errors_t_m": e_t, "errors_rot_deg": e_r, "alignment": S,
+            "alignment_rot_uncertainty_deg": uncertainty, "n": int(len(est))}
 
 
 def rpe(timestamps_s: np.ndarray, poses_est: np.ndarray, poses_gt: np.ndarray, delta: float = 1.0,
@@ -189,6 +220,8 @@ def evaluate_trajectories(ts_est: np.ndarray, poses_est: np.ndarray, ts_gt: np.n
         a = ate(est, gt)
         out.update({"ate_rmse_m": a["rmse_m"], "ate_mean_m": a["mean_m"], "ate_median_m": a["median_m"],
                     "ate_max_m": a["max_m"], "ate_rot_rmse_deg": a["rot_rmse_deg"]})
+        if a["rot_note"]:
+            out["ate_rot_note"] = a["rot_note"]
         r = rpe(t, est, gt, rpe_delta_s, "s")
         out.update({"rpe_trans_rmse_m": r["trans_rmse_m"], "rpe_rot_rmse_deg": r["rot_rmse_deg"],
                     "rpe_n_pairs": r["n_pairs"], "rpe_delta_s": rpe_delta_s})
