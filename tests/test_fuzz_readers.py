@@ -22,6 +22,7 @@ from __future__ import annotations
 import io
 import os
 import re
+import shutil
 import struct
 import tracemalloc
 import traceback
@@ -502,6 +503,40 @@ def build_targets(root: Path) -> dict[str, FuzzTarget]:
     ).encode()
     add("registry_yaml", [FuzzFile("datasets.yaml", [reg], "text", magic=[b"", b"datasets:\n  ", b"datasets:\n  a:\n    kind: "])],
         lambda d: lambda: load_registry([d / "datasets.yaml"]))
+
+    # -- a profile (line duplication writes a key twice: refused, never the last value silently kept)
+    from atlas_pipeline.config import load_profile
+
+    profile = b"fusion:\n  stride: 2\n  min_depth_m: 0.1\nvideo:\n  fps: 15\n  orbit_frames: 30\n"
+    add("profile_yaml", [FuzzFile("p.yaml", [profile], "text", magic=[b"", b"fusion:\n  ", b"<<: "])],
+        lambda d: lambda: load_profile(str(d / "p.yaml")))
+
+    # -- the other layouts' text files (poses, trajectories, intrinsics) over valid images
+    from test_readers import REPLICA_CAMERA, SEVEN_SCENES_CAMERA, _replica, _scannet, _seven_scenes, _write_bag
+
+    from atlas_pipeline.sensors.bags import load_bag_sequence
+    from atlas_pipeline.sensors.layouts import load_7scenes_sequence, load_replica_sequence, load_scannet_sequence
+
+    def layout(name: str, build, files: list[str], call) -> None:
+        folder = build(_make_folder(root, name) / "rec")
+        fuzz = [FuzzFile(f, [(folder / f).read_bytes()], "text", magic=[b"", b"1 0 0 0\n"]) for f in files]
+        targets[name] = FuzzTarget(name, folder, fuzz, (lambda c, d: lambda: c(d))(call, folder))
+
+    layout("7scenes_poses", lambda r: _seven_scenes(r, 2).parent, ["seq-01/frame-000000.pose.txt", "seq-01/frame-000001.pose.txt"],
+           lambda d: load_7scenes_sequence(d, SEVEN_SCENES_CAMERA, "chess", sequence="seq-01"))
+    layout("replica_traj", lambda r: _replica(r, 2), ["traj.txt"], lambda d: load_replica_sequence(d, REPLICA_CAMERA, "room"))
+    layout("scannet_text", lambda r: _scannet(r, 2), ["intrinsic/intrinsic_depth.txt", "intrinsic/intrinsic_color.txt",
+                                                      "pose/0.txt", "pose/1.txt"], lambda d: load_scannet_sequence(d, "scene"))
+    bag = _make_folder(root, "bag")
+    _write_bag(bag / "rec.bag", ros2=False, n=3)
+    cache = _make_folder(root, "bag_cache")
+
+    def read_bag(d: Path):
+        shutil.rmtree(cache, ignore_errors=True)  # converted afresh each case
+        return load_bag_sequence(d / "rec.bag", "rec", cache)
+
+    targets["ros1_bag"] = FuzzTarget("ros1_bag", bag, [FuzzFile("rec.bag", [(bag / "rec.bag").read_bytes()], "binary",
+                                                                magic=[b"", b"#ROSBAG V2.0\n"])], (lambda d: lambda: read_bag(d))(bag))
     return targets
 
 
@@ -516,7 +551,11 @@ def targets(tmp_path_factory) -> dict[str, FuzzTarget]:
 
 
 TARGET_NAMES = ["ply", "atlasgs", "tum_list", "tum_groundtruth", "tum_sequence", "npz", "surfels_npz", "world_npz",
-                "keyframes_npz", "fused_npz", "bundle_metadata", "bundle_load", "registry_yaml"]
+                "keyframes_npz", "fused_npz", "bundle_metadata", "bundle_load", "registry_yaml", "profile_yaml",
+                "7scenes_poses", "replica_traj", "scannet_text"]
+# The bag reader (rosbags) allocates what a mutated record size claims before refusing it: 67 MB for a
+# 65 kB bag was seen, over the 64 MiB floor. Fuzzed, but not yet held to the memory bound.
+BAG_TARGETS = ["ros1_bag"]
 
 
 def _check(target: FuzzTarget, fuzz_name: str, data: bytes) -> None:
@@ -553,6 +592,12 @@ def test_reader_fuzz_quick(targets, name):
 def test_reader_fuzz_thorough(targets, name):
     """10,400 cases in all (13 readers x 800): part of the full run and CI; `-m "not slow"` skips it."""
     _fuzz(targets, name, SLOW_EXAMPLES)
+
+
+@pytest.mark.parametrize("name", BAG_TARGETS)
+@pytest.mark.xfail(reason="a bag's record sizes are trusted by rosbags before any check (memory bound)", strict=False)
+def test_bag_fuzz_quick(targets, name):
+    _fuzz(targets, name, QUICK_EXAMPLES)
 
 
 def test_every_seed_is_accepted(targets):
