@@ -608,7 +608,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         else:
             _out(json.dumps(summary, indent=2) if as_json else words)
 
-    for p in partitions:
+    for p in first_visits_first(partitions, load_registry()):
         root = artifacts_root()
         selection = None
         if args.stale_only:
@@ -789,6 +789,13 @@ def _run_in_worker(args: argparse.Namespace, tty: bool) -> tuple[int, str]:
     return code, out.getvalue()
 
 
+def first_visits_first(partitions: list[str], registry) -> list[str]:
+    """``partitions`` in their order, except that a second visit (registry ``extends``) runs after
+    the first visit it extends when both are in the list."""
+    chosen = set(partitions)
+    return sorted(partitions, key=lambda p: registry[p].extends in chosen)
+
+
 def longest_first(sizes: list[int]) -> list[int]:
     """Indices of ``sizes`` largest first, ties in their order: with more partitions than workers,
     a long recording started last would run on alone at the end (longest processing time first,
@@ -832,7 +839,13 @@ def _run_concurrently(args: argparse.Namespace, partitions: list[str], concurren
     try:
         with ProcessPoolExecutor(max_workers=concurrency, mp_context=context, initializer=_init_worker,
                                  initargs=(share,)) as pool:
-            futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order}
+            # A second visit extends its first visit's world: it starts once that run has ended.
+            first_of = {k: partitions.index(registry[p].extends) for k, p in enumerate(partitions)
+                        if registry[p].extends in partitions}
+            futures = {k: pool.submit(_run_in_worker, jobs[k], tty) for k in order if k not in first_of}
+            for k in (k for k in order if k in first_of):
+                futures[first_of[k]].result()
+                futures[k] = pool.submit(_run_in_worker, jobs[k], tty)
             for k in range(len(jobs)):  # results in partition order
                 code, text = futures[k].result()
                 if as_json:

@@ -364,5 +364,16 @@ class ArtifactIOManager(ConfigurableIOManager):
                                      "content_hash": obj.record["content_hash"][:16]})
 
     def load_input(self, context: InputContext) -> Any:
-        partition = context.asset_partition_key if context.has_asset_partitions else "__all__"
-        return self.load_artifact(context.asset_key.path[-1], partition)
+        if not context.has_asset_partitions:
+            return self.load_artifact(context.asset_key.path[-1], "__all__")
+        keys = context.asset_partition_keys
+        if not keys:  # an input from another partition that this partition does not have (a first visit)
+            return None
+        asset = context.asset_key.path[-1]
+        try:
+            return self.load_artifact(asset, keys[0])
+        except ArtifactError as exc:
+            if not context.has_partition_key or keys[0] == context.partition_key:
+                raise
+            raise ArtifactError(f"{asset} of partition {keys[0]}, an input of partition {context.partition_key}, "
+                                f"is not available ({exc}): run `atlas-gs run --partition {keys[0]}` first") from exc

@@ -11,8 +11,9 @@ from __future__ import annotations
 from dagster import AssetKey, DagsterInstance, Definitions
 
 from assets.pipeline_assets import dataset_version
-from assets.resources import AtlasConfig
-from assets.versioning import DATASET_FILES, STAGES, changes, settings_key, stage_settings
+from assets.resources import AtlasConfig, dataset_entry
+from assets.versioning import (DATASET_FILES, FIRST_VISIT_WORLD, REVISIT_STAGE, STAGES, changes, settings_key,
+                               stage_settings)
 
 __all__ = ["stale_assets", "stale_selection"]
 
@@ -22,12 +23,16 @@ def stale_assets(defs: Definitions, instance: DagsterInstance, partition: str, a
     cfg, store = atlas.load(), defs.resources["artifact_io"]
     specs = {s.key: s for s in defs.resolve_all_asset_specs()}
     stale: dict[str, list[str]] = {}
+    first_visit = dataset_entry(partition).extends
     for name in STAGES:
+        if name == REVISIT_STAGE and first_visit is None:
+            continue  # a first visit has no revisit bundle
         spec = specs[AssetKey(name)]
         manifest = store.load_artifact("raw_dataset", partition) if name == "keyframes" and store.intact(
             "raw_dataset", partition) else None  # keyframes: the settings this dataset makes it read
         why = changes(instance, spec.key, partition, spec.code_version, [d.asset_key for d in spec.deps],
-                      stage_settings(cfg, name, manifest), dataset_version(partition), stale)
+                      stage_settings(cfg, name, manifest), dataset_version(partition), stale,
+                      dep_partitions={FIRST_VISIT_WORLD: first_visit} if name == REVISIT_STAGE else None)
         if why or not store.intact(name, partition):
             stale[name] = why or ["artifact files changed or missing"]
     return stale

@@ -32,7 +32,11 @@ from atlas_pipeline.sensors.tum import FrameManifest
 DATA_VERSION_TAG = "dagster/data_version"  # where Dagster keeps an event's data version (a test pins it)
 DATASET_FILES = AssetKey("dataset_files")
 STAGES = ("raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report", "transitions",
-          "demo_videos", "render_evaluation", "world_bundle")  # in dependency order
+          "demo_videos", "render_evaluation", "world_bundle", "revisit_bundle")  # in dependency order
+# Materialized only for a second visit (a registry entry with ``extends``): its world extends the
+# first visit's, an input from that visit's partition.
+REVISIT_STAGE = "revisit_bundle"
+FIRST_VISIT_WORLD = AssetKey("gaussian_world")
 # The fit's settings (gaussian_world reads them, keyframes does not): every mapping field named so.
 _FIT_PREFIXES = ("optimization_", "colour_refinement_")
 _FIT = {f.name for f in dataclasses.fields(MappingConfig) if f.name.startswith(_FIT_PREFIXES)}
@@ -64,6 +68,7 @@ def stage_settings(cfg: PipelineConfig, stage: str, manifest: FrameManifest | No
             "demo_videos": lambda: {**f("video"), **f("mapping", {"voxel_size_m"})},
             "render_evaluation": lambda: {**f("evaluation"), **f("fusion", _DEPTH)},
             "world_bundle": lambda: {k: v for s in d if isinstance(d[s], dict) for k, v in f(s).items()},  # all: metadata.json
+            REVISIT_STAGE: lambda: {k: v for s in d if isinstance(d[s], dict) for k, v in f(s).items()},
             }[stage]()
 
 
@@ -96,14 +101,17 @@ def data_version(rec: EventLogRecord | None) -> str | None:
 
 
 def changes(instance: DagsterInstance, key: AssetKey, partition: str, code_version: str | None, deps,
-            settings: dict[str, Any] | None = None, dataset: str | None = None, stale=()) -> list[str]:
+            settings: dict[str, Any] | None = None, dataset: str | None = None, stale=(),
+            dep_partitions: dict[AssetKey, str] | None = None) -> list[str]:
     """Why the latest materialization of ``key``/``partition`` is not current (empty: it is).
 
     Dagster's rule: never materialized, another code version, or an input (``deps``) whose partition
     has a newer event with another data version than the one consumed (Dagster records the newest
     event id of each input at that time). ``settings``: compare the ``settings/<asset>`` consumed
     with these values instead; ``dataset``: the ``dataset_version`` metadata with this; ``stale``:
-    inputs that will be recomputed."""
+    inputs that will be recomputed; ``dep_partitions``: inputs read from another partition (a
+    second visit's first-visit world)."""
+    dep_partitions = dep_partitions or {}
     last = record(instance, key, partition)
     prov = DataProvenance.from_tags(last.asset_materialization.tags) if last is not None else None
     if prov is None:
@@ -111,8 +119,9 @@ def changes(instance: DagsterInstance, key: AssetKey, partition: str, code_versi
     out = [] if prov.code_version == code_version else [f"code version {prov.code_version} -> {code_version}"]
     for dep in sorted(deps):
         cursor = prov.input_storage_ids.get(dep)
-        used = record(instance, dep, partition, before=cursor + 1) if cursor is not None else None
-        if dep.path[-1] in stale and len(dep.path) == 1:
+        dep_p = dep_partitions.get(dep, partition)
+        used = record(instance, dep, dep_p, before=cursor + 1) if cursor is not None else None
+        if dep.path[-1] in stale and len(dep.path) == 1 and dep not in dep_partitions:
             out.append(f"{dep.path[-1]} will be recomputed (may change)")
         elif dep == settings_key(key.path[-1]) and settings is not None:
             if settings_version(settings) != data_version(used):
@@ -124,13 +133,13 @@ def changes(instance: DagsterInstance, key: AssetKey, partition: str, code_versi
                 out.append("dataset files changed")
         elif dep not in prov.input_data_versions:
             out.append(f"new input {dep.to_user_string()}")
-        elif (newer := record(instance, dep, partition, after=cursor)) is not None and data_version(newer) != data_version(used):
-            out.append(f"{dep.to_user_string()} has a new data version")
+        elif (newer := record(instance, dep, dep_p, after=cursor)) is not None and data_version(newer) != data_version(used):
+            out.append(f"{dep.to_user_string()}{f' [{dep_p}]' if dep_p != partition else ''} has a new data version")
     return out
 
 
 def reuse(context: AssetExecutionContext, cfg: PipelineConfig, manifest: FrameManifest | None = None,
-          dataset: str | None = None) -> Output | None:
+          dataset: str | None = None, dep_partitions: dict[AssetKey, str] | None = None) -> Output | None:
     """Call first in an asset: takes the partition's lock, checks that ``settings/<asset>`` holds the
     run's settings, and returns an ``Output`` repeating the latest materialization when
     :func:`changes` finds nothing and the files are intact; None: compute (target checked writable)."""
@@ -143,7 +152,8 @@ def reuse(context: AssetExecutionContext, cfg: PipelineConfig, manifest: FrameMa
         raise Failure(f"settings/{name} [{p}] (version {have}) does not hold this run's settings "
                       f"({settings_version(settings)}): materialize it in the same run, as the atlas_gs_all job does")
     code = context.assets_def.get_asset_spec(key).code_version
-    why = changes(inst, key, p, code, context.assets_def.asset_deps[key], settings, dataset) or (
+    why = changes(inst, key, p, code, context.assets_def.asset_deps[key], settings, dataset,
+                  dep_partitions=dep_partitions) or (
         [] if store.intact(name, p) else ["artifact files changed or missing"])
     if why:
         context.log.info(f"computing {name} [{p}]: {'; '.join(why)}")
@@ -174,17 +184,28 @@ def artifact(context: AssetExecutionContext, out: Output) -> Any:
     return out.value.value
 
 
-def lineage(context: AssetExecutionContext) -> dict[str, Any]:
+def lineage(context: AssetExecutionContext, dep_partitions: dict[AssetKey, str] | None = None) -> dict[str, Any]:
     """The running asset's ancestors (same partition), walked through the input provenance Dagster
     recorded: ``upstream`` (data version, code version, run, time of each), the ``settings`` each
-    read (data versions) and the ``dataset_files`` version."""
+    read (data versions) and the ``dataset_files`` version. An input read from another partition
+    (``dep_partitions``) is recorded as ``name[partition]`` without its own ancestors (the parent
+    bundle's lineage holds those)."""
     inst, p = context.instance, context.partition_key
+    dep_partitions = dep_partitions or {}
     out: dict[str, Any] = {"upstream": {}, "settings": {}, "dataset_files": None}
     todo, seen = sorted(context.assets_def.asset_deps[context.asset_key]), set()
     while todo:
-        if (dep := todo.pop(0)) in seen or (rec := record(inst, dep, p)) is None:
+        dep = todo.pop(0)
+        dep_p = dep_partitions.get(dep, p) if dep in context.assets_def.asset_deps[context.asset_key] else p
+        if dep in seen or (rec := record(inst, dep, dep_p)) is None:
             continue
         seen.add(dep)
+        if dep_p != p:
+            prov = DataProvenance.from_tags(rec.asset_materialization.tags)
+            out["upstream"][f"{dep.path[-1]}[{dep_p}]"] = {
+                "data_version": data_version(rec), "code_version": prov.code_version, "run_id": rec.run_id,
+                "created_utc": _dt.datetime.fromtimestamp(rec.timestamp, _dt.timezone.utc).isoformat(timespec="seconds")}
+            continue
         if dep == DATASET_FILES:
             out["dataset_files"] = data_version(rec)
         elif len(dep.path) > 1:

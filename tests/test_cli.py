@@ -29,7 +29,7 @@ def test_paper_commands_build_localize_log_video(isolated, capsys):
     import imageio.v2 as imageio
 
     with imageio.get_reader(out, format="FFMPEG") as reader:  # the video decodes
-        frames = np.stack(list(reader))  # [F, H, W, 3]
+        frames = np.stack([np.asarray(f) for f in reader])  # [F, H, W, 3]
     assert frames.shape == (4, SMALL_SYNTH["height"], SMALL_SYNTH["width"], 3)
 
 

@@ -39,7 +39,11 @@ def _dagster_ui_status(defs, instance, partition) -> dict[str, str]:
     view = AssetGraphView(temporal_context=TemporalContext(effective_dt=get_current_datetime(), last_event_id=None),
                           instance=instance, asset_graph=graph)
     resolver = CachingStaleStatusResolver(instance=instance, asset_graph=graph, loading_context=view)
-    return {k.to_user_string(): resolver.get_status(k, partition).value for k in graph.materializable_asset_keys}
+    # What the partition's runs materialize: not the exports (a job of their own), nor the revisit
+    # bundle of a first visit (skipped: nothing to extend).
+    job = {k for k in graph.materializable_asset_keys
+           if defs.resolve_assets_def(k).group_names_by_key[k] != "exports" and k.to_user_string() != "revisit_bundle"}
+    return {k.to_user_string(): resolver.get_status(k, partition).value for k in job}
 
 
 def _files(root: Path, assets=None) -> dict[str, tuple[int, bytes]]:
@@ -111,7 +115,7 @@ def test_localization_change_recomputes_only_localization_and_downstream(persist
     # show as stale (keyframes' in case the dataset is tracked; this one is not, see test_keyframes_read...).
     ui = _dagster_ui_status(build_definitions(root / "artifacts", overrides=change), instance, PART)
     assert sorted(k for k, v in ui.items() if v != "FRESH") == [
-        "settings/keyframes", "settings/localization_report", "settings/world_bundle"]
+        "settings/keyframes", "settings/localization_report", "settings/revisit_bundle", "settings/world_bundle"]
     result = _run(root, instance, change)
     md = _materializations(result)
     assert sorted(a for a, m in md.items() if not m["reused"].value) == sorted(DOWNSTREAM_OF_LOCALIZATION)
@@ -293,7 +297,8 @@ def test_keyframes_read_the_tracker_settings_exactly_when_they_track(small_manif
     assert "localization.photometric_weight" not in stage_settings(cfg, "keyframes", small_manifest)
     assert "localization.photometric_weight" in stage_settings(cfg, "keyframes", partial)
     # Per field, not per section: the keyframe fit's settings shape the world, not the keyframes;
-    # the ATE bound is read by its check only (and recorded in the bundle's config).
+    # the ATE bound is read by its check only (and recorded in the bundles' config).
     assert "mapping.optimization_epochs" not in stage_settings(cfg, "keyframes", partial)
     assert "mapping.optimization_epochs" in stage_settings(cfg, "gaussian_world")
-    assert [s for s in STAGES if "localization.max_ate_m" in stage_settings(cfg, s, partial)] == ["world_bundle"]
+    assert [s for s in STAGES if "localization.max_ate_m" in stage_settings(cfg, s, partial)] == [
+        "world_bundle", "revisit_bundle"]

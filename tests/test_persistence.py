@@ -201,3 +201,56 @@ def test_relocalization_in_a_saved_map_is_fast():
                 break
         else:
             pytest.fail(f"no frame from t = {start} s placed in {FAST_ONLY_ATTEMPTS} fast attempts")
+
+
+def test_a_drifted_second_view_of_a_surface_is_left_out_and_new_surface_beside_it_kept():
+    from atlas_pipeline.localization.places import CellOwners, drifted_copies
+
+    def wall(x_m, y0, y1, step=0.02):  # points of a wall x = x_m, y in [y0, y1), z in [0, 1)
+        y, z = np.meshgrid(np.arange(y0, y1, step), np.arange(0.0, 1.0, step))
+        return np.stack([np.full(y.size, x_m), y.ravel(), z.ravel()], axis=1)
+
+    owners = CellOwners(0.1)
+    owners.add(wall(2.0, -1.0, 1.0), keyframe=0)  # keyframe 0 mapped the wall
+    T = np.eye(4)  # points given in the world frame: the camera at the origin
+    # Keyframe 20 sees it again 6 cm off (drift), and the wall's continuation past y = 1.
+    again = wall(2.06, -1.0, 1.0)
+    beyond = wall(2.0, 1.3, 2.0)
+    drop = drifted_copies(owners, np.concatenate([again, beyond]), T, keyframe=20, min_age=10)
+    assert drop[: len(again)].all()
+    assert not drop[len(again):].any()
+    # A keyframe tracked against keyframe 0's surface (within the age) merges everything.
+    assert not drifted_copies(owners, again, T, keyframe=5, min_age=10).any()
+
+
+def test_a_world_from_tracked_poses_holds_one_copy_of_a_surface_seen_twice():
+    """The same view merged twice, the second time 8 cm off as drift would put it, 20 keyframes
+    later: the world's tracking map keeps the first copy only."""
+    from atlas_pipeline.config import MappingConfig
+    from atlas_pipeline.mapping.keyframes import KeyframeSet
+    from atlas_pipeline.mapping.mapper import build_world
+
+    class Fused:  # the same camera-frame wall at every frame
+        stride, min_depth_m, max_depth_m = 2, 0.1, 4.0
+
+        def frame(self, k):
+            y, z = np.meshgrid(np.arange(-1.0, 1.0, 0.01), np.arange(-0.5, 0.5, 0.01))
+            pts = np.stack([y.ravel(), z.ravel(), np.full(y.size, 2.0)], axis=1).astype(np.float32)
+            return pts, np.full((len(pts), 3), 128, np.uint8)
+
+    n = 22
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[21, 2, 3] = 0.08  # the second visit, drifted along the optical axis
+    idx = np.array([0, 21])
+    cfg = MappingConfig(optimization_epochs=0, colour_refinement_iterations=0)
+    one = build_world(Fused(), KeyframeSet(T, np.ones(n, bool), idx[:1], "estimated"), cfg)
+    # 20 keyframes apart in the keyframe list: positions 0 and 20 (keyframes 1-19 look elsewhere).
+    T_far = np.tile(np.eye(4), (n, 1, 1))
+    T_far[1:21, 0, 3] = 100.0
+    T_far[21] = T[21]
+    both = build_world(Fused(), KeyframeSet(T_far, np.ones(n, bool), np.arange(n), "estimated"), cfg)
+    near_wall = lambda w: np.count_nonzero(np.abs(np.asarray(w.field.positions)[:, 0]) < 5.0)  # noqa: E731
+    assert near_wall(both) == near_wall(one)
+    # With ground-truth poses nothing is left out: there is no drift to undo.
+    gt = build_world(Fused(), KeyframeSet(T_far, np.ones(n, bool), np.arange(n), "ground_truth"), cfg)
+    assert near_wall(gt) > near_wall(one)

@@ -212,3 +212,80 @@ class CoverageMap:
         ids = self._ids(points_world)
         pos = np.minimum(np.searchsorted(self._cells, ids), len(self._cells) - 1)
         return float(np.mean(self._cells[pos] != ids))
+
+
+class CellOwners:
+    """For each coarse cell of space (hashed voxels of ``cell_m``), the first keyframe that put
+    surface in it: what tells a later keyframe's points on mapped surface (the same cells) from a
+    copy of that surface shifted by the drift between the two keyframes (cells beside it)."""
+
+    def __init__(self, cell_m: float = COVERAGE_CELL_M):
+        self.cell_m = float(cell_m)
+        self._cells = np.zeros(0, np.uint64)  # sorted unique cell ids
+        self._owner = np.zeros(0, np.int64)  # keyframe position per cell
+
+    def __len__(self) -> int:
+        return len(self._cells)
+
+    def _ids(self, points_world: np.ndarray) -> np.ndarray:
+        from atlas_pipeline.gaussian_world.builder import pack_voxel_ids
+
+        return pack_voxel_ids(np.floor(np.asarray(points_world, np.float64) / self.cell_m).astype(np.int64))
+
+    def owner(self, points_world: np.ndarray) -> np.ndarray:
+        """``[M]`` int64: the keyframe that first mapped the cell of each point ``[M, 3]`` (-1: none)."""
+        out = np.full(len(points_world), -1, np.int64)
+        if not len(self._cells) or not len(points_world):
+            return out
+        ids = self._ids(points_world)
+        pos = np.minimum(np.searchsorted(self._cells, ids), len(self._cells) - 1)
+        hit = self._cells[pos] == ids
+        out[hit] = self._owner[pos[hit]]
+        return out
+
+    def add(self, points_world: np.ndarray, keyframe: int) -> None:
+        """Cells of ``points_world [M, 3]`` not mapped yet become ``keyframe``'s."""
+        if not len(points_world):
+            return
+        ids = np.unique(self._ids(points_world))
+        new = ids[~np.isin(ids, self._cells, assume_unique=True)]
+        if not len(new):
+            return
+        cells = np.concatenate([self._cells, new])
+        owner = np.concatenate([self._owner, np.full(len(new), keyframe, np.int64)])
+        order = np.argsort(cells, kind="stable")
+        self._cells, self._owner = cells[order], owner[order]
+
+
+# A keyframe's point is taken for a drifted copy of an older keyframe's surface when that surface
+# is in its cell or on its viewing ray within this distance (m), looked up at these steps in front
+# of and behind it: the drift of frame-to-model tracking between two visits of a place is a few
+# centimetres to a decimetre or two.
+DUPLICATE_RAY_STEPS_M = (-0.2, -0.15, -0.1, -0.05, 0.0, 0.05, 0.1, 0.15, 0.2)
+
+
+def drifted_copies(owners: CellOwners, points_cam: np.ndarray, T_world_cam: np.ndarray, keyframe: int,
+                   min_age: int) -> np.ndarray:
+    """``[M]`` bool: points of ``keyframe`` (camera frame ``[M, 3]``, pose ``[4, 4]``) on or near,
+    along their rays, a surface first mapped by a keyframe at least ``min_age`` keyframes older.
+
+    Tracked poses drift, so a place seen again long after is seen a few centimetres off: its points
+    would be a second copy of the surface beside the first. The older view stands; what is new
+    beside it (its rays pass the old surface by) is kept. Decided per coarse cell of the points
+    (rays through the cell's centre), so the cost follows the cells a view covers, not its pixels.
+    """
+    pts = np.asarray(points_cam, np.float64)
+    if not len(pts) or not len(owners):
+        return np.zeros(len(pts), bool)
+    pw = pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    ids, first, inverse = np.unique(owners._ids(pw), return_index=True, return_inverse=True)
+    del ids
+    centres = (np.floor(pw[first] / owners.cell_m) + 0.5) * owners.cell_m  # [C, 3]
+    rays = centres - T_world_cam[:3, 3]
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+    oldest = keyframe - min_age
+    drop = np.zeros(len(centres), bool)
+    for step in DUPLICATE_RAY_STEPS_M:
+        o = owners.owner(centres + step * rays)
+        drop |= (o >= 0) & (o <= oldest)
+    return drop[inverse.ravel()]

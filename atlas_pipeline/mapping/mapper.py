@@ -28,6 +28,7 @@ import numpy as np
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
+from atlas_pipeline.localization.places import CellOwners, drifted_copies
 from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
 
@@ -39,7 +40,7 @@ logger = logging.getLogger(__name__)
 
 LogFn = Callable[[str], None]
 
-__all__ = ["build_world", "extend_world", "extend_world_by_tracking", "select_keyframes_stage",
+__all__ = ["build_world", "extend_world", "extend_world_by_tracking", "extend_world_with_visit", "select_keyframes_stage",
            "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight",
            "coverage_band_m"]
 
@@ -176,13 +177,28 @@ def _integrate_mapping(builder: VoxelGaussianBuilder, pts_cam: np.ndarray, cols:
                       noise_cell_voxels(z, voxel_size_m) if noise_cells else None)
 
 
+# Keyframes this many positions apart may have drifted apart (nearer ones were tracked against
+# each other's surfaces): what :func:`drifted_copies` compares a keyframe with.
+DRIFTED_COPY_MIN_KEYFRAME_AGE = 10
+
+
+def _without_drifted_copies(owners: CellOwners, points: tuple[np.ndarray, np.ndarray], T_world_cam: np.ndarray,
+                            keyframe: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(points_cam [M, 3], colours [M, 3])`` less the points :func:`drifted_copies` finds."""
+    pts, cols = points
+    drop = drifted_copies(owners, pts, T_world_cam, keyframe, DRIFTED_COPY_MIN_KEYFRAME_AGE)
+    return (pts[~drop], cols[~drop]) if drop.any() else (pts, cols)
+
+
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
                  cfg: MappingConfig, log: Callable[[str], None] | None = None,
                  manifest: FrameManifest | None = None) -> GaussianWorld:
     """Merge ``keyframes`` into ``world`` (a new world when None), one keyframe at a time.
 
     Each keyframe's camera-frame points are moved to the world with its mapping pose and added to
-    the voxel statistics; ids of voxels seen before are kept. The tracking map takes the fused
+    the voxel statistics; ids of voxels seen before are kept. In a new world from tracked poses,
+    points that repeat an older keyframe's surface displaced along their rays (drift between two
+    visits of a place, :func:`~atlas_pipeline.localization.places.drifted_copies`) are left out. The tracking map takes the fused
     points (the fusion range, unweighted); the Gaussians' statistics take the keyframe's points
     within the mapping range (``cfg.max_depth_m``, read from its depth image in ``manifest``;
     without one, the fused points), weighted by inverse depth variance (:func:`depth_weight`).
@@ -199,15 +215,24 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
     else:  # a world saved before mapping had its own range: its tracking statistics seed the map's
         mapping = world.mapping_builder if world.mapping_builder is not None else copy.deepcopy(world.builder)
     history = [] if world is None else list(world.history)
+    # Tracked poses drift: a place seen again long after is merged a few centimetres off, and a
+    # second copy of its surfaces would make frames near it unplaceable. Such copies are left out.
+    owners = CellOwners() if world is None and keyframes.pose_source == "estimated" else None
     progress = Progress("merging keyframes", len(keyframes.indices), log, unit="keyframes")
-    for k in keyframes.indices:
+    for pos, k in enumerate(keyframes.indices):
         pts, cols = fused.frame(int(k))
         T = keyframes.T_world_cam[k]
+        measured, holes = _mapping_points(fused, int(k), cfg, manifest)
+        if owners is not None:
+            pts, cols = _without_drifted_copies(owners, (pts, cols), T, pos)
+            measured = _without_drifted_copies(owners, measured, T, pos)
+            holes = _without_drifted_copies(owners, holes, T, pos)
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         builder.integrate(pw, cols)
-        measured, holes = _mapping_points(fused, int(k), cfg, manifest)
         _integrate_mapping(mapping, *measured, T, cfg.voxel_size_m, cfg.noise_adaptive_cells)
         _integrate_mapping(mapping, *holes, T, cfg.voxel_size_m, cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
+        if owners is not None:
+            owners.add(pw, pos)
         history.append(len(mapping))
         progress.update()
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
@@ -384,6 +409,13 @@ def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: F
     except AtlasError as exc:
         raise ConfigError(f"{bundle_dir}: cannot extend this bundle, it has no voxel statistics "
                           f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
+    return extend_world_with_visit(previous, manifest, fused, cfg, log)
+
+
+def extend_world_with_visit(previous: GaussianWorld, manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
+                            log: LogFn | None = None) -> tuple[GaussianWorld, int]:
+    """Keep mapping a new sequence into ``previous`` (not modified), as :func:`extend_saved_world`
+    does for a saved bundle: ``(extended world, number of new keyframes)``."""
     if cfg.mapping.pose_source == "ground_truth":
         # Ground-truth poses of the new sequence are taken to share the parent's frame.
         keyframes = select_keyframes_stage(manifest, fused, cfg, log)

@@ -8,6 +8,8 @@ overrides it).
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import os
 import re
@@ -68,11 +70,11 @@ __all__ = [
 ]
 
 
-def validate_dataset_name(name: str) -> str:
-    """Return ``name`` if it is a safe dataset name, else raise ConfigError."""
+def validate_dataset_name(name: str, where: str = "") -> str:
+    """Return ``name`` if it is a safe dataset name, else raise ConfigError (prefixed by ``where``)."""
     if not isinstance(name, str) or not DATASET_NAME_RE.match(name):
         raise ConfigError(
-            f"invalid dataset name {name!r}: use 1-64 lower-case letters, digits, '-' or '_', "
+            f"{where + ': ' if where else ''}invalid dataset name {name!r}: use 1-64 lower-case letters, digits, '-' or '_', "
             "starting with a letter or digit"
         )
     return name
@@ -95,6 +97,8 @@ class DatasetEntry:
         params: generator parameters for ``synthetic`` entries; the layout's options for
             recordings (``fps``, ``sequence``, ``rgb_topic``, ``depth_topic``, ``camera_info_topic``).
         source_file: registry file the entry came from.
+        extends: a second visit: the name of the entry whose world this recording is localized in
+            and mapped into (the ``revisit_bundle`` asset); that entry must be a first visit.
     """
 
     name: str
@@ -105,9 +109,12 @@ class DatasetEntry:
     sha256: str | None = None
     params: dict[str, Any] = field(default_factory=dict)
     source_file: str = ""
+    extends: str | None = None
 
     def describe(self) -> dict[str, Any]:
         d: dict[str, Any] = {"name": self.name, "kind": self.kind, "path": str(self.path)}
+        if self.extends:
+            d["extends"] = self.extends
         if self.camera is not None:
             d["camera"] = self.camera.to_dict()
         if self.url:
@@ -247,6 +254,15 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
     validate_dataset_name(name)
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: must be a mapping")
+    if "extends" in raw:
+        raw = dict(raw)
+        extends = raw.pop("extends")
+        if not isinstance(extends, str):
+            raise ConfigError(f"{where}.extends: must be the name of another dataset, got {extends!r}")
+        validate_dataset_name(extends, f"{where}.extends")
+        if extends == name:
+            raise ConfigError(f"{where}.extends: a dataset cannot extend its own world")
+        return dataclasses.replace(_parse_entry(name, raw, source), extends=extends)
     bad_keys = [k for k in raw if not isinstance(k, str)]
     if bad_keys:
         raise ConfigError(f"{where}: keys must be names, got {bad_keys[0]!r}")
@@ -301,7 +317,27 @@ def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
             raise ConfigError(f"{path}: unknown top-level key(s) {sorted(map(str, extra))}")
         for name, raw in (data.get("datasets") or {}).items():
             entries[str(name)] = _parse_entry(str(name), raw, path)
+    for e in entries.values():
+        if e.extends is None:
+            continue
+        where = f"{e.source_file}: datasets.{e.name}.extends"
+        first = entries.get(e.extends)
+        if first is None:
+            raise ConfigError(f"{where}: no dataset named {e.extends!r} is registered")
+        if first.extends is not None:
+            raise ConfigError(f"{where}: {e.extends!r} is itself a second visit (it extends {first.extends!r}); "
+                              f"name the first visit, {first.extends!r}")
     return entries
+
+
+def revisits(entries: dict[str, DatasetEntry]) -> dict[str, str]:
+    """``{first visit: second visit}`` of the entries with ``extends``; a first visit extended by
+    two recordings keeps only the first registered (one partition of each visit's world)."""
+    out: dict[str, str] = {}
+    for e in entries.values():
+        if e.extends is not None:
+            out.setdefault(e.extends, e.name)
+    return out
 
 
 def read_dataset_manifest(entry: DatasetEntry, max_frames: int | None = None, root: Path | None = None):

@@ -1,0 +1,122 @@
+"""A second visit through the Dagster graph: registry ``extends``, the revisit_bundle asset, its
+lineage and staleness across the two partitions, and the registry's errors naming the field."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+import yaml
+from dagster import DagsterInstance
+
+from assets.cli import run_request
+from assets.definitions import build_definitions
+from assets.resources import atlas_config
+from assets.staleness import stale_assets
+from atlas_pipeline.errors import ConfigError
+from atlas_pipeline.sensors.registry import load_registry, revisits
+from tests.conftest import SMALL_SYNTH
+
+FIRST, SECOND = "synth-a", "synth-b"
+# The same room (same seed) walked again with a shaking hand: another trajectory through one place.
+SECOND_SPEC = {**SMALL_SYNTH, "shake_m": 0.003, "shake_deg": 0.15}
+
+
+@pytest.fixture
+def two_visits(isolated):
+    reg = isolated / "datasets.local.yaml"
+    reg.write_text(yaml.safe_dump({"datasets": {
+        FIRST: {"kind": "synthetic", **SMALL_SYNTH},
+        SECOND: {"kind": "synthetic", "extends": FIRST, **SECOND_SPEC}}}))
+    return isolated
+
+
+def _run(root, instance, partition, overrides=None):
+    defs = build_definitions(root / "artifacts")
+    run_config, tags = run_request("default", overrides or {})
+    return defs.resolve_job_def("atlas_gs_all").execute_in_process(
+        partition_key=partition, instance=instance, run_config=run_config, tags=tags)
+
+
+def _materialized(result) -> dict[str, dict]:
+    return {e.asset_key.path[-1]: e.event_specific_data.materialization.metadata for e in result.all_events
+            if e.event_type_value == "ASSET_MATERIALIZATION" and len(e.asset_key.path) == 1}
+
+
+def _data_version(instance, asset: str, partition: str) -> str:
+    from assets.versioning import data_version, record
+    from dagster import AssetKey
+
+    return data_version(record(instance, AssetKey(asset), partition))
+
+
+@pytest.mark.slow
+def test_a_second_visit_extends_the_first_visits_world_with_its_lineage(two_visits):
+    root, instance = two_visits, DagsterInstance.ephemeral()
+    art = root / "artifacts"
+    first = _run(root, instance, FIRST)
+    assert first.success and "revisit_bundle" not in _materialized(first)  # a first visit: skipped
+    assert not (art / "revisit_bundle" / FIRST).exists()
+    second = _run(root, instance, SECOND)
+    md = _materialized(second)["revisit_bundle"]
+    assert md["extends"].value == FIRST and md["reused"].value is False
+    bundle = art / "revisit_bundle" / SECOND
+    meta = json.loads((bundle / "metadata.json").read_text())
+    parent = meta["lineage"]["parent"]
+    # The lineage names the first visit's world, the very materialization it extended.
+    assert parent["partition"] == FIRST
+    assert parent["world"]["data_version"] == _data_version(instance, "gaussian_world", FIRST)
+    assert parent["world"]["run_id"] == first.run_id
+    assert meta["partition"] == SECOND and meta["dataset"]["name"] == SECOND
+    first_meta = json.loads((art / "world_bundle" / FIRST / "metadata.json").read_text())
+    assert parent["map_id"] == first_meta["map_id"]
+    # The second visit localized in the extended world with no start pose: every frame placed.
+    loc = json.loads((bundle / "localization.json").read_text())
+    assert loc["summary"]["n_lost"] == 0 and loc["summary"]["n_tracked"] + loc["summary"].get("n_relocalized", 0) == 12
+    df = pd.read_parquet(bundle / "transitions.parquet")
+    assert (df["partition"] == SECOND).all() and (df["map_id"] == meta["map_id"]).all() and len(df) == 11
+    # Rerun: nothing changed, nothing recomputed.
+    again = _materialized(_run(root, instance, SECOND))
+    assert again["revisit_bundle"]["reused"].value is True
+    defs = build_definitions(art)
+    assert stale_assets(defs, instance, SECOND, atlas_config()) == {}
+    # The first visit's world changes: the second visit's revisit bundle is stale for that reason.
+    _run(root, instance, FIRST, {"mapping.optimization_epochs": 1})
+    stale = stale_assets(defs, instance, SECOND, atlas_config())
+    assert stale == {"revisit_bundle": [f"gaussian_world [{FIRST}] has a new data version"]}
+
+
+def test_extends_must_name_a_registered_first_visit(tmp_path):
+    def registry(datasets):
+        path = tmp_path / "reg.yaml"
+        path.write_text(yaml.safe_dump({"datasets": datasets}))
+        return [path]
+
+    synth = {"kind": "synthetic", "n_frames": 4}
+    assert revisits(load_registry(registry({"a": synth, "b": {**synth, "extends": "a"}}))) == {"a": "b"}
+    cases = [
+        ({"b": {**synth, "extends": "nowhere"}}, "datasets.b.extends: no dataset named 'nowhere' is registered"),
+        ({"b": {**synth, "extends": "b"}}, "datasets.b.extends: a dataset cannot extend its own world"),
+        ({"b": {**synth, "extends": 3}}, "datasets.b.extends: must be the name of another dataset, got 3"),
+        ({"b": {**synth, "extends": "../x"}}, "datasets.b.extends: invalid dataset name '../x'"),
+        ({"a": synth, "b": {**synth, "extends": "a"}, "c": {**synth, "extends": "b"}},
+         "datasets.c.extends: 'b' is itself a second visit (it extends 'a'); name the first visit, 'a'"),
+    ]
+    for datasets, message in cases:
+        with pytest.raises(ConfigError) as err:
+            load_registry(registry(datasets))
+        assert message in str(err.value) and "reg.yaml" in str(err.value)
+
+
+def test_run_all_runs_a_second_visit_after_its_first_visit(tmp_path):
+    from assets.cli import first_visits_first
+
+    path = tmp_path / "reg.yaml"
+    synth = {"kind": "synthetic", "n_frames": 4}
+    path.write_text(yaml.safe_dump({"datasets": {"visit2": {**synth, "extends": "visit1"}, "other": synth,
+                                                 "visit1": synth}}))
+    reg = load_registry([path])
+    assert first_visits_first(["visit2", "other", "visit1"], reg) == ["other", "visit1", "visit2"]
+    # Without its first visit in the run, a second visit keeps its place (its input is read as stored).
+    assert first_visits_first(["visit2", "other"], reg) == ["visit2", "other"]
