@@ -3,7 +3,7 @@
     python benchmarks/bench_colour_shift.py                 # presets, shared TUM frames, ablations
     python benchmarks/bench_colour_shift.py --frames 60 --no-ablation
 
-Finding (README, issue 11): exact on the clean room and on each sensor effect alone, but under the
+Finding: exact on the clean room and on each sensor effect alone, but under the
 full Kinect-like model (jittered, half-missing silhouettes) the surviving depth edges sit 1-2 px
 off, and the estimate is confidently wrong or undetermined; applied to the shared TUM frames it did
 not change tracking. So nothing here is applied to any frame.
@@ -12,7 +12,7 @@ An RGB-D frame pairs a colour pixel with a depth pixel. When the two are not reg
 factory calibration a little off, 7-Scenes' unregistered Kinect streams, a colour stream with its
 own timing) every colour sample belongs to a neighbouring surface point: the map is painted a few
 pixels off its geometry, and the tracker's photometric term pulls against its geometric one
-(synthetic-loop: ATE 0.57 cm without the shift, 1.71 cm with a 1.5 px shift; README, issue 11).
+(synthetic-loop: ATE 0.57 cm without the shift, 1.71 cm with a 1.5 px shift).
 
 :func:`estimate_colour_shift` finds the shift ``(dx, dy)`` in pixels such that colour sampled at
 ``(u + dx, v + dy)`` belongs to depth pixel ``(u, v)``: depth discontinuities (occlusion edges)

@@ -1,4 +1,4 @@
-"""The keyframe fit (issue 13.1): its first version against today's, in the same run.
+"""The keyframe fit: its first version against today's, in the same run.
 
     python benchmarks/bench_fit.py                        # synthetic, and TUM teddy when present
     python benchmarks/bench_fit.py --datasets synthetic --variants legacy new
@@ -47,7 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-OLD_COMMIT = "e4f823f"  # the last commit with the first fit (issue 13 measured it: 341 CPU-s per run)
+OLD_COMMIT = "e4f823f"  # the last commit with the first fit
 STAGES = ("projection", "forward", "backward", "adam", "densify")
 VARIANTS = ("old", "legacy", "new")
 

@@ -17,7 +17,7 @@ Runs, in this order:
     python benchmarks/bench_main_job.py                 # a table
     python benchmarks/bench_main_job.py --json out.json
 
-Exit status 1 when the warm run is above ``--target-cpu-s`` (issue 13: 100 CPU-s on 2 cores).
+Exit status 1 when the warm run is above ``--target-cpu-s`` (100 CPU-s on 2 cores).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-TARGET_CPU_S = 100.0  # issue 13: atlas-gs run synthetic, JIT caches warm, 2 cores
+TARGET_CPU_S = 100.0  # atlas-gs run synthetic, JIT caches warm, 2 cores
 # The keyframe fit's first schedule (bench_fit.first_schedule): the reference schedule.
 LEGACY_FIT = {
     "mapping.optimization_max_steps": "600",

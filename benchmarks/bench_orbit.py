@@ -1,4 +1,4 @@
-"""Orbit video frames against the recording's own views (issue 13: "every orbit frame sharp and
+"""Orbit video frames against the recording's own views ("every orbit frame sharp and
 covered, on synthetic and on the shared teddy frames"; "the teddy orbit keeps the teddy in frame").
 
     python benchmarks/bench_orbit.py                          # synthetic, teddy, fr1 (when present)

@@ -36,7 +36,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = {"n_frames": 12, "width": 160, "height": 120, "fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5}
-TARGET_RATIO = 0.65  # parallel wall time at most this fraction of serial (issue 14, 2 cores)
+TARGET_RATIO = 0.65  # parallel wall time at most this fraction of serial (2 cores)
 RUN_SPECIFIC = ("run_id", "created_at", "created_utc")
 
 

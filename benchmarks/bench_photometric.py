@@ -1,4 +1,4 @@
-"""How the Gaussian world looks against the real images, and what it costs on disk (issue 4).
+"""How the Gaussian world looks against the real images, and what it costs on disk.
 
     python benchmarks/bench_photometric.py                 # TUM teddy (when present) and synthetic
     python benchmarks/bench_photometric.py --datasets teddy fr1 synthetic --sources estimated

@@ -1,4 +1,4 @@
-"""Robustness benchmark (issue 11, part 4): every available RGB-D sequence, one table.
+"""Robustness benchmark: every available RGB-D sequence, one table.
 
 Sequences: every synthetic entry of the dataset registry (the clean ``synthetic`` and the
 realistic-sensor presets ``synthetic-noisy``, ``synthetic-handheld``, ``synthetic-loop``, generated
@@ -286,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(exc))
     cmd = " ".join(shlex.quote(a) for a in [sys.executable.split("/")[-1], "benchmarks/bench_robustness.py",
                                               *(argv if argv is not None else sys.argv[1:])])
-    print("# Robustness benchmark (issue 11)")
+    print("# Robustness benchmark")
     print(f"# reproduce: cd {ROOT} && . .venv/bin/activate && {cmd}")
     print(f"# machine: {platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
           f"Open3D {open3d().__version__}; load average at start {os.getloadavg()[0]:.2f} "

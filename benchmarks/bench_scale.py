@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_INTERVAL_S = 0.05  # RSS sampling period: short against every stage at these sizes
 STAGES = ("load_dataset", "fuse", "keyframes", "gaussian_world", "localization", "transitions",
           "render_evaluation")
-DEFAULT_FRAMES = (100, 500, 2000)  # issue 14's curve
+DEFAULT_FRAMES = (100, 500, 2000)  # short, long and very long
 
 
 class RssSampler(threading.Thread):

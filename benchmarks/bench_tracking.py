@@ -1,4 +1,4 @@
-"""Tracking, relocalization and memory benchmark (issue 3), with Open3D's RGB-D odometry as the
+"""Tracking, relocalization and memory benchmark, with Open3D's RGB-D odometry as the
 reference measured in the same process on the same frames.
 
     python benchmarks/bench_tracking.py                      # synthetic + TUM teddy (when present)

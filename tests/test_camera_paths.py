@@ -26,7 +26,7 @@ from atlas_pipeline.viz.camera_paths import (
 from tests.conftest import SMALL_SYNTH
 
 # What every orbit frame must reach, relative to the median over renders from the keyframe poses
-# (issue 13: "as sharp as renders from real camera poses and mostly covered").
+# ("as sharp as renders from real camera poses and mostly covered").
 SHARPNESS_RATIO_MIN = 0.7
 COVERAGE_RATIO_MIN = 0.8
 # Frames per test path: enough to see every part of a sweep, few enough to render quickly.

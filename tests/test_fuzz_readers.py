@@ -1,4 +1,4 @@
-"""Property-based fuzzing of every file reader (issue 10: never destroy, launder or mislabel data).
+"""Property-based fuzzing of every file reader: never destroy, launder or mislabel data.
 
 Each reader gets random bytes and, mostly, *mutations of valid files* written by the project
 itself: bit flips, byte overwrites, truncations, insertions, integers overwritten at the offsets

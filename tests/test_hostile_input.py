@@ -1,4 +1,4 @@
-"""Issue 28: trust under hostile input. Each bad input is an error (or a warning) that names the
+"""Trust under hostile input. Each bad input is an error (or a warning) that names the
 file, line, field or option it is about, never a traceback, a misleading message or a silent
 wrong result."""
 

@@ -151,7 +151,7 @@ CASES = {
                         ["ok", "after_lost;dt_not_positive", "before_lost"]),
     "ground_truth_has_no_status": (None, np.array([0.0, 0.1, 0.2, 0.2]), [1], 0,
                                    ["after_pose_unknown", "before_pose_unknown", "dt_not_positive"]),
-    # Issue 28: a long gap (transitions.max_gap_s, default 1 s) ends a run, never an averaged velocity.
+    # A long gap (transitions.max_gap_s, default 1 s) ends a run, never an averaged velocity.
     "gap_of_a_minute": ([A, TR, TR, TR], np.array([0.0, 0.1, 60.1, 60.2]), [], 0, ["ok", "gap", "ok"]),
     "gap_just_over_the_bound": ([A, TR, TR, TR], np.array([0.0, 1.0001, 1.1, 2.2]), [], 0, ["gap", "ok", "gap"]),
     "gap_at_the_bound_is_kept": ([A, TR, TR, TR], np.array([0.0, 1.0, 1.1, 1.2]), [], 0, ["ok", "ok", "ok"]),

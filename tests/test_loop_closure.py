@@ -199,7 +199,7 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     from atlas_pipeline.config import LocalizationConfig
     from atlas_pipeline.localization.metrics import ate
     from atlas_pipeline.mapping.keyframes import KeyframeSet, select_keyframes
-    from atlas_pipeline.mapping.loop_closure import close_loops, refuse_keyframes
+    from atlas_pipeline.mapping.loop_closure import close_loops, merge_keyframes_at_poses
 
     m = loop_sequence
     gt = m.T_world_cam_gt
@@ -228,7 +228,7 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     ks.save(m.root.parent / "kf")
     assert KeyframeSet.load(m.root.parent / "kf").loop_closure == rec
     # The map re-fused from the corrected keyframe poses.
-    builder = refuse_keyframes(m, kf[:5], res.T_keyframes_after[:5], (0.1, 4.0), 2, 0.02)
+    builder = merge_keyframes_at_poses(m, kf[:5], res.T_keyframes_after[:5], (0.1, 4.0), 2, 0.02)
     assert len(builder) > 0
 
 

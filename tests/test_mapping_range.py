@@ -1,4 +1,4 @@
-"""Mapping has its own, longer depth range than tracking (issue 13, item 2).
+"""Mapping has its own, longer depth range than tracking.
 
 The small synthetic room is 6 x 5 m and the camera circles 0.8 m from its walls, so the far walls
 lie 4-5 m away: past the tracking (fusion) range of 4 m, within the mapping range of 8 m.

@@ -1,4 +1,4 @@
-"""Issue 11.2: multiple maps. A run of lost frames starts a new map; recognising the old place
+"""Multiple maps. A run of lost frames starts a new map; recognising the old place
 merges the maps, and every pose ends in the main map's frame."""
 
 from dataclasses import replace

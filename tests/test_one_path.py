@@ -1,4 +1,4 @@
-"""Issue 11.5: one tracking path. The CLI (`build` then `localize`, the map reloaded from the bundle)
+"""One tracking path. The CLI (`build` then `localize`, the map reloaded from the bundle)
 and the Dagster graph (the map handed from asset to asset) give the same poses, bit for bit."""
 
 import numpy as np

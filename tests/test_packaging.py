@@ -1,4 +1,4 @@
-"""Issue 12.6: a non-editable install works. The wheel carries both packages and the built-in configs
+"""A non-editable install works. The wheel carries both packages and the built-in configs
 (``atlas_pipeline/configs``); installed, atlas-gs reads those through importlib.resources and keeps
 user state in ``$ATLAS_GS_HOME`` (default: the working directory), never in the source tree or
 site-packages. A source checkout keeps everything in the checkout, as before."""

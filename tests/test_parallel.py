@@ -47,7 +47,7 @@ def test_run_all_runs_partitions_in_parallel_processes(isolated, monkeypatch, ca
     cli = subprocess.run([sys.executable, "-m", "assets.cli", "run", "--all", "--concurrency", "2", "--json"],
                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     assert cli.returncode == 0, cli.stderr[-3000:]
-    docs = json.loads(cli.stdout)  # one document: a list of the partitions' summaries (issue 28)
+    docs = json.loads(cli.stdout)  # one document: a list of the partitions' summaries
     assert [d["partition"] for d in docs] == names  # in partition order
     assert all(d["success"] and len(d["recomputed"]) == 9 for d in docs), docs
     # One line per stage and partition, named (they interleave; a forked worker once also wrote

@@ -1,4 +1,4 @@
-"""Issue 13.5: a quiet, honest command line. Progress bars on a terminal (plain lines elsewhere),
+"""A quiet, honest command line. Progress bars on a terminal (plain lines elsewhere),
 Dagster's chatter only with -v, one short log format, final paths only, `status` in words, and
 download presets that become partitions once fetched (tested against a server on 127.0.0.1)."""
 

@@ -1,4 +1,4 @@
-"""Dataset readers (issue 11): each layout written here in its exact form, read into the same
+"""Dataset readers: each layout written here in its exact form, read into the same
 FrameManifest: TUM with JPEG colour, 7-Scenes, Replica (NICE-SLAM release), ScanNet (SensReader
 export), ROS 1 and ROS 2 bags. No network; small frames."""
 
@@ -118,7 +118,7 @@ def test_manifest_saved_before_layouts_still_loads_and_reads(tmp_path):
     m = load_tum_sequence(_tum(tmp_path / "tum", ext="png"), cam, "t")
     m.save(tmp_path / "saved")
     meta = json.loads((tmp_path / "saved" / "manifest.json").read_text())
-    del meta["source"]  # as manifests written before the readers of issue 11
+    del meta["source"]  # as manifests written before these readers
     (tmp_path / "saved" / "manifest.json").write_text(json.dumps(meta))
     old = FrameManifest.load(tmp_path / "saved")
     assert old.source == {} and old.colour_camera == cam

@@ -1,4 +1,4 @@
-"""Issue 11.2: being lost has a bounded cost, and mapping follows the camera into unmapped space."""
+"""Being lost has a bounded cost, and mapping follows the camera into unmapped space."""
 
 import numpy as np
 import pytest

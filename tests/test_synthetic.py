@@ -387,7 +387,7 @@ def test_object_culling_does_not_change_the_image(monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------------
-# Realistic sensor model and hand-held / loop motion (issue 11, part 4)
+# Realistic sensor model and hand-held / loop motion
 
 # Content of the tiny default dataset (decoded pixels, lists, spec json, .complete): the default
 # output must not change by accident. Version 1 (before the sensor model): 3caf139e..., spec hash

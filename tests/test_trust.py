@@ -1,4 +1,4 @@
-"""Issue 10: user files, world bundles and transitions stay true under bad input and faults.
+"""User files, world bundles and transitions stay true under bad input and faults.
 
 Each case is one row of the README's fault table (section "What can go wrong"): the bad input or
 fault, what the user sees (exit code and message), and that nothing of theirs was changed.

@@ -132,6 +132,23 @@ class MapInfo:
 
 
 @dataclass
+class ParkedMap:
+    """A map put aside when tracking was lost, kept until a later keyframe recognises it.
+
+    Attributes:
+        builder: its voxel statistics; model: its tracking surfels.
+        keyframe_indices, keyframe_poses: its keyframes (frame index, ``T_map_cam [4, 4]``).
+        relocalizer: made on the first prior-free search against it (None until then).
+    """
+
+    builder: object
+    model: object
+    keyframe_indices: list[int]
+    keyframe_poses: list[np.ndarray]
+    relocalizer: object | None = None
+
+
+@dataclass
 class FrameEstimate:
     """One frame's outcome: ``T_world_cam [4, 4]``, status, quality and time (decoding excluded)."""
 
@@ -191,7 +208,7 @@ class SequenceTracker:
         self.map_id = 0
         self.maps: list[MapInfo] = [MapInfo(0, None)]
         # Older maps not merged yet: id -> (builder, model, keyframe indices, keyframe poses, relocalizer).
-        self._old_maps: dict[int, dict] = {}
+        self._old_maps: dict[int, ParkedMap] = {}
         self._lost_run = 0  # lost frames in a row (with depth)
         self._kf_in_map = 0  # keyframes of the active map since it started (merge relocalization cadence)
         self.reset()
@@ -349,9 +366,7 @@ class SequenceTracker:
         """Put the active map aside and start an empty one; the frame becomes its first keyframe."""
         from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
 
-        self._old_maps[self.map_id] = {"builder": self.builder, "model": self.model,
-                                       "kf_idx": self.keyframe_indices, "kf_T": self.keyframe_poses,
-                                       "relocalizer": None}
+        self._old_maps[self.map_id] = ParkedMap(self.builder, self.model, self.keyframe_indices, self.keyframe_poses)
         self.map_id = len(self.maps)
         self.maps.append(MapInfo(self.map_id, index))
         logger.info("frame %d: lost for %d frames, starting map %d", index, self._lost_run, self.map_id)
@@ -373,14 +388,14 @@ class SequenceTracker:
         relocalize = self._kf_in_map % MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES == 0
         for old_id in sorted(self._old_maps):
             old = self._old_maps[old_id]
-            if len(old["model"]) == 0:
+            if len(old.model) == 0:
                 continue
-            res = self.tracker.align(fp, old["model"], T_world_cam, None)
+            res = self.tracker.align(fp, old.model, T_world_cam, None)
             method = "tracking"
             if not (res.ok and res.inlier_fraction >= MAP_MERGE_MIN_INLIER_FRACTION) and relocalize:
-                if old["relocalizer"] is None:
-                    old["relocalizer"] = Relocalizer(self.tracker, old["model"], np.array(self.priors + old["kf_T"]))
-                res = old["relocalizer"].relocalize(fp, [T_world_cam])
+                if old.relocalizer is None:
+                    old.relocalizer = Relocalizer(self.tracker, old.model, np.array(self.priors + old.keyframe_poses))
+                res = old.relocalizer.relocalize(fp, [T_world_cam])
                 method = "relocalization"
             if res.ok and res.inlier_fraction >= MAP_MERGE_MIN_INLIER_FRACTION:
                 self._merge_into(old_id, res.T_world_cam @ np.linalg.inv(T_world_cam), index, method)
@@ -394,10 +409,10 @@ class SequenceTracker:
         dt, dr = pose_change(np.eye(4), T_old_cur)
         logger.info("frame %d: map %d recognised in map %d (%s), merged; the maps were %.1f cm / %.1f deg apart",
                     index, self.map_id, old_id, method, 100 * dt, dr)
-        old["builder"].merge(self.builder, T_old_cur)
-        pairs = sorted(zip(old["kf_idx"] + self.keyframe_indices,
-                           old["kf_T"] + [T_old_cur @ T for T in self.keyframe_poses]), key=lambda p: p[0])
-        self.builder = old["builder"]
+        old.builder.merge(self.builder, T_old_cur)
+        pairs = sorted(zip(old.keyframe_indices + self.keyframe_indices,
+                           old.keyframe_poses + [T_old_cur @ T for T in self.keyframe_poses]), key=lambda p: p[0])
+        self.builder = old.builder
         self._surfels = SurfelCache(self.builder)
         self.model = self._surfels.model()
         self.keyframe_indices = [int(i) for i, _ in pairs]
@@ -438,7 +453,7 @@ class SequenceTracker:
     def all_keyframes(self) -> list[tuple[int, list[int], list[np.ndarray]]]:
         """``[(map id, keyframe indices, T_map_cam poses)]`` of the active map and every map not merged."""
         out = [(self.map_id, self.keyframe_indices, self.keyframe_poses)]
-        out += [(k, v["kf_idx"], v["kf_T"]) for k, v in sorted(self._old_maps.items())]
+        out += [(k, v.keyframe_indices, v.keyframe_poses) for k, v in sorted(self._old_maps.items())]
         return out
 
     def _relocalize(self, index: int, fp, extra: list[np.ndarray],

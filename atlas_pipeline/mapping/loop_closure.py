@@ -27,7 +27,7 @@ tracking and mapping:
 4. **Propagation** (:func:`propagate_correction`): every other frame moves with its nearest earlier
    keyframe (``T_new = T_kf_new @ inv(T_kf_old) @ T_old``).
 
-The map is then re-fused from the corrected keyframe poses (:func:`refuse_keyframes`;
+The map is then re-fused from the corrected keyframe poses (:func:`merge_keyframes_at_poses`;
 ``gaussian_world`` does the same from the corrected :class:`KeyframeSet`).
 
 Conventions (as Open3D's multiway registration): poses ``T_world_cam`` ``[4, 4]`` camera-to-world;
@@ -52,7 +52,7 @@ __all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "loop_candidates
            "keyframe_thumbnail", "appearance_candidates",
            "relative_poses", "optimize_pose_graph",
            "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
-           "refuse_keyframes"]
+           "merge_keyframes_at_poses"]
 
 # Optical axes of two keyframes more than this apart rarely see the same surfaces from the short
 # range of an indoor RGB-D camera (a 57-degree field of view): not a candidate.
@@ -564,7 +564,7 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
     return result
 
 
-def refuse_keyframes(manifest, kf_indices: np.ndarray, T_kf: np.ndarray, depth_range_m: tuple[float, float],
+def merge_keyframes_at_poses(manifest, kf_indices: np.ndarray, T_kf: np.ndarray, depth_range_m: tuple[float, float],
                      fusion_stride: int, voxel_size_m: float):
     """A new :class:`VoxelGaussianBuilder` with every keyframe's points merged at its (corrected)
     pose ``T_kf [K, 4, 4]``, as :meth:`SequenceTracker._integrate` merges them while tracking."""

@@ -349,7 +349,7 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     idx = [int(i) for i in world.keyframe_indices]
     cam = manifest.camera
     # In memory while small; a long sequence's keyframes are read again at each use instead, so the
-    # fit holds its downsampled working copies, not every raw frame (issue 14).
+    # fit holds its downsampled working copies, not every raw frame.
     in_memory = len(idx) * cam.width * cam.height * FIT_INPUT_BYTES_PER_PIXEL <= FIT_INPUT_MEMORY_BUDGET_BYTES
     from atlas_pipeline.perception.colour_timing import colour_at_depth_time, colour_motion_in_trajectory
 

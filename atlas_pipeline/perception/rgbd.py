@@ -163,8 +163,8 @@ def check_usable_depth(manifest: FrameManifest, no_depth: list[int]) -> None:
 
 
 # Frames per points chunk (``fused-NNNNN.npz``): at 640x480 and stride 2 a chunk is ~37 MB, which
-# bounds what fusing or reading holds, whatever the sequence length (issue 14: a 1,200-frame
-# sequence was one 904 MB array).
+# bounds what fusing or reading holds, whatever the sequence length (one array for a 1,200-frame
+# sequence would be 904 MB).
 FUSED_CHUNK_FRAMES = 32
 FUSED_INDEX_FILE = "fused.npz"  # offsets and valid fractions of every frame (small)
 FUSED_META_FILE = "fused.json"

@@ -220,7 +220,7 @@ KINECT_V1_SENSOR: dict[str, float | int] = {
 }
 # A person walking slowly around the room (12 deg/s of orbit: ~1.4 cm per frame at 30 fps) who
 # pans the camera 80 deg at 60 deg/s (2 deg per frame, the speed at which tracking was lost on a
-# real kitchen sequence, issue 11) and shakes it by 3 mm / 0.15 deg at 5-10 Hz.
+# real kitchen sequence) and shakes it by 3 mm / 0.15 deg at 5-10 Hz.
 HANDHELD_MOTION: dict[str, float | int] = {
     "orbit_rate_deg_per_s": 12.0,
     "pan_rate_deg_per_s": 60.0,
