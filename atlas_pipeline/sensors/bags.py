@@ -284,9 +284,76 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 # ---- conversion ----------------------------------------------------------------------------------
 
 
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+# A chunk's uncompressed size may claim at most this many times its stored bytes (bz2 of an
+# all-zero depth image reaches a few hundred); beyond it the claim is corrupt, not data.
+ROS1_MAX_CHUNK_RATIO = 2000
+_ROS1_LEN = 4  # every length in a ROS 1 bag is a little-endian uint32
+
+
+def check_ros1_record_sizes(path: Path) -> None:
+    """Walk the records of a ROS 1 bag (v2.0) and refuse one whose header, field or data length
+    runs past the end of the file, or a chunk that claims more uncompressed bytes than its data
+    can hold, before a reader allocates what a corrupt length claims. Reads headers only.
+
+    Raises :class:`DatasetError` naming the file, the record's byte offset and the length at fault.
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        if f.read(len(ROS1_MAGIC)) != ROS1_MAGIC:
+            return  # not a ROS 1 bag: the reader says what it is
+        pos = len(ROS1_MAGIC)
+        while pos < size:
+            header_len = _ros1_length(f, path, pos, size, "header length")
+            header = f.read(header_len)
+            fields = _ros1_fields(header, path, pos)
+            data_at = pos + _ROS1_LEN + header_len
+            data_len = _ros1_length(f, path, data_at, size, "data length")
+            if fields.get(b"op") == b"\x05" and len(fields.get(b"size", b"")) == _ROS1_LEN:  # a chunk
+                claimed = int.from_bytes(fields[b"size"], "little")
+                if claimed > ROS1_MAX_CHUNK_RATIO * max(data_len, 1):
+                    raise DatasetError(path, f"cannot read bag, corrupt: the chunk at byte {pos} claims {claimed} uncompressed "
+                                             f"bytes from {data_len} stored")
+            pos = data_at + _ROS1_LEN + data_len
+            f.seek(pos)
+
+
+def _ros1_length(f, path: Path, at: int, size: int, what: str) -> int:
+    """A uint32 length at byte ``at`` whose bytes must follow within the file's ``size``."""
+    raw = f.read(_ROS1_LEN)
+    if len(raw) < _ROS1_LEN:
+        raise DatasetError(path, f"cannot read bag, corrupt: truncated record at byte {at} (no {what})")
+    n = int.from_bytes(raw, "little")
+    if at + _ROS1_LEN + n > size:
+        raise DatasetError(path, f"cannot read bag, corrupt: the {what} {n} at byte {at} runs past the end of the file "
+                                 f"({size} bytes)")
+    return n
+
+
+def _ros1_fields(header: bytes, path: Path, at: int) -> dict[bytes, bytes]:
+    """``{name: value}`` of a record header (``len name=value`` fields), lengths checked."""
+    out, i = {}, 0
+    while i < len(header):
+        if i + _ROS1_LEN > len(header):
+            raise DatasetError(path, f"cannot read bag, corrupt: truncated header field in the record at byte {at}")
+        n = int.from_bytes(header[i:i + _ROS1_LEN], "little")
+        i += _ROS1_LEN
+        if i + n > len(header):
+            raise DatasetError(path, f"cannot read bag, corrupt: a header field of {n} bytes overruns the record at byte {at}")
+        name, eq, value = header[i:i + n].partition(b"=")
+        if not eq:
+            raise DatasetError(path, f"cannot read bag, corrupt: a header field without '=' in the record at byte {at}")
+        out[name] = value
+        i += n
+    return out
+
+
 def _open_reader(path: Path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
+
+    if path.is_file():
+        check_ros1_record_sizes(path)
 
     # ROS 1 bags carry their message definitions; ROS 2 bags without them use Humble's.
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
