@@ -101,7 +101,7 @@ def _sees_map(manifest, model, T_align: np.ndarray, cfg) -> np.ndarray:
             continue
         T = T_align @ manifest.T_world_cam_gt[i]
         fp = tracker.prepare(None, manifest.read_depth_m(i, allow_empty=True))
-        stats = tracker.quality_stats(fp, model.model_view(T, manifest.camera, tracker.model_level), T)
+        _, stats = tracker.quality_stats(fp, model.model_view(T, manifest.camera, tracker.model_level), T)
         out[i] = stats.n_points > 0 and stats.n_on_model / stats.n_points >= SEES_MAP_MIN_OVERLAP
     return out
 
