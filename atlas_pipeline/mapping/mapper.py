@@ -28,7 +28,6 @@ import numpy as np
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
-from atlas_pipeline.localization.places import CellOwners, drifted_copies
 from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
 
@@ -177,28 +176,13 @@ def _integrate_mapping(builder: VoxelGaussianBuilder, pts_cam: np.ndarray, cols:
                       noise_cell_voxels(z, voxel_size_m) if noise_cells else None)
 
 
-# Keyframes this many positions apart may have drifted apart (nearer ones were tracked against
-# each other's surfaces): what :func:`drifted_copies` compares a keyframe with.
-DRIFTED_COPY_MIN_KEYFRAME_AGE = 10
-
-
-def _without_drifted_copies(owners: CellOwners, points: tuple[np.ndarray, np.ndarray], T_world_cam: np.ndarray,
-                            keyframe: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(points_cam [M, 3], colours [M, 3])`` less the points :func:`drifted_copies` finds."""
-    pts, cols = points
-    drop = drifted_copies(owners, pts, T_world_cam, keyframe, DRIFTED_COPY_MIN_KEYFRAME_AGE)
-    return (pts[~drop], cols[~drop]) if drop.any() else (pts, cols)
-
-
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
                  cfg: MappingConfig, log: Callable[[str], None] | None = None,
                  manifest: FrameManifest | None = None) -> GaussianWorld:
     """Merge ``keyframes`` into ``world`` (a new world when None), one keyframe at a time.
 
     Each keyframe's camera-frame points are moved to the world with its mapping pose and added to
-    the voxel statistics; ids of voxels seen before are kept. In a new world from tracked poses,
-    points that repeat an older keyframe's surface displaced along their rays (drift between two
-    visits of a place, :func:`~atlas_pipeline.localization.places.drifted_copies`) are left out. The tracking map takes the fused
+    the voxel statistics; ids of voxels seen before are kept. The tracking map takes the fused
     points (the fusion range, unweighted); the Gaussians' statistics take the keyframe's points
     within the mapping range (``cfg.max_depth_m``, read from its depth image in ``manifest``;
     without one, the fused points), weighted by inverse depth variance (:func:`depth_weight`).
@@ -215,24 +199,15 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
     else:  # a world saved before mapping had its own range: its tracking statistics seed the map's
         mapping = world.mapping_builder if world.mapping_builder is not None else copy.deepcopy(world.builder)
     history = [] if world is None else list(world.history)
-    # Tracked poses drift: a place seen again long after is merged a few centimetres off, and a
-    # second copy of its surfaces would make frames near it unplaceable. Such copies are left out.
-    owners = CellOwners() if world is None and keyframes.pose_source == "estimated" else None
     progress = Progress("merging keyframes", len(keyframes.indices), log, unit="keyframes")
-    for pos, k in enumerate(keyframes.indices):
+    for k in keyframes.indices:
         pts, cols = fused.frame(int(k))
         T = keyframes.T_world_cam[k]
-        measured, holes = _mapping_points(fused, int(k), cfg, manifest)
-        if owners is not None:
-            pts, cols = _without_drifted_copies(owners, (pts, cols), T, pos)
-            measured = _without_drifted_copies(owners, measured, T, pos)
-            holes = _without_drifted_copies(owners, holes, T, pos)
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         builder.integrate(pw, cols)
+        measured, holes = _mapping_points(fused, int(k), cfg, manifest)
         _integrate_mapping(mapping, *measured, T, cfg.voxel_size_m, cfg.noise_adaptive_cells)
         _integrate_mapping(mapping, *holes, T, cfg.voxel_size_m, cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
-        if owners is not None:
-            owners.add(pw, pos)
         history.append(len(mapping))
         progress.update()
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
