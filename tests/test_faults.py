@@ -357,8 +357,11 @@ def test_ctrl_c_ends_with_one_line_and_status_130(interrupt_env, argv, ready):
     root, env = interrupt_env
     before = _snapshot(root)
     argv = [a.format(root=root) for a in argv]
+    # A command typed in a terminal: SIGINT at its default, even when the test runs in the
+    # background (which ignores SIGINT, and a command keeps an ignored SIGINT ignored).
     p = subprocess.Popen([sys.executable, "-c", CLI, *argv], env=env, cwd=root, start_new_session=True,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines: list[str] = []
     at_work = threading.Event()
 
