@@ -202,3 +202,18 @@ def test_relocalization_in_a_saved_map_is_fast():
         else:
             pytest.fail(f"no frame from t = {start} s placed in {FAST_ONLY_ATTEMPTS} fast attempts")
 
+
+
+def test_ate_grades_placed_frames_only_a_lost_frames_guess_is_not_an_estimate():
+    from atlas_pipeline.localization.localizer import grade
+
+    n = 6
+    T_gt = np.tile(np.eye(4), (n, 1, 1))
+    T_gt[:, 0, 3] = np.arange(n) * 0.1
+    T_gt[:, 1, 3] = (np.arange(n) % 2) * 0.05  # not a straight line: the alignment is well posed
+    T_est = T_gt.copy()
+    T_est[3, :3, 3] += 2.0  # the motion model's guess for a lost frame, 2 m off
+    status = ["anchor", "tracked", "tracked", "lost", "relocalized", "tracked"]
+    summary, err_t, _ = grade(np.arange(n) * 0.1, T_est, status, T_gt)
+    assert summary["n_graded"] == 4 and summary["n_lost"] == 1
+    assert summary["ate_rmse_m"] < 1e-9 and np.isnan(err_t[3]) and np.isnan(err_t[0])

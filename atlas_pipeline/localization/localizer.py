@@ -363,8 +363,8 @@ def localize_sequence(
 
 def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
     """Counts, and where ground truth exists ATE (rigidly aligned, TUM conventions) and RPE per
-    second over the estimated frames (anchors excluded: their pose is given; ``not_attempted`` and
-    other frames without a finite pose are left out of the errors). Returns
+    second over the placed frames (tracked or relocalized: a lost frame's pose is the motion
+    model's guess, not an estimate; anchors are excluded too, their pose is given). Returns
     ``(summary, error_t_m [N], error_rot_deg [N])``, per-frame errors after the alignment."""
     n = len(timestamps_s)
     summary: dict = {
@@ -374,7 +374,7 @@ def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: 
     err_t = np.full(n, np.nan)
     err_r = np.full(n, np.nan)
     has_gt = np.isfinite(T_gt).all(axis=(1, 2))
-    graded = has_gt & np.isfinite(T_est).all(axis=(1, 2)) & np.array([s != STATUS_ANCHOR for s in status])
+    graded = has_gt & np.isfinite(T_est).all(axis=(1, 2)) & np.array([s in PLACED_STATUSES for s in status])
     summary["n_graded"] = int(graded.sum())
     if graded.sum() >= 3:
         a = ate(T_est[graded], T_gt[graded])
