@@ -376,4 +376,4 @@ class ArtifactIOManager(ConfigurableIOManager):
             if not context.has_partition_key or keys[0] == context.partition_key:
                 raise
             raise ArtifactError(f"{asset} of partition {keys[0]}, an input of partition {context.partition_key}, "
-                                f"is not available ({exc}): run `atlas-gs run --partition {keys[0]}` first") from exc
+                                f"is not available ({exc}): run `atlas-gs run {keys[0]}` first") from exc

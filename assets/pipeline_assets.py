@@ -362,7 +362,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             return
         if first_visit_world is None:
             raise Failure(f"{name} extends {first}, whose world is not materialized: run "
-                          f"`atlas-gs run --partition {first}` first")
+                          f"`atlas-gs run {first}` first")
         cfg = atlas.load()
         dep_partitions = {FIRST_VISIT_WORLD: first}
         if (out := reuse(context, cfg, dep_partitions=dep_partitions)) is None:

@@ -120,3 +120,17 @@ def test_run_all_runs_a_second_visit_after_its_first_visit(tmp_path):
     assert first_visits_first(["visit2", "other", "visit1"], reg) == ["other", "visit1", "visit2"]
     # Without its first visit in the run, a second visit keeps its place (its input is read as stored).
     assert first_visits_first(["visit2", "other"], reg) == ["visit2", "other"]
+
+
+@pytest.mark.slow
+def test_a_second_visit_run_before_its_first_visit_names_the_run_to_do_first(two_visits):
+    defs = build_definitions(two_visits / "artifacts")
+    run_config, tags = run_request("default", {})
+    result = defs.resolve_job_def("atlas_gs_all").execute_in_process(
+        partition_key=SECOND, instance=DagsterInstance.ephemeral(), run_config=run_config, tags=tags,
+        raise_on_error=False)
+    assert not result.success
+    failures = [str(e.event_specific_data.error) for e in result.all_events if e.event_type_value == "STEP_FAILURE"]
+    assert any(f"gaussian_world of partition {FIRST}, an input of partition {SECOND}" in f
+               and f"run `atlas-gs run {FIRST}` first" in f for f in failures), failures
+    assert not (two_visits / "artifacts" / "revisit_bundle" / SECOND).exists()
