@@ -341,14 +341,17 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         yield check_bundle_roundtrip(artifact(context, out).field)
 
     keys = set(partitions_def.get_partition_keys())
-    first_visit_of = {second: first for first, second in revisits(load_registry()).items()
+    first_visit_of = {second: first for second, first in revisits(load_registry()).items()
                       if first in keys and second in keys}
+    seconds_of: dict[str, set[str]] = {}
+    for second, first in first_visit_of.items():
+        seconds_of.setdefault(first, set()).add(second)
 
     @asset(name=REVISIT_STAGE, code_version="1", partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP,
            deps=[settings_key(REVISIT_STAGE)], output_required=False,
            ins={"first_visit_world": AssetIn(
                FIRST_VISIT_WORLD.path[-1], dagster_type=Optional[GaussianWorld],
-               partition_mapping=StaticPartitionMapping({a: b for b, a in first_visit_of.items()}))},
+               partition_mapping=StaticPartitionMapping(seconds_of))},
            description="A second visit (registry entry with `extends`): the first visit's world extended with this "
                        "recording (relocalized with no start pose, then tracked and mapped into it), the recording "
                        "localized in the extended world, its transitions, written as a world bundle whose lineage "

@@ -94,7 +94,8 @@ def test_extends_must_name_a_registered_first_visit(tmp_path):
         return [path]
 
     synth = {"kind": "synthetic", "n_frames": 4}
-    assert revisits(load_registry(registry({"a": synth, "b": {**synth, "extends": "a"}}))) == {"a": "b"}
+    assert revisits(load_registry(registry({"a": synth, "b": {**synth, "extends": "a"},
+                                            "c": {**synth, "extends": "a"}}))) == {"b": "a", "c": "a"}
     cases = [
         ({"b": {**synth, "extends": "nowhere"}}, "datasets.b.extends: no dataset named 'nowhere' is registered"),
         ({"b": {**synth, "extends": "b"}}, "datasets.b.extends: a dataset cannot extend its own world"),

@@ -331,13 +331,8 @@ def load_registry(files: list[Path] | None = None) -> dict[str, DatasetEntry]:
 
 
 def revisits(entries: dict[str, DatasetEntry]) -> dict[str, str]:
-    """``{first visit: second visit}`` of the entries with ``extends``; a first visit extended by
-    two recordings keeps only the first registered (one partition of each visit's world)."""
-    out: dict[str, str] = {}
-    for e in entries.values():
-        if e.extends is not None:
-            out.setdefault(e.extends, e.name)
-    return out
+    """``{second visit: first visit}`` of the entries with ``extends``."""
+    return {e.name: e.extends for e in entries.values() if e.extends is not None}
 
 
 def read_dataset_manifest(entry: DatasetEntry, max_frames: int | None = None, root: Path | None = None):
