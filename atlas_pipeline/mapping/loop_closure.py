@@ -66,10 +66,10 @@ LOOP_MODEL_WINDOW = 2
 # geometry: stricter than tracking's ``min_fitness`` (a wrong loop bends the whole trajectory).
 LOOP_MIN_INLIER_FRACTION = 0.3
 # A loop is verified by geometry alone, so the matched surfaces must pin the camera in every
-# direction: a wall and the floor seen through a door let the alignment slide metres along them
-# with a good fit. The least over the largest eigenvalue of the translation block of the
-# point-to-plane normal matrix (tracker.translation_constraint) must reach this; views of real
-# rooms measure 0.05-0.4, such two-plane views below 0.02.
+# direction: a wall and the floor seen through a door let the alignment slide along them with a
+# good fit. The least over the largest eigenvalue of the translation block of the point-to-plane
+# normal matrix (tracker.translation_constraint) must reach this: a third plane seen over a few
+# percent of the view's points.
 LOOP_MIN_TRANSLATION_CONSTRAINT = 0.03
 # After a keyframe closes a loop, the next this-many keyframes do not search: they would add
 # near-duplicate edges, costing time but no information.
