@@ -66,11 +66,6 @@ logger = logging.getLogger("atlas_gs.definitions")
 RELOAD_HINT = "reload the code location (the UI's Reload) to see them; atlas-gs sees them now"
 
 
-def registered_partition_names() -> list[str]:
-    """Registered dataset names (registry order), each checked by the registry's name rule."""
-    return [validate_dataset_name(n) for n in load_registry()]
-
-
 def available_partition_names() -> list[str]:
     """Registered datasets a run can build offline (registry order): synthetic ones and those on
     disk. A download preset is left out until fetched (``atlas-gs dataset fetch NAME``), so the UI

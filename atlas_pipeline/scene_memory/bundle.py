@@ -72,7 +72,7 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
-    "read_metadata", "copy_bundle", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
+    "read_metadata", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
     "verify_bundle_files", "check_bundle_update", "BundleMetadataSchema", "BUNDLE_KIND",
     "VOXEL_BYTES_PER_VOXEL", "bundle_disk_bytes", "world_memory_bytes", "save_peak_bytes", "load_peak_bytes",
 ]
@@ -578,18 +578,6 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
     path = directory / name
     field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
     return WorldBundle(directory, field, meta)
-
-
-def copy_bundle(src: Path, dst: Path, force: bool = False) -> Path:
-    """Copy a bundle folder atomically (e.g. to export the Dagster artifact to a user path): the
-    listed files, verified, and its metadata; ``dst`` obeys the output policy."""
-    meta = verify_bundle_files(src)
-    check_output_dir(dst, BUNDLE_KIND, [src], force)
-    with atomic_dir(dst, kind=BUNDLE_KIND) as tmp:
-        for name in [*meta["files"], "metadata.json"]:
-            shutil.copy2(src / name, tmp / name)
-    return dst
-
 
 
 def parent_reference(directory: str | Path) -> dict[str, Any]:
