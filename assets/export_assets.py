@@ -76,9 +76,7 @@ def build_export_assets(partitions_def: PartitionsDefinition) -> list[AssetsDefi
     def world_mesh(context: AssetExecutionContext, raw_dataset: FrameManifest, gaussian_world: GaussianWorld):
         if (out := _reuse(context)) is not None:
             return out
-        src = source_from_world(gaussian_world.field, raw_dataset, gaussian_world.keyframe_indices,
-                                gaussian_world.T_world_cam_keyframes, None, "keyframes", map_id=gaussian_world.map_id)
-        art = build_mesh(src, log=context.log.info)
+        art = build_mesh(_keyframe_source(raw_dataset, gaussian_world), log=context.log.info)
         return versioned(context, art, {"n_vertices": art.info["n_vertices"], "n_triangles": art.info["n_triangles"],
                                         "voxel_m": art.info["voxel_m"],
                                         "preview": MetadataValue.md(markdown_image(art.preview_png,
@@ -90,12 +88,17 @@ def build_export_assets(partitions_def: PartitionsDefinition) -> list[AssetsDefi
     def occupancy_map(context: AssetExecutionContext, raw_dataset: FrameManifest, gaussian_world: GaussianWorld):
         if (out := _reuse(context)) is not None:
             return out
-        src = source_from_world(gaussian_world.field, raw_dataset, gaussian_world.keyframe_indices,
-                                gaussian_world.T_world_cam_keyframes, None, "keyframes", map_id=gaussian_world.map_id)
-        art = build_occupancy(src, log=context.log.info)
+        art = build_occupancy(_keyframe_source(raw_dataset, gaussian_world), log=context.log.info)
         return versioned(context, art, {"n_free": art.info["n_free"], "n_occupied": art.info["n_occupied"],
                                         "resolution_m": art.info["resolution_m"],
                                         "preview": MetadataValue.md(markdown_image(art.preview_png,
                                                                                    "occupancy grid, +y up"))})
 
     return [trainer("colmap"), trainer("nerfstudio"), world_mesh, occupancy_map]
+
+
+def _keyframe_source(raw_dataset: FrameManifest, gaussian_world: GaussianWorld):
+    """The world's keyframes at their mapping poses, with the dataset's frames: what the mesh and
+    the occupancy grid are built from."""
+    return source_from_world(gaussian_world.field, raw_dataset, gaussian_world.keyframe_indices,
+                             gaussian_world.T_world_cam_keyframes, None, "keyframes", map_id=gaussian_world.map_id)

@@ -318,13 +318,11 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         if (out := reuse(context, cfg)) is None:
             lin = lineage(context)
             upstream = lin["upstream"]
-            prefix = "atlas/set/"
             info = bundle_lineage(
                 partition=context.partition_key,
                 run_id=context.run.run_id,
                 profile=cfg.profile,
-                config_overrides={k[len(prefix):]: json.loads(v) for k, v in sorted(context.run.tags.items())
-                                  if k.startswith(prefix)},
+                config_overrides=_run_overrides(context),
                 raw_content_hash=raw_dataset.content_hash,
                 **lin,
                 code_versions={**{a: u["code_version"] for a, u in upstream.items()},

@@ -184,6 +184,13 @@ def artifact(context: AssetExecutionContext, out: Output) -> Any:
     return out.value.value
 
 
+def _upstream_entry(rec: EventLogRecord) -> dict[str, Any]:
+    """Data version, code version, run and time of one materialization, as lineage records them."""
+    prov = DataProvenance.from_tags(rec.asset_materialization.tags)
+    return {"data_version": data_version(rec), "code_version": prov.code_version, "run_id": rec.run_id,
+            "created_utc": _dt.datetime.fromtimestamp(rec.timestamp, _dt.timezone.utc).isoformat(timespec="seconds")}
+
+
 def lineage(context: AssetExecutionContext, dep_partitions: dict[AssetKey, str] | None = None) -> dict[str, Any]:
     """The running asset's ancestors (same partition), walked through the input provenance Dagster
     recorded: ``upstream`` (data version, code version, run, time of each), the ``settings`` each
@@ -196,24 +203,17 @@ def lineage(context: AssetExecutionContext, dep_partitions: dict[AssetKey, str] 
     todo, seen = sorted(context.assets_def.asset_deps[context.asset_key]), set()
     while todo:
         dep = todo.pop(0)
-        dep_p = dep_partitions.get(dep, p) if dep in context.assets_def.asset_deps[context.asset_key] else p
+        dep_p = dep_partitions.get(dep, p)  # the direct inputs come first, so an ancestor is never mapped
         if dep in seen or (rec := record(inst, dep, dep_p)) is None:
             continue
         seen.add(dep)
         if dep_p != p:
-            prov = DataProvenance.from_tags(rec.asset_materialization.tags)
-            out["upstream"][f"{dep.path[-1]}[{dep_p}]"] = {
-                "data_version": data_version(rec), "code_version": prov.code_version, "run_id": rec.run_id,
-                "created_utc": _dt.datetime.fromtimestamp(rec.timestamp, _dt.timezone.utc).isoformat(timespec="seconds")}
-            continue
-        if dep == DATASET_FILES:
+            out["upstream"][f"{dep.path[-1]}[{dep_p}]"] = _upstream_entry(rec)
+        elif dep == DATASET_FILES:
             out["dataset_files"] = data_version(rec)
         elif len(dep.path) > 1:
             out["settings"][dep.path[-1]] = data_version(rec)
         else:
-            prov = DataProvenance.from_tags(rec.asset_materialization.tags)
-            out["upstream"][dep.path[-1]] = {
-                "data_version": data_version(rec), "code_version": prov.code_version, "run_id": rec.run_id,
-                "created_utc": _dt.datetime.fromtimestamp(rec.timestamp, _dt.timezone.utc).isoformat(timespec="seconds")}
-            todo.extend(sorted(prov.input_data_versions))
+            out["upstream"][dep.path[-1]] = _upstream_entry(rec)
+            todo.extend(sorted(DataProvenance.from_tags(rec.asset_materialization.tags).input_data_versions))
     return {k: dict(sorted(v.items())) if isinstance(v, dict) else v for k, v in out.items()}
