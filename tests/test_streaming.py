@@ -52,11 +52,21 @@ def test_equal_points_give_equal_bytes(small_manifest, tmp_path):
 def test_the_spool_goes_with_the_object_and_the_saved_copy_stays(small_manifest, tmp_path):
     fused = fuse_frames(small_manifest, FusionConfig(), log=lambda *_: None)
     spool = fused.chunk_dir
-    fused.save(tmp_path / "kept")
     assert spool.is_dir()
     del fused
     gc.collect()
     assert not spool.exists()  # the temporary folder this process made
+    fused = fuse_frames(small_manifest, FusionConfig(), log=lambda *_: None)
+    spool = fused.chunk_dir
+    fused.save(tmp_path / "kept")
+    # Saving hands the spool over: it goes now, so nothing later changes the saved files' identity
+    # (link count, change time), and the object reads the saved chunks.
+    assert not spool.exists()
+    ident = [(p.stat().st_nlink, p.stat().st_ctime_ns) for p in sorted((tmp_path / "kept").iterdir())]
+    assert fused.frame(0)[0].shape[1] == 3
+    del fused
+    gc.collect()
+    assert [(p.stat().st_nlink, p.stat().st_ctime_ns) for p in sorted((tmp_path / "kept").iterdir())] == ident
     loaded = FusedFrames.load(tmp_path / "kept")
     assert loaded.frame(0)[0].shape[1] == 3
     del loaded

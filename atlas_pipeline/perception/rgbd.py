@@ -209,6 +209,8 @@ class FusedFrames:
     chunk_dir: Path | None = None
     chunk_frames: int = FUSED_CHUNK_FRAMES
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    # Removes the temporary spool this object owns (fuse_frames); None for a loaded artifact.
+    _spool_finalizer: weakref.finalize | None = field(default=None, repr=False, compare=False)
 
     @property
     def n_frames(self) -> int:
@@ -273,8 +275,14 @@ class FusedFrames:
         return out
 
     def save(self, directory: Path) -> list[Path]:
+        """Write the artifact into ``directory``. An object that owns its temporary spool hands the
+        chunks over: the spool goes now and the object reads the saved chunks from then on, so the
+        saved files' link counts (and change times, which identify them) do not move later."""
         directory.mkdir(parents=True, exist_ok=True)
         chunks = self._write_chunks(directory)
+        if self._spool_finalizer is not None and self._spool_finalizer.alive:
+            self._spool_finalizer()
+            self._spool_finalizer, self.chunk_dir = None, directory
         path = directory / FUSED_INDEX_FILE
         with atomic_path(path) as tmp:
             save_npz_deterministic(tmp, offsets=self.offsets, valid_fraction=self.valid_fraction)
@@ -380,8 +388,8 @@ def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
         stride=cfg.stride, min_depth_m=cfg.min_depth_m, max_depth_m=cfg.max_depth_m,
         chunk_dir=spool.dir, chunk_frames=chunk_frames,
     )
-    # The spool is ours (made above): it goes when the artifact object does; save() links its files.
-    weakref.finalize(out, shutil.rmtree, str(spool.dir), True)
+    # The spool is ours (made above): it goes when the artifact object does, or when save() hands it over.
+    out._spool_finalizer = weakref.finalize(out, shutil.rmtree, str(spool.dir), True)
     return out
 
 
