@@ -430,6 +430,15 @@ def check_output_dir(path: str | Path, kind: str, inputs: Iterable[str | Path] =
     return backup
 
 
+def prepare_output_dir(output: str | Path, kind: str, inputs: Iterable[str | Path | None], force: bool) -> Path:
+    """``output`` as a folder a command of ``kind`` may write: the output policy
+    (:func:`check_output_dir`) and the writability of its parent checked before any expensive work."""
+    out = Path(output).expanduser()
+    check_output_dir(out, kind, inputs, force)
+    check_writable(out.parent)
+    return out
+
+
 def _move_aside(path: Path, stem: str, suffix: str) -> Path:
     """Rename ``path`` to a free, visible ``<stem>.replaced-<UTC time>[-n]<suffix>`` beside it."""
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")

@@ -45,7 +45,7 @@ def step_seconds(instance, run_id: str) -> dict[str, float]:
 
 def materialized(result) -> tuple[list[str], list[str]]:
     """(recomputed, reused) pipeline asset names of a run result."""
-    from assets.cli import ran
+    from assets.launch import ran
 
     r = ran(result)
     return r["recomputed"], r["reused"]
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                       ATLAS_DATA_DIR=str(tmp / "data"))
     from dagster import DagsterInstance
 
-    from assets.cli import run_request
+    from assets.launch import run_request
     from assets.definitions import build_definitions
     from assets.resources import atlas_config
     from assets.staleness import stale_assets

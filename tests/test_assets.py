@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 from dagster import DagsterInstance
 
-from assets.cli import run_request
+from assets.launch import run_request
 from assets.definitions import build_definitions, loaded_partitions
 from assets.resources import dataset_entry
 from atlas_pipeline.scene_memory.bundle import load_world_bundle

@@ -10,7 +10,7 @@ import numba
 import numpy as np
 import pytest
 
-from assets.cli import _CoreShare, _init_worker
+from assets.launch import CoreShare, init_worker
 from atlas_pipeline.cores import kernel_threads, use_core_share
 from atlas_pipeline.gaussian_world import raster as rc
 from tests.test_raster import BACKGROUND, _scene, _view
@@ -55,13 +55,13 @@ def test_a_render_does_not_depend_on_the_share(restore_threads):
 
 def test_the_share_divides_the_cores_among_the_runs_still_going():
     counter = multiprocessing.get_context("spawn").Value("i", 4)
-    share = _CoreShare(counter, concurrency=2, cores=2)
+    share = CoreShare(counter, concurrency=2, cores=2)
     assert share() == 1  # two runs at a time on two cores
     counter.value = 1
     assert share() == 2  # the last run gets the core the other left
     counter.value = 0
     assert share() == 2
-    wide = _CoreShare(counter, concurrency=3, cores=8)
+    wide = CoreShare(counter, concurrency=3, cores=8)
     counter.value = 5
     assert wide() == 2  # 8 // 3
     counter.value = 2
@@ -70,12 +70,12 @@ def test_the_share_divides_the_cores_among_the_runs_still_going():
 
 def _threads_after(lower_by: int) -> tuple[int, int]:
     """In a pool worker: numba's count after the worker's start, then after ``lower_by`` runs end."""
-    from assets import cli
+    from assets import launch
     from atlas_pipeline.cores import kernel_threads
 
     first = numba.get_num_threads()
-    with cli._POOL_SHARE.unfinished.get_lock():
-        cli._POOL_SHARE.unfinished.value -= lower_by
+    with launch._POOL_SHARE.unfinished.get_lock():
+        launch._POOL_SHARE.unfinished.value -= lower_by
     return first, kernel_threads()
 
 
@@ -84,8 +84,8 @@ def test_a_pool_worker_starts_with_its_share_and_takes_the_cores_left():
     if cores < 2:
         pytest.skip("one core: every share is one thread")
     context = multiprocessing.get_context("spawn")  # this process may have started numba's threads
-    share = _CoreShare(context.Value("i", 2), concurrency=2, cores=cores)
-    with ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=_init_worker,
+    share = CoreShare(context.Value("i", 2), concurrency=2, cores=cores)
+    with ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=init_worker,
                              initargs=(share,)) as pool:
         first, later = pool.submit(_threads_after, 1).result()
     assert first == cores // 2  # set before any kernel ran

@@ -381,7 +381,7 @@ def test_head_of_dataset_list_in_a_shell(isolated):
 
 
 class _FakeResult:
-    """What cmd_run reads of a Dagster run's result (the run itself is not what these tests are about)."""
+    """What assets.launch.run_partition reads of a Dagster run's result (the run itself is not what these tests are about)."""
 
     def __init__(self, partition: str):
         self.success, self.run_id, self.all_events = True, f"run-{partition}", []
@@ -425,13 +425,14 @@ def test_run_prints_one_json_document(isolated, monkeypatch, capsys, argv, faili
     names = ["par-a", "par-b", "par-c"]
     monkeypatch.setenv("ATLAS_PROJECT_ROOT", str(project_with_datasets(isolated / "project", names)))
     monkeypatch.setenv("ATLAS_LOCAL_REGISTRY", str(isolated / "none.yaml"))
+    import assets.launch as launch
 
-    def fake_execute(args, job, defs, instance, p, *rest):
+    def fake_execute(run, p, *rest):
         if p == failing:
             raise DatasetError(p, "the frames are gone")
         return _FakeResult(p)
 
-    monkeypatch.setattr(cli, "_execute_partition", fake_execute)
+    monkeypatch.setattr(launch, "execute_partition", fake_execute)
     monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", _InlinePool)
     code = cli.main(argv)
     out = capsys.readouterr().out

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 from dagster import AssetKey, DagsterInstance, build_sensor_context
 
-from assets.cli import main, run_request
+from assets.cli import main
+from assets.launch import run_request
 from assets.definitions import build_definitions, loaded_partitions
 from assets.resources import atlas_config
 from assets.staleness import stale_assets

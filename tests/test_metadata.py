@@ -89,10 +89,10 @@ def test_cli_and_benchmarks_share_the_parser():
     values for the same items, the same error naming the item."""
     import argparse
 
-    from assets import cli
+    from assets.cli import options
 
-    assert cli.parse_set_overrides is parse_set_overrides
+    assert options.parse_set_overrides is parse_set_overrides
     items = ["fusion.max_depth_m=3.5", "mapping.optimization_selective_adam=false", "video.fps=24"]
-    assert cli._overrides(argparse.Namespace(set=items)) == parse_set_overrides(items, "--set")
+    assert options.overrides(argparse.Namespace(set=items)) == parse_set_overrides(items, "--set")
     with pytest.raises(ConfigError, match="fusion.max_depth_m=\\[1"):
-        cli._overrides(argparse.Namespace(set=["fusion.max_depth_m=[1"]))
+        options.overrides(argparse.Namespace(set=["fusion.max_depth_m=[1"]))

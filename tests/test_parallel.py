@@ -90,7 +90,7 @@ def test_workers_are_forked_only_before_numbas_parallel_runtime_started():
     code = textwrap.dedent("""
         import numpy as np
         from numba import njit, prange
-        from assets.cli import worker_start_method
+        from assets.launch import worker_start_method
 
         @njit(parallel=True)
         def total(a):
@@ -112,7 +112,7 @@ def test_workers_are_forked_only_before_numbas_parallel_runtime_started():
 def test_the_largest_recordings_start_first(tmp_path):
     """``run --all`` submits partitions largest first (ties in registry order), sized by the bytes
     of their files: links are not followed, an absent folder is 0."""
-    from assets.cli import longest_first
+    from assets.launch import longest_first
     from atlas_pipeline.sensors.registry import DatasetEntry, recording_bytes
 
     assert longest_first([10, 30, 20, 30]) == [1, 3, 2, 0]

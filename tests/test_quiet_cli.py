@@ -14,7 +14,8 @@ import threading
 import pytest
 import yaml
 
-from assets.cli import ASSET_ORDER, _run_words, _status_words, main
+from assets.cli import ASSET_ORDER, main
+from assets.cli.pipeline import run_words, status_words
 from atlas_pipeline.progress import Progress, Terminal, use_terminal
 
 QUICK = ["--set", "mapping.optimization_epochs=0", "--set", "video.orbit_frames=4"]
@@ -119,8 +120,8 @@ def test_progress_counts_megabytes():
 
 
 def test_status_words():
-    assert _status_words("synthetic", {}) == f"synthetic: all {len(ASSET_ORDER)} assets current"
-    text = _status_words("synthetic", {"world_bundle": ["transitions will be recomputed (may change)"],
+    assert status_words("synthetic", {}) == f"synthetic: all {len(ASSET_ORDER)} assets current"
+    text = status_words("synthetic", {"world_bundle": ["transitions will be recomputed (may change)"],
                                        "transitions": ["settings changed: transitions.x 1 -> 2"]})
     lines = text.splitlines()
     assert lines[0].startswith("synthetic: 2 of 9 assets would be recomputed")
@@ -132,7 +133,7 @@ def test_failed_run_in_words_names_only_what_exists_and_says_which_is_older(tmp_
     bundle = tmp_path / "world_bundle" / "p"
     summary = {"partition": "p", "success": False, "run_id": "r1", "recomputed": ["raw_dataset"], "reused": [],
                "world_bundle": str(bundle), "videos": [], "errors": ["gaussian_world: out of memory"]}
-    text = _run_words(summary)
+    text = run_words(summary)
     assert "run failed" in text and "gaussian_world: out of memory" in text
     assert f"{bundle}  (from an earlier run)" in text
     assert "video" not in text and "transitions" not in text

@@ -10,7 +10,7 @@ import pytest
 import yaml
 from dagster import DagsterInstance
 
-from assets.cli import run_request
+from assets.launch import run_request
 from assets.definitions import build_definitions
 from assets.resources import atlas_config
 from assets.staleness import stale_assets
@@ -111,7 +111,7 @@ def test_extends_must_name_a_registered_first_visit(tmp_path):
 
 
 def test_run_all_runs_a_second_visit_after_its_first_visit(tmp_path):
-    from assets.cli import first_visits_first
+    from assets.launch import first_visits_first
 
     path = tmp_path / "reg.yaml"
     synth = {"kind": "synthetic", "n_frames": 4}

@@ -165,10 +165,9 @@ def test_splat_covariances_follow_scale_and_rotation():
 
 
 def test_view_command_arguments(viewer_world, monkeypatch):
-    from assets import cli_view
+    from assets.cli.parser import build_parser
 
-    p = argparse.ArgumentParser(prog="atlas-gs")
-    cli_view.add_view_command(p.add_subparsers(dest="cmd"))
+    p = build_parser()
     args = p.parse_args(["view", str(viewer_world), "--port", "0"])
     assert args.host == "127.0.0.1" and args.port == 0 and args.report is None
     seen = {}

@@ -67,6 +67,13 @@ __all__ = [
     "files_missing",
     "needs_download",
     "recording_bytes",
+    "registered_entry",
+    "registered_entries",
+    "dataset_from_spec",
+    "recording_kind",
+    "intrinsics_camera",
+    "availability",
+    "not_on_disk_reason",
 ]
 
 
@@ -500,3 +507,90 @@ def load_dataset(entry: DatasetEntry, cfg: PipelineConfig, log: Callable[[str], 
     frame manifest, whatever the layout (TUM, 7-Scenes, Replica, ScanNet, bag: ``entry.kind``)."""
     root = ensure_dataset_files(entry, log)
     return read_dataset_manifest(entry, cfg.dataset.max_frames, root)
+
+
+# An --intrinsics camera's size and depth scale when neither the options nor the kind's preset give
+# them: the VGA frame of every supported RGB-D sensor, depth in millimetres.
+FALLBACK_WIDTH_PX = 640
+FALLBACK_HEIGHT_PX = 480
+FALLBACK_DEPTH_UNITS_PER_M = 1000.0
+# What each layout looks like on disk, for the error that asks for --kind.
+LAYOUT_HINTS = ("TUM: rgb.txt + depth.txt; 7-Scenes: frame-*.color.*; Replica: results/ + traj.txt; "
+                "ScanNet: color/ depth/ pose/ intrinsic/; bag: *.bag or metadata.yaml + .db3/.mcap")
+# A partition name derived from a folder or file name: at most this many characters.
+MAX_DERIVED_NAME_CHARS = 64
+
+
+def registered_entry(name: str, registry: dict[str, DatasetEntry] | None = None) -> DatasetEntry:
+    """The registry entry called ``name``, or a ConfigError listing the registered names."""
+    registry = load_registry() if registry is None else registry
+    if name not in registry:
+        raise ConfigError(f"dataset '{name}' is not registered; known: {', '.join(registry)}")
+    return registry[name]
+
+
+def registered_entries(names: list[str], registry: dict[str, DatasetEntry]) -> list[DatasetEntry]:
+    """The entries of ``names`` (each a valid dataset name), or one ConfigError naming every unknown one."""
+    names = [validate_dataset_name(n) for n in names]
+    unknown = [n for n in names if n not in registry]
+    if unknown:
+        raise ConfigError(f"dataset(s) {', '.join(unknown)} not registered; known: {', '.join(registry)}")
+    return [registry[n] for n in names]
+
+
+def dataset_from_spec(spec: str, camera: str | None = None, camera_option: str = "--camera") -> DatasetEntry:
+    """A registered dataset name, or the path of a recording (folder, or ``.bag`` file) whose layout
+    is detected (TUM, 7-Scenes, Replica, ScanNet, bag), as an unregistered entry named after the
+    path, with the kind's camera preset unless ``camera`` names one."""
+    registry = load_registry()
+    if spec in registry:
+        return registry[spec]
+    p = Path(spec).expanduser()
+    if not p.exists():
+        raise ConfigError(f"'{spec}' is neither a registered dataset ({', '.join(registry)}) nor a folder")
+    kind = detect_kind(p)
+    if kind is None:
+        raise ConfigError(f"'{spec}' is not a recording of a known layout (TUM, 7-Scenes, Replica, ScanNet, bag); "
+                          "register it with `atlas-gs dataset add NAME PATH --kind KIND`")
+    stem = p.resolve().stem if p.is_file() else p.resolve().name
+    name = "".join(c if c.isalnum() or c in "-_" else "-" for c in stem.lower())[:MAX_DERIVED_NAME_CHARS] or "dataset"
+    spec_cam = camera or default_camera_spec(kind)
+    return DatasetEntry(name=name.strip("-_") or "dataset", kind=kind, path=p.resolve(),  # type: ignore[arg-type]
+                        camera=resolve_camera(spec_cam, camera_option) if spec_cam else None)
+
+
+def recording_kind(path: Path, kind: str | None = None) -> str:
+    """``kind`` when given, else the layout detected at ``path``; a DatasetError that lists the
+    layouts when there is none to detect."""
+    kind = kind or detect_kind(path)
+    if kind is None:
+        raise DatasetError(path, "not found" if not path.exists() else
+                           f"cannot tell the layout ({LAYOUT_HINTS}); give --kind")
+    return kind
+
+
+def intrinsics_camera(kind: str, intrinsics: str, width_px: int | None = None, height_px: int | None = None,
+                      depth_units_per_m: float | None = None) -> dict[str, Any]:
+    """An inline camera from ``"fx fy cx cy"``: the image size and depth scale not given are the
+    kind's preset's (a recording of that sensor), else the VGA / millimetre fallbacks."""
+    preset = default_camera_spec(kind)
+    base = resolve_camera(preset, "--kind") if preset else None
+    width = width_px or (base.width if base else FALLBACK_WIDTH_PX)
+    height = height_px or (base.height if base else FALLBACK_HEIGHT_PX)
+    scale = depth_units_per_m or (base.depth_scale if base else FALLBACK_DEPTH_UNITS_PER_M)
+    return camera_from_intrinsics(intrinsics, width, height, scale)
+
+
+def availability(entry: DatasetEntry) -> str:
+    """Where the entry's frames stand: ``present``, ``generated on demand`` (synthetic),
+    ``not fetched`` (a download preset) or ``MISSING``."""
+    if entry.path.exists():
+        return "present"
+    if entry.kind == "synthetic":
+        return "generated on demand"
+    return "not fetched" if entry.url else "MISSING"
+
+
+def not_on_disk_reason(entry: DatasetEntry) -> str:
+    """Why an entry is no partition, with the command that mends it when there is one."""
+    return f"not fetched (`atlas-gs dataset fetch {entry.name}`)" if entry.url else f"no files at {entry.path}"

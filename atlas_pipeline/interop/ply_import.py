@@ -1,0 +1,58 @@
+"""A Gaussian-splat PLY made elsewhere (3DGS layout) as a world bundle of this pipeline.
+
+The imported world has no recording behind it: no dataset, no keyframes, poses "imported". It can be
+localized in, relocalized against, rendered and extended like a built one; ``voxel_m`` is the map
+resolution the tracker assumes when it samples the world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from atlas_pipeline.errors import ConfigError
+from atlas_pipeline.io_utils import prepare_output_dir
+
+IMPORT_CREATED_BY = "atlas-gs import-ply"
+
+
+@dataclass(frozen=True)
+class ImportedWorld:
+    """What an import wrote: the bundle folder and the splats it holds."""
+
+    bundle: Path
+    n_gaussians: int
+    anisotropic: bool
+
+
+def imported_metadata(src: Path, voxel_m: float, isotropic: bool) -> dict[str, Any]:
+    """``metadata.json`` of a bundle imported from the PLY ``src``: its origin (path and size), the
+    assumed map resolution, and a lineage with no dataset or run."""
+    from atlas_pipeline.scene_memory.metadata import bundle_lineage
+
+    return {
+        "name": src.stem, "partition": None,
+        "dataset": None,
+        "gaussians": {"voxel_size_m": float(voxel_m), "isotropic": isotropic, "n_keyframes": 0,
+                      "pose_source": "imported"},
+        "imported_from": {"path": str(src.resolve()), "bytes": src.stat().st_size},
+        "lineage": bundle_lineage(IMPORT_CREATED_BY),
+    }
+
+
+def import_gaussian_ply(ply: str | Path, output: str | Path, voxel_m: float, force: bool = False) -> ImportedWorld:
+    """Read the PLY ``ply`` (refusing missing properties, NaN/inf, short files) and write it as the
+    world bundle ``output`` under the output policy (``force``: a foreign folder is moved aside)."""
+    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, write_world_bundle
+    from atlas_pipeline.scene_memory.ply import read_gaussian_ply
+
+    if not (np.isfinite(voxel_m) and voxel_m > 0):
+        raise ConfigError(f"--voxel must be a finite number > 0, got {voxel_m}")
+    src = Path(ply)
+    prepare_output_dir(output, BUNDLE_KIND, [src], force)
+    field = read_gaussian_ply(src)
+    bundle = write_world_bundle(output, field, imported_metadata(src, voxel_m, field.is_isotropic), inputs=[src])
+    return ImportedWorld(bundle=Path(bundle), n_gaussians=len(field), anisotropic=not field.is_isotropic)
