@@ -30,7 +30,8 @@ by construction.
 
 Pixel centres are at integer pixel coordinates: a point at ``(u, v) = K p / z`` lands in the centre
 of pixel ``(round(u), round(v))``, pixel ``i`` covers ``[i - 0.5, i + 0.5)``. ``scale_intrinsics`` /
-``scale_camera`` keep that convention when an image is resampled. Skew in ``K`` is ignored.
+``scale_camera`` (:mod:`atlas_pipeline.gaussian_world.intrinsics`, re-exported here) keep that
+convention when an image is resampled. Skew in ``K`` is ignored.
 
 Plain NumPy versions of every stage, used to check these, are in ``_raster_reference``.
 """
@@ -44,6 +45,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from atlas_pipeline.gaussian_world.intrinsics import scale_camera, scale_intrinsics, scaled_image_size
 
 logger = logging.getLogger(__name__)
 
@@ -252,55 +254,6 @@ def view_from_pose(
         np.ascontiguousarray(T[:3, :3].T), np.ascontiguousarray(T[:3, 3]),
         float(Km[0, 0]), float(Km[1, 1]), float(Km[0, 2]), float(Km[1, 2]), int(width), int(height),
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Intrinsics of a resampled image
-# --------------------------------------------------------------------------------------------
-
-
-def scale_intrinsics(
-    K: np.ndarray,  # [3, 3]
-    scale_x: float,
-    scale_y: float | None = None,
-) -> np.ndarray:
-    """``[3, 3]`` intrinsics of the image resampled by ``scale_x`` (and ``scale_y``, default the same).
-
-    With pixel centres at integer coordinates pixel ``i`` covers ``[i - 0.5, i + 0.5)``, so the
-    image edges ``-0.5`` and ``W - 0.5`` map to ``-0.5`` and ``s W - 0.5``: ``u' = s (u + 0.5) - 0.5``
-    (a plain ``s u`` would shift the view by ``(1 - s) / 2`` pixels: a quarter pixel at half size).
-    """
-    if scale_y is None:
-        scale_y = scale_x
-    Ks = np.asarray(K, np.float64).copy()
-    Ks[0, 0] *= scale_x
-    Ks[1, 1] *= scale_y
-    Ks[0, 2] = (Ks[0, 2] + 0.5) * scale_x - 0.5
-    Ks[1, 2] = (Ks[1, 2] + 0.5) * scale_y - 0.5
-    return Ks
-
-
-def scaled_image_size(width: int, height: int, scale: float, multiple: int = 1) -> tuple[int, int]:
-    """``(w, h)`` of an image scaled by ``scale``, rounded, then down to a multiple of ``multiple``
-    (2 for yuv420p video)."""
-    return (int(round(width * scale)) // multiple * multiple,
-            int(round(height * scale)) // multiple * multiple)
-
-
-def scale_camera(
-    K: np.ndarray,  # [3, 3]
-    width: int,
-    height: int,
-    scale: float,
-    multiple: int = 1,
-) -> tuple[int, int, np.ndarray]:
-    """``(w, h, K_scaled [3, 3])`` of the image scaled by about ``scale`` (``scaled_image_size``).
-
-    The intrinsics use the exact per-axis ratios ``w / width`` and ``h / height``, so the scaled
-    image shows the same field of view as the full one, edge to edge.
-    """
-    w, h = scaled_image_size(width, height, scale, multiple)
-    return w, h, scale_intrinsics(K, w / width, h / height)
 
 
 # --------------------------------------------------------------------------------------------
