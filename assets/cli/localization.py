@@ -31,16 +31,11 @@ def _tracking_voxel_m(bundle, cfg) -> float:
     return float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
 
 
-def _depth_range_m(cfg) -> tuple[float, float]:
-    return cfg.fusion.min_depth_m, cfg.fusion.max_depth_m
-
-
 def cmd_relocalize(args: argparse.Namespace) -> int:
     """Place single frames in a saved world with no initial pose; print pose, confidence and, where
     the dataset has ground truth, the error (meaningful when the world shares its frame)."""
-    from atlas_pipeline.localization.places import place_index
-    from atlas_pipeline.localization.relocalize import Relocalizer
-    from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
+    from atlas_pipeline.localization.relocalize import relocalize_frames
+    from atlas_pipeline.localization.tracker import pose_change
     from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
 
     cfg = options.config(args)
@@ -50,15 +45,9 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
     bad = [i for i in frames if not 0 <= i < manifest.n_frames]
     if bad:
         raise ConfigError(f"--frame {bad[0]} is outside 0..{manifest.n_frames - 1}")
-    tracker = RGBDTracker(manifest.camera, cfg.localization, _depth_range_m(cfg))
-    model, priors = bundle.tracking_model(_tracking_voxel_m(bundle, cfg)), bundle_keyframe_poses(bundle.metadata)
-    reloc = Relocalizer(tracker, model, priors, places=place_index(model, manifest.camera, tracker, priors))
+    model = bundle.tracking_model(_tracking_voxel_m(bundle, cfg))
     rows = []
-    for i in frames:
-        fp = tracker.prepare(manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True))
-        r = reloc.relocalize_fast(fp)  # the place index first (milliseconds), the full search if it finds nothing
-        if not r.ok:
-            r = reloc.relocalize(fp)
+    for i, r in relocalize_frames(manifest, model, bundle_keyframe_poses(bundle.metadata), cfg, frames):
         row: dict[str, Any] = {"frame": i, "timestamp_s": float(manifest.timestamps_s[i]), "ok": bool(r.ok),
                                "confidence": round(r.confidence, 4), "source": r.source,
                                "inlier_fraction": round(r.inlier_fraction, 4)}
@@ -115,7 +104,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
     # The world's own recording is never a mismatch (the world was built from it), as in the graph.
     own = bundle.metadata.get("dataset", {}).get("name") == entry.name
     report = localize_sequence(manifest, bundle.tracking_model(_tracking_voxel_m(bundle, cfg)), cfg.localization,
-                               T0, anchor, bundle.map_id, _depth_range_m(cfg),
+                               T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
                                prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own)
     update_world_bundle(args.world, localization=report, drop_transitions=args.drop_transitions)
     out(json.dumps({"world": str(Path(args.world).resolve()), **{  # to_json: unknown numbers are null

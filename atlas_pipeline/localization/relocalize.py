@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
@@ -29,9 +30,13 @@ from atlas_pipeline.geometry import so3_exp
 from atlas_pipeline.localization.places import PlaceIndex
 from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, SurfelModel, TrackResult, pose_change
 
+if TYPE_CHECKING:
+    from atlas_pipeline.config import PipelineConfig
+    from atlas_pipeline.sensors.tum import FrameManifest
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["RelocalizationResult", "Relocalizer", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
+__all__ = ["RelocalizationResult", "Relocalizer", "relocalize_frames", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
 
 
 @dataclass
@@ -148,7 +153,7 @@ class Relocalizer:
         cfg = tracker.cfg
         # Screening tracker: the same solver on the coarse levels only (a few ms per hypothesis).
         coarse_iters = tuple(cfg.iterations[:-1]) + (0,) if len(cfg.iterations) > 1 else cfg.iterations
-        self._coarse = RGBDTracker(tracker.camera, dataclasses.replace(cfg, iterations=coarse_iters), tracker.depth_range_m)
+        self._coarse = RGBDTracker(tracker.camera, cfg.model_copy(update={"iterations": coarse_iters}), tracker.depth_range_m)
         self._map_features = None
         self._map_cloud = None
         self.places = places
@@ -284,3 +289,20 @@ class Relocalizer:
         # session usually circles what it scans), so a later frame from further round is reachable.
         hyps += [("keyframe", T) for _, P in list(hyps) if _ == "keyframe" for T in orbit_samples(P, frame)]
         return self._verify(frame, hyps, self.n_refine)
+
+
+def relocalize_frames(manifest: FrameManifest, model: SurfelModel, prior_poses: np.ndarray, cfg: PipelineConfig,
+                      frames: Iterable[int]) -> Iterator[tuple[int, RelocalizationResult]]:
+    """Each of ``frames`` of a recording placed in the map ``model`` with no initial pose, one at a
+    time: the place index over ``prior_poses`` (``[K, 4, 4]``, the map's keyframes) first, in
+    milliseconds; the full search (seconds) only where it finds nothing."""
+    from atlas_pipeline.localization.places import place_index
+
+    tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
+    reloc = Relocalizer(tracker, model, prior_poses, places=place_index(model, manifest.camera, tracker, prior_poses))
+    for i in frames:
+        frame = tracker.prepare(manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True))
+        result = reloc.relocalize_fast(frame)
+        if not result.ok:
+            result = reloc.relocalize(frame)
+        yield i, result
