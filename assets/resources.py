@@ -1,36 +1,35 @@
-"""The pipeline's settings as typed Dagster config, generated from the library's config dataclasses.
+"""The pipeline's settings as typed Dagster config, mirrored from the library's pydantic models.
 
 :func:`atlas_config` builds the ``atlas`` resource for one profile: an :class:`AtlasConfig` with one
 nested :class:`dagster.Config` per section of :class:`atlas_pipeline.config.PipelineConfig`
-(``fusion``, ``mapping``, ...), each field typed as the dataclass declares it (``Literal`` choices
-become enums, ``tuple[int, ...]`` a list) and defaulting to the profile's value, with a description
-taken from the comment beside the field in ``atlas_pipeline/config.py`` and its allowed range. The
-launchpad therefore lists every setting with its description and default, and a run config that
-sets one field keeps the profile's value for every other. :meth:`AtlasConfig.load` validates the
-whole config with the library's own rules (errors name the dotted field: ``mapping.voxel_size_m
-must be a finite number > 0``), when a run starts.
+(``fusion``, ``mapping`` with ``mapping.fit``, ...), each field with the model's type (tuples as
+lists: Dagster config has no tuples), description and allowed range, defaulting to the profile's
+value. The launchpad therefore lists every setting with its description and default, and a run
+config that sets one field keeps the profile's value for every other. :meth:`AtlasConfig.load`
+validates the whole config with the library's model (errors name the dotted field:
+``run config: mapping.voxel_size_m must be greater than 0, got -1``) when a run starts.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
 import json
 import os
-import re
 from functools import lru_cache
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+from typing import Annotated, Any, Literal, get_args, get_origin
 
+from annotated_types import Ge, Gt, Le, Lt
 from dagster import Config, ConfigurableResource
-from pydantic import Field, create_model
+from pydantic import BaseModel, Field, create_model
 
-from atlas_pipeline.config import RANGE_KEY, PipelineConfig, load_profile
+from atlas_pipeline.config import PipelineConfig, load_profile
 from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.sensors.registry import DatasetEntry, load_registry
 
-_SECTION_TYPES = {name: tp for name, tp in get_type_hints(PipelineConfig).items() if dataclasses.is_dataclass(tp)}
-SECTIONS = tuple(_SECTION_TYPES)  # dataset, fusion, mapping, localization, transitions, video, evaluation
+# dataset, fusion, mapping, localization, transitions, video, evaluation
+SECTIONS = tuple(k for k, f in PipelineConfig.model_fields.items() if isinstance(f.annotation, type)
+                 and issubclass(f.annotation, BaseModel))
 PROFILE_ENV = "ATLAS_PROFILE"  # the profile when none is named (the code location's default)
+_BOUNDS = ((Gt, "gt", ">"), (Ge, "ge", ">="), (Lt, "lt", "<"), (Le, "le", "<="))
 
 
 class AtlasConfig(ConfigurableResource):
@@ -71,51 +70,35 @@ def atlas_config(profile: str | None = None, overrides: dict[str, Any] | None = 
     name = resolve_profile(profile)
     cfg = load_profile(name)
     cfg = cfg.with_overrides(overrides, "--set") if overrides else cfg
-    return _resource_class(json.dumps(cfg.to_dict(), sort_keys=True, default=list))()
+    return _resource_class(json.dumps(cfg.to_dict(), sort_keys=True))()
 
 
 @lru_cache(maxsize=16)
 def _resource_class(dumped: str) -> type[AtlasConfig]:
-    values = json.loads(dumped)
-    sections = {}
-    for name, cls in _SECTION_TYPES.items():
-        model = _section_model(cls, tuple(sorted((k, json.dumps(v)) for k, v in values[name].items())))
-        sections[name] = (model, Field(default_factory=model, description=f"the '{name}' section of the profile"))
-    return create_model("AtlasConfig", __base__=AtlasConfig, __module__=__name__,
-                        profile=(str, Field(values["profile"], description=AtlasConfig.model_fields["profile"].description)),
-                        **sections)
+    return _mirror(PipelineConfig, json.loads(dumped), "AtlasConfig", AtlasConfig)
 
 
-@lru_cache(maxsize=128)
-def _section_model(cls: type, values: tuple) -> type[Config]:
-    """A ``Config`` class mirroring dataclass ``cls`` with ``values`` as defaults."""
-    hints, notes, vals = get_type_hints(cls), _comments(cls), {k: json.loads(v) for k, v in values}
-    fields = {}
-    for f in dataclasses.fields(cls):
-        rng = f.metadata.get(RANGE_KEY)
-        bound = rng.describe() if rng is not None else ""
-        choices = f"one of {', '.join(map(str, get_args(hints[f.name])))}" if get_origin(hints[f.name]) is Literal else ""
-        desc = "; ".join(s for s in (notes.get(f.name, "").rstrip("."), choices, f"allowed: {bound}" if bound else "") if s)
-        value = vals[f.name]  # JSON: a tuple is a list already
-        fields[f.name] = (_config_type(hints[f.name]), Field(value, description=desc or f.name))
-    return create_model(cls.__name__.replace("Config", "Settings"), __base__=Config, __module__=__name__, **fields)
-
-
-def _config_type(tp: Any) -> Any:
-    return list[get_args(tp)[0]] if get_origin(tp) is tuple else tp  # Dagster config has lists, not tuples
-
-
-def _comments(cls: type) -> dict[str, str]:
-    """``{field: comment}`` from the source of a config dataclass: the comment at the end of the
-    field's line, or the comment lines right above it."""
-    out, above = {}, []
-    for line in inspect.getsource(cls).splitlines():
-        s = line.strip()
-        if s.startswith("#"):
-            above.append(s.lstrip("# ").strip())
+def _mirror(model: type[BaseModel], values: dict[str, Any], name: str, base: type) -> type:
+    """A Dagster ``Config`` (or ``base``) class with ``model``'s fields and ``values`` as defaults;
+    sub-models become nested classes. No constraints: the library's model checks them in
+    :meth:`AtlasConfig.load`, with messages naming the field."""
+    fields: dict[str, Any] = {}
+    for key, info in model.model_fields.items():
+        tp = info.annotation
+        if isinstance(tp, type) and issubclass(tp, BaseModel):
+            sub = _mirror(tp, values[key], tp.__name__.replace("Config", "Settings"), Config)
+            fields[key] = (sub, Field(default_factory=sub, description=info.description or f"the '{key}' section"))
             continue
-        m = re.match(r"(\w+)\s*:[^#]*?(?:#\s*(.*))?$", s)
-        if m and not s.startswith(("class", "def", "@")):
-            out[m.group(1)] = " ".join(above + ([m.group(2).strip()] if m.group(2) else []))
-        above = []
-    return out
+        if get_origin(tp) is tuple:  # Dagster config has lists, not tuples (nor element constraints)
+            elem = get_args(tp)[0]
+            tp = list[get_args(elem)[0] if get_origin(elem) is Annotated else elem]
+        fields[key] = (tp, Field(values[key], description=_description(info)))
+    return create_model(name, __base__=base, __module__=__name__, **fields)
+
+
+def _description(info: Any) -> str:
+    """The model field's description, its choices and its allowed range, for the launchpad."""
+    bounds = [f"{word} {getattr(m, attr)}" for m in info.metadata for cls, attr, word in _BOUNDS if isinstance(m, cls)]
+    choices = get_args(info.annotation) if get_origin(info.annotation) is Literal else ()
+    return "; ".join([info.description or ""] + ([f"one of {', '.join(choices)}"] if choices else [])
+                     + ([f"allowed: {', '.join(bounds)}"] if bounds else [])).strip("; ")

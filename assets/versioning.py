@@ -2,7 +2,8 @@
 
 Whether an artifact is current is decided from what Dagster records with every materialization:
 the asset's code version and the data versions of its inputs. Besides its upstream assets, each
-pipeline asset reads ``settings/<asset>`` (exactly the config fields it uses, :func:`stage_settings`;
+pipeline asset reads ``settings/<asset>`` (exactly the config fields it uses, declared in
+:mod:`atlas_pipeline.stage_settings`;
 data version: their hash) and ``raw_dataset`` reads ``dataset_files`` (the dataset folder, an
 observable source asset; data version: its registry entry and file signature). Data versions come
 from content only (the hash of the files written; timings are metadata), so an identical recompute
@@ -13,7 +14,6 @@ UI shows) to the partition's latest materialization: :func:`reuse` before comput
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import hashlib
 import json
@@ -25,51 +25,20 @@ from dagster import (AssetExecutionContext, AssetKey, AssetRecordsFilter, Dagste
 
 from assets.io_managers import Reused
 from assets.runs import tag_run_process
-from atlas_pipeline.config import MappingConfig, PipelineConfig
-from atlas_pipeline.mapping.keyframes import uses_ground_truth
+from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.sensors.tum import FrameManifest
+from atlas_pipeline.stage_settings import REVISIT_STAGE, STAGES, stage_settings
+
+__all__ = ["STAGES", "REVISIT_STAGE", "stage_settings", "DATASET_FILES", "FIRST_VISIT_WORLD", "settings_version",
+           "settings_key", "settings_result", "record", "data_version", "changes", "reuse", "versioned",
+           "artifact", "lineage"]
 
 DATA_VERSION_TAG = "dagster/data_version"  # where Dagster keeps an event's data version (a test pins it)
 DATASET_FILES = AssetKey("dataset_files")
-STAGES = ("raw_dataset", "fused_frames", "keyframes", "gaussian_world", "localization_report", "transitions",
-          "demo_videos", "render_evaluation", "world_bundle", "revisit_bundle")  # in dependency order
 # Materialized only for a second visit (a registry entry with ``extends``): its world extends the
 # first visit's, an input from that visit's partition.
-REVISIT_STAGE = "revisit_bundle"
 FIRST_VISIT_WORLD = AssetKey("gaussian_world")
-# The fit's settings (gaussian_world reads them, keyframes does not): every mapping field named so.
-_FIT_PREFIXES = ("optimization_", "colour_refinement_")
-_FIT = {f.name for f in dataclasses.fields(MappingConfig) if f.name.startswith(_FIT_PREFIXES)}
-_DEPTH = {"min_depth_m", "max_depth_m"}
-# The map's own depth range: gaussian_world reads it (keyframe depth images out to it), keyframes
-# does not (the tracker keeps the fusion range, _DEPTH).
-_MAP_RANGE = {"max_depth_m", "noise_adaptive_cells"}
 _STARTED: dict[tuple[str, AssetKey], float] = {}  # (run, asset) -> when reuse() decided to compute
-
-
-def stage_settings(cfg: PipelineConfig, stage: str, manifest: FrameManifest | None = None) -> dict[str, Any]:
-    """``{dotted field: value}`` of exactly the settings ``stage`` reads. ``keyframes`` reads the
-    tracker's only when it tracks: :func:`~atlas_pipeline.mapping.keyframes.uses_ground_truth` of the
-    dataset's ``manifest``, the stage's own rule (tracking assumed without one)."""
-    d = json.loads(json.dumps(cfg.to_dict()))  # JSON values (tuples are lists), as stored
-
-    def f(section: str, only: set[str] | None = None, without: frozenset | set = frozenset()) -> dict[str, Any]:
-        return {f"{section}.{k}": v for k, v in d[section].items() if (only is None or k in only) and k not in without}
-
-    if stage == "keyframes" and manifest is not None and uses_ground_truth(manifest, cfg.mapping):
-        return f("mapping", {"pose_source", "keyframe_translation_m", "keyframe_rotation_deg"})
-    return {"raw_dataset": lambda: f("dataset"), "fused_frames": lambda: f("fusion"),
-            "keyframes": lambda: {**f("mapping", without=_FIT | _MAP_RANGE),
-                                  **f("localization", without={"max_ate_m"})},
-            "gaussian_world": lambda: {**f("mapping", _FIT | _MAP_RANGE | {"voxel_size_m"}), **f("fusion", _DEPTH)},
-            "localization_report": lambda: {**f("localization", without={"max_ate_m"}), **f("fusion", _DEPTH)},
-            "transitions": lambda: f("transitions"),
-            # the orbit is planned on the map's voxel grid (viz/camera_paths.py)
-            "demo_videos": lambda: {**f("video"), **f("mapping", {"voxel_size_m"})},
-            "render_evaluation": lambda: {**f("evaluation"), **f("fusion", _DEPTH)},
-            "world_bundle": lambda: {k: v for s in d if isinstance(d[s], dict) for k, v in f(s).items()},  # all: metadata.json
-            REVISIT_STAGE: lambda: {k: v for s in d if isinstance(d[s], dict) for k, v in f(s).items()},
-            }[stage]()
 
 
 def settings_version(values: dict[str, Any]) -> str:

@@ -1,44 +1,42 @@
-"""Configuration profiles: YAML files in ``configs/`` parsed into frozen, validated dataclasses.
+"""Configuration profiles: YAML files in ``configs/`` parsed into frozen pydantic models.
 
-A profile has one section per pipeline stage. Each stage's artifacts depend only on its own
-section (and upstream artifacts), which is what lets the orchestrator tell which stages are stale
-after a config change.
+A profile has one section per pipeline stage (``mapping.fit`` nested in ``mapping``). The models are
+the single source of every setting: its type, default, allowed range (``Field(gt=...)``) and
+description serve profiles, ``--set`` overrides, the Dagster resource and its launchpad
+(``assets/resources.py`` mirrors them), and the docs. Which stage reads which fields is declared in
+:mod:`atlas_pipeline.stage_settings`.
 
 Validation happens whole and first, when a profile or an override is parsed
 (:meth:`PipelineConfig.from_dict`, :meth:`PipelineConfig.with_overrides`, :func:`load_profile`),
-so a bad value fails before any stage runs, never as a deep error three assets later. Each field
-declares its allowed range beside its declaration (``metadata["range"]``, a :class:`Range`); the
-type comes from its annotation (ints are ints, floats are finite numbers, tuples are checked
-element-wise, Literals list their choices). Rules that tie fields together are named checks
-(:data:`_SECTION_CHECKS`). Every error names the dotted field and the offending value, prefixed by
-the source (YAML path or ``--set``): ``--set: mapping.voxel_size_m must be a finite number > 0, got nan``.
+so a bad value fails before any stage runs. Every error names the dotted field and the value,
+prefixed by the source (YAML path or ``--set``), one a line:
+``--set: mapping.voxel_size_m must be greater than 0, got -1``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
-import math
 import os
-from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable, Literal, get_args, get_origin, get_type_hints
+from typing import Annotated, Any, Literal, get_origin
 
 import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from atlas_pipeline.errors import ConfigError
 
 __all__ = [
     "DatasetConfig",
     "FusionConfig",
+    "FitConfig",
+    "ColourRefinementConfig",
     "MappingConfig",
     "LocalizationConfig",
     "TransitionsConfig",
     "VideoConfig",
     "EvaluationConfig",
     "PipelineConfig",
-    "Range",
     "project_root",
     "source_root",
     "configs_dir",
@@ -54,49 +52,6 @@ MAX_YAML_BYTES = 4 * 1024 * 1024
 
 PoseSource = Literal["auto", "ground_truth", "estimated"]
 
-
-@dataclass(frozen=True)
-class Range:
-    """Bounds a number (or each element of a tuple of numbers) must lie within; ``None``: unbounded.
-
-    ``gt``/``lt`` are open bounds, ``ge``/``le`` closed ones (give at most one per side).
-    """
-
-    ge: float | None = None
-    gt: float | None = None
-    le: float | None = None
-    lt: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.ge is not None and self.gt is not None or self.le is not None and self.lt is not None:
-            raise ValueError("a Range takes at most one lower and one upper bound")
-
-    def contains(self, v: float) -> bool:
-        return ((self.ge is None or v >= self.ge) and (self.gt is None or v > self.gt)
-                and (self.le is None or v <= self.le) and (self.lt is None or v < self.lt))
-
-    def describe(self) -> str:
-        """``> 0``, ``>= 2``, ``in (0, 1]``, ...; empty when unbounded."""
-        lo, lo_open = (self.gt, True) if self.gt is not None else (self.ge, False)
-        hi, hi_open = (self.lt, True) if self.lt is not None else (self.le, False)
-        if lo is not None and hi is not None:
-            return f"in {'(' if lo_open else '['}{_bound(lo)}, {_bound(hi)}{')' if hi_open else ']'}"
-        if lo is not None:
-            return f"{'>' if lo_open else '>='} {_bound(lo)}"
-        if hi is not None:
-            return f"{'<' if hi_open else '<='} {_bound(hi)}"
-        return ""
-
-
-def _bound(v: float) -> str:
-    """A bound in words: whole numbers in full (``100000``, not ``1e+05``), others as ``%g``."""
-    return str(int(v)) if float(v).is_integer() else f"{v:g}"
-
-
-POSITIVE = Range(gt=0)
-NON_NEGATIVE = Range(ge=0)
-UNIT_INTERVAL = Range(ge=0, le=1)  # shares and fractions
-SCALE_AT_MOST_ONE = Range(gt=0, le=1)  # image scale factors that only shrink
 MIN_FRAMES = 2  # a sequence needs two frames for one motion
 MAX_FINEST_LEVEL = 3  # 1/8 resolution: coarser leaves too few pixels to track on
 MAX_PYRAMID_LEVELS = 6  # finest_level + number of levels tracked
@@ -113,177 +68,247 @@ MAX_COARSE_FACTOR = 16  # the coarse level at 1/16 of the fit's scale: 20 pixels
 MAX_GN_ITERATIONS = 100  # Gauss-Newton iterations of one pyramid level (default 12, 8, 5)
 MAX_VIDEO_FRAMES = 10_000  # frames of one orbit video: 11 minutes at 15 fps (default 90)
 MAX_VIDEO_FPS = 240.0
-RANGE_KEY = "range"  # the dataclass field metadata key holding a field's Range
+MAX_SEED = 2**32 - 1  # NumPy's seed range
+_RECIPROCAL_TOL = 1e-9  # how close a scale must be to 1/n (the fit downsamples by whole factors)
 
 
-def _setting(default: Any, range_: Range | None = None) -> Any:
-    """A config field whose allowed range is declared with it (``metadata["range"]``)."""
-    return field(default=default, metadata={RANGE_KEY: range_})
+class Section(BaseModel):
+    """A config section: frozen, every key known, types strict (YAML ``true`` is not 1, ``"2"`` not
+    2), numbers finite. YAML lists become the tuples the fields declare."""
 
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
 
-@dataclass(frozen=True)
-class DatasetConfig:
-    max_frames: int | None = _setting(None, Range(ge=MIN_FRAMES, le=MAX_FRAMES))  # keep the first N frames; None = all
-
-
-@dataclass(frozen=True)
-class FusionConfig:
-    # Depth range of the fused frames and of tracking (localization); the map reaches further
-    # (mapping.max_depth_m): tracking against 8 m of noisy depth broke.
-    min_depth_m: float = _setting(0.1, NON_NEGATIVE)
-    max_depth_m: float = _setting(4.0, POSITIVE)
-    stride: int = _setting(2, Range(ge=1, le=MAX_PIXEL_STRIDE))  # back-project every ``stride``-th pixel in u and v
-
-
-@dataclass(frozen=True)
-class MappingConfig:
-    pose_source: PoseSource = "auto"
-    voxel_size_m: float = _setting(0.02, POSITIVE)
-    # Depth range of the map (from fusion.min_depth_m; >= fusion.max_depth_m: named check): walls
-    # past the tracking range still get Gaussians instead of rendering as background. 8 m: how far
-    # Kinect-class structured-light sensors (TUM's) return depth, and where the project's synthetic
-    # Kinect v1 cuts (sensors/synthetic.py SyntheticSpec.max_depth_m). Their noise grows with z^2
-    # (sigma_z ~11 cm at 8 m, Nguyen et al. 2012), so points are merged with inverse-variance
-    # weights and far depth counts less in the fit (mapping/mapper.py depth_sigma_m); the tracker
-    # never sees these points.
-    max_depth_m: float = _setting(8.0, POSITIVE)
-    # Merge points into cells as wide as their depth noise (powers of two of voxel_size_m, up to 8):
-    # far walls become a few wide Gaussians, not a cloud of small noisy ones (mapping/mapper.py).
-    noise_adaptive_cells: bool = True
-    # Give keyframe pixels without a depth reading, near one, that reading's depth (low weight), so
-    # the fit can colour what the images show and the depth missed (mapping/mapper.py hole_fill_depth).
-    fill_depth_holes: bool = True
-    keyframe_translation_m: float = _setting(0.08, NON_NEGATIVE)
-    keyframe_rotation_deg: float = _setting(8.0, NON_NEGATIVE)
-    # Colour-only fit before the full one; 0 = none (the full fit fits colours too: 3 cost ~35
-    # CPU-s on synthetic for 0.03 dB, benchmarks/bench_photometric.py).
-    colour_refinement_iterations: int = _setting(0, Range(ge=0, le=MAX_REFINEMENT_ITERATIONS))
-    colour_refinement_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit
-    # 3DGS-style fit of every Gaussian parameter to the keyframes; 0 = off.
-    optimization_epochs: int = _setting(30, Range(ge=0, le=MAX_EPOCHS))
-    # Cap on its steps (one keyframe each), whatever the keyframe count.
-    optimization_max_steps: int = _setting(300, Range(ge=1, le=MAX_FIT_STEPS))
-    # ...but at least this many per keyframe: longer sequences get proportionally more steps (and
-    # a proportionally longer schedule), so the fit's cost is linear in keyframes and its quality
-    # does not fall with length; 0 = the fixed cap.
-    optimization_min_steps_per_keyframe: int = _setting(10, Range(ge=0, le=MAX_STEPS_PER_KEYFRAME))
-    optimization_scale: float = _setting(0.5, SCALE_AT_MOST_ONE)  # image scale of that fit (1/n: named check)
-    optimization_depth_weight: float = _setting(1.0, NON_NEGATIVE)  # depth L1 (m) against colour L1 ([0, 1])
-    # How far the fit may move a Gaussian off its surface (along its starting normal), in its
-    # largest starting scales; 0 = free.
-    optimization_normal_offset_max_scales: float = _setting(0.0, NON_NEGATIVE)
-    # Colour taken after its depth image (its timestamp) moved to the depth time along the mapping
-    # trajectory before the colour refinement and the fit (perception/colour_timing.py). Off: on
-    # TUM fr1 (stamps 15 ms apart) it cost 2.3 dB held-out, where synthetic colour really taken
-    # 15 ms late gained 2.5 dB (README, "Current figures" 0c).
-    colour_delay_compensation: bool = False
-    # Its schedule (gaussian_world/optimize.py; measured by benchmarks/bench_fit.py). First passes at
-    # 1/factor of optimization_scale (2: a quarter of the image side at scale 0.5); 1 = none.
-    optimization_coarse_factor: int = _setting(2, Range(ge=1, le=MAX_COARSE_FACTOR))
-    optimization_coarse_max_steps: int = _setting(160, Range(ge=0, le=MAX_FIT_STEPS))  # cap on those steps (whole passes); 0 = none
-    optimization_coarse_lr_scale: float = _setting(4.0, POSITIVE)  # every step size times this at the coarse level
-    # Passes in a row whose mean loss does not beat the best by plateau_rel_tol (relative) end the
-    # coarse level, then the fit; 0 = never stop early.
-    optimization_plateau_patience: int = _setting(3, Range(ge=0, le=MAX_EPOCHS))
-    optimization_plateau_rel_tol: float = _setting(0.005, UNIT_INTERVAL)
-    # Densify and prune (3DGS) every this many steps, up to densify_until_step; 0 = never.
-    optimization_densify_interval: int = _setting(50, Range(ge=0, le=MAX_FIT_STEPS))
-    optimization_densify_until_step: int = _setting(160, Range(ge=0, le=MAX_FIT_STEPS))
-    # Clone / split Gaussians whose mean view-space (NDC) position gradient exceeds this.
-    optimization_densify_grad_threshold: float = _setting(2e-4, POSITIVE)
-    optimization_prune_opacity: float = _setting(0.005, UNIT_INTERVAL)  # remove Gaussians below this opacity
-    # Adam steps only the Gaussians each keyframe draws, each on its own step count (selective
-    # Adam); false: every Gaussian every step (3DGS), which moves unseen ones on their momentum,
-    # more the longer the path (optimize.OptimizationSettings.selective_adam).
-    optimization_selective_adam: bool = True
-    # Tracked poses (pose_source estimated): loops to earlier keyframes verified by the tracker,
-    # then a pose graph of the keyframes (atlas_pipeline/mapping/loop_closure.py).
-    loop_closure: bool = True
-    loop_min_keyframe_gap: int = _setting(10, Range(ge=1, le=MAX_FRAMES))  # a loop's keyframes are at least this many keyframes apart
-    loop_search_radius_m: float = _setting(0.3, POSITIVE)  # candidates: camera centres within this distance
-    # Tracked poses: after this many lost frames in a row a new map is started and merged with the
-    # old one when the place is recognised (ORB-SLAM3's Atlas); 0 = stay lost until relocalized.
-    new_map_after_lost_frames: int = _setting(5, Range(ge=0, le=MAX_FRAMES))
-
-
-@dataclass(frozen=True)
-class LocalizationConfig:
-    # Gauss-Newton iterations per pyramid level, coarse to fine (each >= 0; one > 0: named check).
-    iterations: tuple[int, ...] = _setting((12, 8, 5), Range(ge=0, le=MAX_GN_ITERATIONS))
-    # Finest pyramid level used: 0 = full resolution, 1 = half, ...
-    finest_level: int = _setting(1, Range(ge=0, le=MAX_FINEST_LEVEL))
-    # Association gate at the coarsest level (halves per level) ...
-    max_correspondence_m: float = _setting(0.1, POSITIVE)
-    # ... and its floor, used at the finest level and for grading (<= max: named check).
-    min_correspondence_m: float = _setting(0.02, POSITIVE)
-    huber_depth_m: float = _setting(0.01, POSITIVE)
-    photometric_weight: float = _setting(0.1, NON_NEGATIVE)  # 0 = geometry only
-    motion_model: Literal["constant_velocity", "none"] = "constant_velocity"
-    min_fitness: float = _setting(0.15, UNIT_INTERVAL)  # share of frame points with a model correspondence; below: lost
-    min_agreement: float = _setting(0.6, UNIT_INTERVAL)  # share of points landing on the map that fit it; below: lost
-    max_residual_m: float = _setting(0.02, POSITIVE)  # RMS point-to-plane residual; above it: lost
-    reference_translation_m: float = _setting(0.05, NON_NEGATIVE)  # photometric reference renewed after this motion
-    reference_rotation_deg: float = _setting(5.0, NON_NEGATIVE)
-    relocalize: bool = True  # lost frames try global relocalization against the map
-    # colour taken after its depth image (unsynchronised streams, TUM fr1 ~15 ms) is moved to the
-    # depth image's time with the motion model's velocity (perception/colour_timing.py)
-    colour_delay_compensation: bool = True
-    max_ate_m: float = _setting(0.05, POSITIVE)  # blocking check: ATE RMSE above this (where ground truth exists) fails
-
-
-@dataclass(frozen=True)
-class TransitionsConfig:
-    pose_source: Literal["estimated", "ground_truth"] = "estimated"
-    # Frames further apart than this (s) do not follow each other: the row between them is not
-    # valid (reason ``gap``) and ends the run of transitions, instead of a velocity averaged over
-    # the gap. 1 s: 30 frames of a 30 Hz sensor; TUM's dropped frames leave gaps of a few 0.1 s.
-    max_gap_s: float = _setting(1.0, POSITIVE)
-
-
-@dataclass(frozen=True)
-class VideoConfig:
-    fps: float = _setting(15.0, Range(gt=0, le=MAX_VIDEO_FPS))
-    orbit_frames: int = _setting(90, Range(ge=1, le=MAX_VIDEO_FRAMES))
-    orbit_height_m: float = _setting(1.0)  # above the world centre; any finite height (below it: negative)
-    orbit_radius_scale: float = _setting(1.2, POSITIVE)
-    scale: float = _setting(1.0, Range(gt=0, le=MAX_VIDEO_SCALE))
-
-
-@dataclass(frozen=True)
-class EvaluationConfig:
-    view_stride: int = _setting(2, Range(ge=1, le=MAX_FRAMES))  # evaluate every n-th held-out (non-keyframe) frame
-    max_views: int | None = _setting(None, Range(ge=1, le=MAX_FRAMES))  # cap on the number of views; None = all selected
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """A whole resolved profile."""
-
-    profile: str = "default"
-    dataset: DatasetConfig = field(default_factory=DatasetConfig)
-    fusion: FusionConfig = field(default_factory=FusionConfig)
-    mapping: MappingConfig = field(default_factory=MappingConfig)
-    localization: LocalizationConfig = field(default_factory=LocalizationConfig)
-    transitions: TransitionsConfig = field(default_factory=TransitionsConfig)
-    video: VideoConfig = field(default_factory=VideoConfig)
-    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    @model_validator(mode="before")
+    @classmethod
+    def _lists_to_tuples(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        tuples = {k for k, f in cls.model_fields.items() if get_origin(f.annotation) is tuple}
+        return {k: tuple(v) if k in tuples and isinstance(v, list) else v for k, v in data.items()}
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        return self.model_dump()
+
+
+class RuleError(ValueError):
+    """A rule that ties fields of a section together failed; ``field`` is the one to change."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
+
+
+class DatasetConfig(Section):
+    max_frames: int | None = Field(None, ge=MIN_FRAMES, le=MAX_FRAMES,
+                                   description="keep the first N frames; null = all")
+
+
+class FusionConfig(Section):
+    min_depth_m: float = Field(0.1, ge=0, description="nearest depth back-projected (m)")
+    max_depth_m: float = Field(4.0, gt=0, description=(
+        "farthest depth back-projected and tracked (m); the map reaches further (mapping.max_depth_m): "
+        "tracking against 8 m of noisy depth broke"))
+    stride: int = Field(2, ge=1, le=MAX_PIXEL_STRIDE, description="back-project every stride-th pixel in u and v")
+
+    @model_validator(mode="after")
+    def _depth_interval_not_empty(self) -> "FusionConfig":
+        if self.min_depth_m >= self.max_depth_m:  # depths outside [min, max] are dropped
+            raise RuleError("min_depth_m", f"must be < max_depth_m ({self.max_depth_m!r}), got {self.min_depth_m!r}")
+        return self
+
+
+def _reciprocal(value: float) -> float:
+    n = round(1.0 / value)
+    if n < 1 or abs(1.0 / n - value) > _RECIPROCAL_TOL:
+        raise ValueError(f"must be 1/n for a whole n (1, 0.5, 0.25, ...), got {value!r}")
+    return value
+
+
+class ColourRefinementConfig(Section):
+    iterations: int = Field(0, ge=0, le=MAX_REFINEMENT_ITERATIONS, description=(
+        "colour-only passes over the keyframes before the fit; 0 = none (the fit fits colours too)"))
+    scale: float = Field(0.5, gt=0, le=1, description="image scale of those passes")
+
+
+class FitConfig(Section):
+    """The 3DGS-style fit of every Gaussian parameter to the keyframe images and depths
+    (:func:`atlas_pipeline.gaussian_world.optimize.optimize_gaussians`; figures in docs/benchmarks.md,
+    from ``benchmarks/bench_fit.py``). Its step sizes are larger than 3DGS's (30,000 steps): here a few
+    hundred steps start from a field already close to the images."""
+
+    epochs: int = Field(30, ge=0, le=MAX_EPOCHS, description="cap on the passes over the keyframes; 0 = no fit")
+    max_steps: int | None = Field(300, ge=1, le=MAX_FIT_STEPS, description=(
+        "cap on the steps (one keyframe each, forward and backward), whatever the keyframe count; null = none"))
+    min_steps_per_keyframe: int = Field(10, ge=0, le=MAX_STEPS_PER_KEYFRAME, description=(
+        "with max_steps, at least this many steps per keyframe: the cap, coarse_max_steps and the "
+        "densification steps grow with the keyframes, so the cost is linear in them and each gets the "
+        "same share; 0 = a fixed cap"))
+    scale: float = Field(0.5, gt=0, le=1, description="image scale of the fit (1/n: the keyframes are block-averaged)")
+    lr_position_m: float = Field(5e-4, ge=0, description="Adam step size of the centres (m); 0 = frozen")
+    lr_log_scale: float = Field(2e-2, ge=0, description="Adam step size of the log scales; 0 = frozen")
+    lr_rotation_rad: float = Field(1e-2, ge=0, description="Adam step size of the rotations (rad); 0 = frozen")
+    lr_opacity_logit: float = Field(5e-2, ge=0, description="Adam step size of the opacity logits; 0 = frozen")
+    lr_color: float = Field(1e-2, ge=0, description="Adam step size of the colours ([0, 1]); 0 = frozen")
+    lr_final_ratio: float = Field(1.0, gt=0, le=1, description=(
+        "every step size decays exponentially to this fraction over the step cap; 1 = constant (with a "
+        "few hundred steps the fit still improves at the end)"))
+    depth_weight: float = Field(1.0, ge=0, description="weight of the depth L1 (m) against the colour L1 ([0, 1])")
+    coverage_weight: float = Field(2.0, ge=0, description=(
+        "weight of the transparency left where the sensor measured a surface (the render should be opaque there)"))
+    max_scale_m: float = Field(0.1, gt=0, description="largest Gaussian scale after each step (m)")
+    min_scale_m: float = Field(1e-4, gt=0, description="smallest Gaussian scale after each step (m)")
+    normal_offset_max_scales: float = Field(0.0, ge=0, description=(
+        "how far a centre may move along its starting normal, in its largest starting scale; 0 = free "
+        "(bounded, an exported PLY keeps thin surfaces)"))
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="keyframe order of each pass and the samples of split Gaussians")
+    coarse_factor: int = Field(2, ge=1, le=MAX_COARSE_FACTOR, description=(
+        "the first passes run at scale / coarse_factor (2: a quarter of the image side at scale 0.5); 1 = none"))
+    coarse_max_steps: int = Field(160, ge=0, le=MAX_FIT_STEPS, description=(
+        "cap on the coarse level's steps (whole passes); 0 = no coarse level"))
+    coarse_lr_scale: float = Field(4.0, gt=0, description="every step size times this at the coarse level")
+    plateau_patience: int = Field(3, ge=0, le=MAX_EPOCHS, description=(
+        "passes in a row whose mean loss does not beat the best by plateau_rel_tol end the coarse level, "
+        "then the fit; 0 = never stop early"))
+    plateau_rel_tol: float = Field(0.005, ge=0, le=1, description="relative gain a pass needs to count as progress")
+    densify_interval: int = Field(50, ge=0, le=MAX_FIT_STEPS, description=(
+        "steps between densify-and-prune rounds (3DGS); 0 = never"))
+    densify_until_step: int = Field(160, ge=0, le=MAX_FIT_STEPS, description=(
+        "no densification from this step on (rounds in the fine phase upset its loss)"))
+    densify_grad_threshold: float = Field(2e-4, gt=0, description=(
+        "mean view-space (NDC) position gradient above which a Gaussian is cloned or split"))
+    densify_scale_m: float = Field(0.02, gt=0, description="a Gaussian with all scales at most this is cloned, a larger one split (m)")
+    densify_max_growth: float = Field(1.3, ge=1, description="the densified field holds at most this times the starting count")
+    prune_opacity: float = Field(0.005, ge=0, le=1, description="Gaussians below this opacity are removed at each round")
+    selective_adam: bool = Field(True, description=(
+        "Adam steps only the Gaussians each keyframe draws, each on its own step count (Taming 3DGS); "
+        "false: every Gaussian every step (3DGS), which moves unseen ones on their momentum, more the "
+        "longer the path"))
+
+    @field_validator("scale")
+    @classmethod
+    def _scale_is_reciprocal(cls, v: float) -> float:
+        return _reciprocal(v)
+
+
+class MappingConfig(Section):
+    pose_source: PoseSource = Field("auto", description=(
+        "poses of the map: ground_truth, estimated (the RGB-D tracker), or auto (ground truth where the dataset has it)"))
+    voxel_size_m: float = Field(0.02, gt=0, description="voxel of the Gaussian map and the tracker's surfel map (m)")
+    max_depth_m: float = Field(8.0, gt=0, description=(
+        "depth range of the map (>= fusion.max_depth_m): walls past the tracking range still get "
+        "Gaussians; 8 m is where Kinect-class sensors stop, far points weighted by their depth noise"))
+    noise_adaptive_cells: bool = Field(True, description=(
+        "merge points into cells as wide as their depth noise (powers of two of voxel_size_m, up to 8)"))
+    fill_depth_holes: bool = Field(True, description=(
+        "keyframe pixels without depth near a reading get that depth (low weight), so the fit colours them"))
+    keyframe_translation_m: float = Field(0.08, ge=0, description="a new keyframe after this much motion (m)")
+    keyframe_rotation_deg: float = Field(8.0, ge=0, description="... or this much rotation (deg)")
+    colour_delay_compensation: bool = Field(False, description=(
+        "the fit's colour moved to its depth image's time along the trajectory (off: it lost 2.3 dB "
+        "held-out on TUM fr1, docs/benchmarks.md)"))
+    loop_closure: bool = Field(True, description=(
+        "estimated poses: loops to earlier keyframes verified by the tracker, then a pose graph"))
+    loop_min_keyframe_gap: int = Field(10, ge=1, le=MAX_FRAMES, description="a loop joins keyframes at least this many apart")
+    loop_search_radius_m: float = Field(0.3, gt=0, description="loop candidates: camera centres within this distance (m)")
+    new_map_after_lost_frames: int = Field(5, ge=0, le=MAX_FRAMES, description=(
+        "estimated poses: after this many lost frames in a row a new map is started and merged when the "
+        "place is recognised; 0 = stay lost until relocalized"))
+    colour_refinement: ColourRefinementConfig = Field(default_factory=ColourRefinementConfig)
+    fit: FitConfig = Field(default_factory=FitConfig)
+
+
+class LocalizationConfig(Section):
+    iterations: tuple[Annotated[int, Field(ge=0, le=MAX_GN_ITERATIONS)], ...] = Field(
+        (12, 8, 5), description="Gauss-Newton iterations per pyramid level, coarse to fine")
+    finest_level: int = Field(1, ge=0, le=MAX_FINEST_LEVEL, description="finest pyramid level: 0 = full resolution, 1 = half")
+    max_correspondence_m: float = Field(0.1, gt=0, description="association gate at the coarsest level (halves per level, m)")
+    min_correspondence_m: float = Field(0.02, gt=0, description="its floor: the finest level, and grading (m)")
+    huber_depth_m: float = Field(0.01, gt=0, description="Huber threshold of the point-to-plane residual (m)")
+    photometric_weight: float = Field(0.1, ge=0, description="intensity term against the point-to-plane term; 0 = geometry only")
+    motion_model: Literal["constant_velocity", "none"] = Field("constant_velocity", description=(
+        "initial guess: constant velocity, or the previous pose"))
+    min_fitness: float = Field(0.15, ge=0, le=1, description="share of frame points with a map correspondence; below: lost")
+    min_agreement: float = Field(0.6, ge=0, le=1, description="share of the points landing on the map that fit it; below: lost")
+    max_residual_m: float = Field(0.02, gt=0, description="RMS point-to-plane residual; above: lost (m)")
+    reference_translation_m: float = Field(0.05, ge=0, description="the photometric reference is renewed after this motion (m)")
+    reference_rotation_deg: float = Field(5.0, ge=0, description="... or this rotation (deg)")
+    relocalize: bool = Field(True, description="lost frames try global relocalization against the map")
+    colour_delay_compensation: bool = Field(True, description=(
+        "colour taken after its depth image (TUM fr1: ~15 ms) moved to the depth time with the motion model's velocity"))
+    max_ate_m: float = Field(0.05, gt=0, description="blocking check: ATE RMSE above this (where ground truth exists) fails (m)")
+
+    @field_validator("iterations")
+    @classmethod
+    def _iterations_in_range(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if not v or max(v) < 1:  # all zero would never move the pose
+            raise ValueError(f"must list one count per pyramid level, at least one of them > 0, got {list(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _pyramid_and_gates(self) -> "LocalizationConfig":
+        if self.finest_level + len(self.iterations) > MAX_PYRAMID_LEVELS:  # each level halves the image
+            raise RuleError("iterations", f"with finest_level ({self.finest_level}) must span at most "
+                                          f"{MAX_PYRAMID_LEVELS} pyramid levels, got {len(self.iterations)} levels")
+        if self.min_correspondence_m > self.max_correspondence_m:  # the gate shrinks from max to min
+            raise RuleError("min_correspondence_m", f"must be <= max_correspondence_m ({self.max_correspondence_m!r}), "
+                                                    f"got {self.min_correspondence_m!r}")
+        return self
+
+
+class TransitionsConfig(Section):
+    pose_source: Literal["estimated", "ground_truth"] = Field("estimated", description=(
+        "which poses define the states and actions"))
+    max_gap_s: float = Field(1.0, gt=0, description=(
+        "frames further apart do not follow each other: the row between them is not valid (reason gap) "
+        "instead of a velocity averaged over the gap (s)"))
+
+
+class VideoConfig(Section):
+    fps: float = Field(15.0, gt=0, le=MAX_VIDEO_FPS, description="frames per second of the videos")
+    orbit_frames: int = Field(90, ge=1, le=MAX_VIDEO_FRAMES, description="frames of the orbit video")
+    orbit_height_m: float = Field(1.0, description="orbit camera height above the world centre (m; below it: negative)")
+    orbit_radius_scale: float = Field(1.2, gt=0, description="orbit radius as a multiple of the world's horizontal extent")
+    scale: float = Field(1.0, gt=0, le=MAX_VIDEO_SCALE, description="render size as a multiple of the dataset's image size")
+
+
+class EvaluationConfig(Section):
+    view_stride: int = Field(2, ge=1, le=MAX_FRAMES, description="evaluate every n-th held-out (non-keyframe) frame")
+    max_views: int | None = Field(None, ge=1, le=MAX_FRAMES, description="cap on the number of views; null = all selected")
+
+
+class PipelineConfig(Section):
+    """A whole resolved profile."""
+
+    profile: str = Field("default", description="the profile's name")
+    dataset: DatasetConfig = Field(default_factory=DatasetConfig)
+    fusion: FusionConfig = Field(default_factory=FusionConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
+    localization: LocalizationConfig = Field(default_factory=LocalizationConfig)
+    transitions: TransitionsConfig = Field(default_factory=TransitionsConfig)
+    video: VideoConfig = Field(default_factory=VideoConfig)
+    evaluation: EvaluationConfig = Field(default_factory=EvaluationConfig)
+
+    @model_validator(mode="after")
+    def _map_covers_tracking_range(self) -> "PipelineConfig":
+        if self.mapping.max_depth_m < self.fusion.max_depth_m:  # the map holds at least what the tracker sees
+            raise RuleError("mapping.max_depth_m", f"must be >= fusion.max_depth_m ({self.fusion.max_depth_m!r}), "
+                                                   f"got {self.mapping.max_depth_m!r}")
+        return self
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], source: str = "<dict>") -> "PipelineConfig":
+    def from_dict(cls, data: Any, source: str = "<dict>") -> "PipelineConfig":
         """Parse and validate a whole profile; a :class:`ConfigError` lists every bad field, one a line."""
         if not isinstance(data, dict):
             raise ConfigError(f"{source}: a profile must be a mapping of sections, got {_show(data)}")
-        errors: list[str] = []
-        cfg = _parse(cls, data, "", errors)
-        if errors or cfg is None:
-            raise ConfigError("\n".join(f"{source}: {e}" for e in errors))
-        return cfg
+        # an empty YAML section (``mapping:``) is a section of defaults
+        data = {k: {} if v is None and k in cls.model_fields and k != "profile" else v for k, v in data.items()}
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise ConfigError("\n".join(f"{source}: {_describe(e)}" for e in exc.errors())) from None
 
     def with_overrides(self, overrides: dict[str, Any], source: str = "<overrides>") -> "PipelineConfig":
         """Copy with dotted-key overrides applied, e.g. ``{"localization.photometric_weight": 0.5}``;
@@ -293,7 +318,7 @@ class PipelineConfig:
             parts = str(dotted).split(".")
             node = data
             for p in parts[:-1]:
-                if p not in node or not isinstance(node[p], dict):
+                if not isinstance(node.get(p), dict):
                     raise ConfigError(f"{source}: unknown config section '{dotted}'")
                 node = node[p]
             if parts[-1] not in node:
@@ -302,16 +327,7 @@ class PipelineConfig:
         return PipelineConfig.from_dict(data, source)
 
 
-# ---- validation ---------------------------------------------------------------------------------
-
 _SHOW_MAX_CHARS = 80  # a value quoted in an error is cut to this length
-
-
-class _Invalid(Exception):
-    """One field's value does not fit its type or range (message without the source)."""
-
-    def __init__(self, path: str, expected: str, value: Any):
-        super().__init__(f"{path} must be {expected}, got {_show(value)}")
 
 
 def _show(value: Any) -> str:
@@ -319,175 +335,21 @@ def _show(value: Any) -> str:
     return text if len(text) <= _SHOW_MAX_CHARS else text[: _SHOW_MAX_CHARS - 3] + "..."
 
 
-def _optional_inner(tp: Any) -> Any | None:
-    """``T`` of ``T | None``; None for any other type."""
-    args = get_args(tp)
-    if type(None) in args and len(args) == 2:
-        return next(a for a in args if a is not type(None))
-    return None
-
-
-_PLURAL = {int: "integers", float: "finite numbers"}
-
-
-def _expectation(tp: Any, rng: Range | None) -> str:
-    """What a value of annotated type ``tp`` within ``rng`` must be, in words."""
-    bound = f" {rng.describe()}" if rng is not None and rng.describe() else ""
-    if get_origin(tp) is tuple:
-        return f"a list of {_PLURAL[get_args(tp)[0]]}{bound}"
-    if get_origin(tp) is Literal:
-        return f"one of {list(get_args(tp))}"
-    inner = _optional_inner(tp)
-    if inner is not None:
-        return f"{_expectation(inner, rng)} or null"
-    if tp is bool:
-        return "true or false"
-    if tp is int:
-        return f"an integer{bound}"
-    if tp is float:
-        return f"a finite number{bound}"
-    if tp is str:
-        return "a string"
-    raise TypeError(f"unsupported config type {tp}")  # a programming error: a new field type needs a rule
-
-
-def _scalar_ok(tp: Any, value: Any, rng: Range | None) -> tuple[bool, Any]:
-    """``(fits, coerced value)`` for one scalar of annotated type ``tp``."""
-    if get_origin(tp) is Literal:
-        return any(type(value) is type(a) and value == a for a in get_args(tp)), value
-    inner = _optional_inner(tp)
-    if inner is not None:
-        return (True, None) if value is None else _scalar_ok(inner, value, rng)
-    if tp is bool:
-        return isinstance(value, bool), value
-    if tp is str:
-        return isinstance(value, str), value
-    if isinstance(value, bool) or not isinstance(value, (int, float)):  # YAML true is not a number
-        return False, value
-    if tp is int:
-        return isinstance(value, int) and (rng is None or rng.contains(value)), value
-    if tp is float:
-        try:
-            v = float(value)
-        except OverflowError:  # an int too large for a float
-            return False, value
-        return math.isfinite(v) and (rng is None or rng.contains(v)), v
-    raise TypeError(f"unsupported config type {tp}")  # pragma: no cover
-
-
-def _coerce(tp: Any, value: Any, path: str, rng: Range | None) -> Any:
-    """``value`` checked against annotated type ``tp`` and ``rng`` (tuples element-wise); raises
-    :class:`_Invalid` naming ``path`` (``path[i]`` for a tuple element)."""
-    if get_origin(tp) is tuple:  # tuple[T, ...] from a YAML list
-        if not isinstance(value, (list, tuple)):
-            raise _Invalid(path, _expectation(tp, rng), value)
-        elem = get_args(tp)[0]
-        return tuple(_coerce(elem, v, f"{path}[{i}]", rng) for i, v in enumerate(value))
-    ok, out = _scalar_ok(tp, value, rng)
-    if not ok:
-        raise _Invalid(path, _expectation(tp, rng), value)
-    return out
-
-
-def _parse(cls: type, data: dict[str, Any], prefix: str, errors: list[str]) -> Any | None:
-    """Build ``cls`` from ``data``, appending every problem to ``errors``; None where there was one.
-
-    Field checks run first; a section's named checks only once all its fields are valid (they
-    compare fields, and an invalid one would make their message misleading).
-    """
-    n_errors = len(errors)
-    hints = get_type_hints(cls)
-    names = {f.name for f in fields(cls)}
-    unknown = sorted((str(k) for k in data if k not in names))
-    if unknown:
-        errors.append(f"unknown key(s) {', '.join(prefix + u for u in unknown)}")
-    kwargs: dict[str, Any] = {}
-    for f in fields(cls):
-        if f.name not in data:
-            continue
-        tp, value, path = hints[f.name], data[f.name], prefix + f.name
-        if dataclasses.is_dataclass(tp):
-            if value is None:  # an empty YAML section
-                value = {}
-            if not isinstance(value, dict):
-                errors.append(f"{path} must be a mapping of keys, got {_show(value)}")
-                continue
-            section = _parse(tp, value, path + ".", errors)
-            if section is not None:
-                kwargs[f.name] = section
-            continue
-        try:
-            kwargs[f.name] = _coerce(tp, value, path, f.metadata.get(RANGE_KEY))
-        except _Invalid as exc:
-            errors.append(str(exc))
-    if len(errors) > n_errors:
-        return None
-    obj = cls(**kwargs)
-    for check in _SECTION_CHECKS.get(cls, ()):
-        problem = check(obj, prefix)
-        if problem:
-            errors.append(problem)
-    return obj if len(errors) == n_errors else None
-
-
-# Named checks of rules that tie fields together: (section, dotted prefix) -> message or None.
-
-_RECIPROCAL_TOL = 1e-9  # the same tolerance gaussian_world.optimize applies
-
-
-def _depth_interval_not_empty(c: FusionConfig, p: str) -> str | None:
-    # Depths outside [min, max] are dropped: an empty interval back-projects nothing.
-    if c.min_depth_m >= c.max_depth_m:
-        return f"{p}min_depth_m must be < {p}max_depth_m ({c.max_depth_m!r}), got {c.min_depth_m!r}"
-    return None
-
-
-def _optimization_scale_is_reciprocal(c: MappingConfig, p: str) -> str | None:
-    # The fit downsamples the keyframes by a whole factor n (block averages).
-    n = round(1.0 / c.optimization_scale)
-    if n < 1 or abs(1.0 / n - c.optimization_scale) > _RECIPROCAL_TOL:
-        return f"{p}optimization_scale must be 1/n for a whole n (1, 0.5, 0.25, ...), got {c.optimization_scale!r}"
-    return None
-
-
-def _iterations_track_something(c: LocalizationConfig, p: str) -> str | None:
-    # One count per pyramid level; all zero would never move the pose.
-    if not c.iterations or max(c.iterations) < 1:
-        return (f"{p}iterations must list one count per pyramid level, at least one of them > 0, "
-                f"got {list(c.iterations)}")
-    return None
-
-
-def _pyramid_not_too_deep(c: LocalizationConfig, p: str) -> str | None:
-    # Each level halves the image; deeper pyramids leave too few pixels at the coarsest level.
-    if c.finest_level + len(c.iterations) > MAX_PYRAMID_LEVELS:
-        return (f"{p}finest_level + len({p}iterations) must be <= {MAX_PYRAMID_LEVELS} pyramid levels, "
-                f"got {c.finest_level} + {len(c.iterations)}")
-    return None
-
-
-def _correspondence_gates_ordered(c: LocalizationConfig, p: str) -> str | None:
-    # The gate shrinks from max at the coarsest level down to min at the finest.
-    if c.min_correspondence_m > c.max_correspondence_m:
-        return (f"{p}min_correspondence_m must be <= {p}max_correspondence_m ({c.max_correspondence_m!r}), "
-                f"got {c.min_correspondence_m!r}")
-    return None
-
-
-def _mapping_range_covers_tracking_range(c: PipelineConfig, p: str) -> str | None:
-    # The map holds at least what the tracker sees: its range extends the fusion range.
-    if c.mapping.max_depth_m < c.fusion.max_depth_m:
-        return (f"{p}mapping.max_depth_m must be >= {p}fusion.max_depth_m ({c.fusion.max_depth_m!r}), "
-                f"got {c.mapping.max_depth_m!r}")
-    return None
-
-
-_SECTION_CHECKS: dict[type, tuple[Callable[[Any, str], str | None], ...]] = {
-    PipelineConfig: (_mapping_range_covers_tracking_range,),
-    FusionConfig: (_depth_interval_not_empty,),
-    MappingConfig: (_optimization_scale_is_reciprocal,),
-    LocalizationConfig: (_iterations_track_something, _pyramid_not_too_deep, _correspondence_gates_ordered),
-}
+def _describe(error: dict[str, Any]) -> str:
+    """One pydantic error as ``dotted.field must be ..., got VALUE``."""
+    path = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in error["loc"]
+                   if not str(p).startswith("function-")).lstrip(".")
+    rule = error.get("ctx", {}).get("error")
+    if isinstance(rule, RuleError):  # a section's rule: name the field it is about
+        return f"{path + '.' if path else ''}{rule.field} {rule}"
+    if error["type"] == "extra_forbidden":
+        return f"unknown key {path}"
+    if error["type"] == "model_type":
+        return f"{path} must be a mapping of keys, got {_show(error['input'])}"
+    if error["type"] == "value_error":
+        return f"{path} {rule}"
+    msg = error["msg"].replace("Input should be", "must be", 1)
+    return f"{path} {msg}, got {_show(error['input'])}"
 
 
 # ---- where things live -------------------------------------------------------------------------
@@ -654,8 +516,8 @@ def load_profile(name_or_path: str | Path = "default") -> PipelineConfig:
 
 def section_hash(section: Any) -> str:
     """Stable short hash of one config section (or any JSON-able value)."""
-    if dataclasses.is_dataclass(section):
-        section = dataclasses.asdict(section)
+    if isinstance(section, BaseModel):
+        section = section.model_dump()
     blob = json.dumps(section, sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
 

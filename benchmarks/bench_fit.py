@@ -2,7 +2,7 @@
 
     python benchmarks/bench_fit.py                        # synthetic, and TUM teddy when present
     python benchmarks/bench_fit.py --datasets synthetic --variants legacy new
-    python benchmarks/bench_fit.py --set mapping.optimization_plateau_patience=3 --json fit.json
+    python benchmarks/bench_fit.py --set mapping.fit.plateau_patience=3 --json fit.json
     python benchmarks/bench_fit.py --datasets synthetic --variants new --synthetic-frames 400   # a long path
 
 For each dataset the default profile builds the world from ground-truth poses (fusion, keyframes,
@@ -13,7 +13,7 @@ voxel Gaussians, colour refinement: not timed), then fits it to the keyframes th
   is missing;
 * ``legacy``: that schedule (``first_schedule()``: 600 steps at the fit scale, no coarse level, no
   early stop, no densification, dense Adam) on today's kernels;
-* ``new``: the default profile's schedule (``OptimizationSettings.from_mapping``) on today's kernels.
+* ``new``: the default profile's schedule (``mapping.fit``) on today's kernels.
 
 Each fitted world is rendered at every ``--view-stride``-th held-out frame (never a keyframe) from
 its ground-truth pose and compared with the real image (``evaluation.evaluate_views``): PSNR over
@@ -103,7 +103,7 @@ def build_inputs(manifest, cfg) -> dict:
     from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
     from atlas_pipeline.perception.rgbd import fuse
 
-    base = cfg.with_overrides({"mapping.optimization_epochs": 0})
+    base = cfg.with_overrides({"mapping.fit.epochs": 0})
     fused = fuse(manifest, base)
     kf = select_keyframes_stage(manifest, fused, base)
     world = build_gaussian_world(fused, kf, base, manifest=manifest)  # voxel Gaussians, colours fitted
@@ -131,20 +131,20 @@ def held_out_psnr(manifest, field, keyframes: list[int], cfg, stride: int) -> tu
 def first_schedule(**overrides):
     """The fit's first schedule: up to 30 passes and 600 steps, every one at half size, no early stop,
     no densification or pruning, dense Adam (``overrides`` replace any field)."""
-    from atlas_pipeline.gaussian_world.optimize import OptimizationSettings
+    from atlas_pipeline.config import FitConfig
 
-    return OptimizationSettings(**{"epochs": 30, "max_steps": 600, "min_steps_per_view": 0, "scale": 0.5,
+    return FitConfig(**{"epochs": 30, "max_steps": 600, "min_steps_per_keyframe": 0, "scale": 0.5,
                                    "coarse_factor": 1, "coarse_max_steps": 0, "plateau_patience": 0,
                                    "densify_interval": 0, "selective_adam": False, **overrides})
 
 
 def run_variant(variant: str, inputs: dict, cfg, old_mod) -> dict:
-    from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
+    from atlas_pipeline.gaussian_world.optimize import optimize_gaussians
 
     args = (inputs["field"], inputs["images"], inputs["depths"], inputs["poses"], inputs["K"])
     quiet = {"log": lambda _: None}
     mc = cfg.mapping
-    first = first_schedule(depth_weight=mc.optimization_depth_weight)  # the first schedule
+    first = first_schedule(depth_weight=mc.fit.depth_weight)  # the first schedule
     if variant == "old":
         settings = old_mod.OptimizationSettings(epochs=first.epochs, max_steps=first.max_steps, scale=first.scale,
                                                 depth_weight=first.depth_weight)
@@ -160,7 +160,7 @@ def run_variant(variant: str, inputs: dict, cfg, old_mod) -> dict:
         out = {"steps": steps, "epochs": -(-steps // len(inputs["images"])), "stop_reason": stop,
                "stage_cpu_s": stages, "n_gaussians": len(res.field)}
     else:
-        settings = first if variant == "legacy" else OptimizationSettings.from_mapping(mc)
+        settings = first if variant == "legacy" else mc.fit
         for warm in (1, settings.coarse_factor):  # JIT at both scales (the compiled code is cached on disk)
             optimize_gaussians(*args, first_schedule(max_steps=1, scale=settings.scale / warm), **quiet)
         c0, w0 = time.process_time(), time.perf_counter()
@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     ap.add_argument("--view-stride", type=int, default=2, help="evaluate every n-th held-out frame")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="config override for every variant, e.g. mapping.optimization_densify_interval=0")
+                    help="config override for every variant, e.g. mapping.fit.densify_interval=0")
     ap.add_argument("--synthetic-frames", type=int, default=None, metavar="N",
                     help="the synthetic room with N frames instead of the built-in 60 (a longer path "
                          "through the same room: more keyframes, more Gaussians per step)")

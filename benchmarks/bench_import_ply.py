@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         print("| world | keyframe fit | " + " | ".join(f"frame {f}" for f in args.frames) + " | build s |")
         print("|---|---|" + "---|" * len(args.frames) + "---|")
         common = [a for kv in args.set for a in ("--set", kv)]
-        for fit, extra in (("on", common), ("off", [*common, "--set", "mapping.optimization_epochs=0"])):
+        for fit, extra in (("on", common), ("off", [*common, "--set", "mapping.fit.epochs=0"])):
             world = work / f"world-fit-{fit}"
             t0 = time.perf_counter()
             _cli(["build", "--input", dataset, "--output", str(world), *extra])

@@ -36,12 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 TARGET_CPU_S = 100.0  # atlas-gs run synthetic, JIT caches warm, 2 cores
 # The keyframe fit's first schedule (bench_fit.first_schedule): the reference schedule.
 LEGACY_FIT = {
-    "mapping.optimization_max_steps": "600",
-    "mapping.optimization_coarse_factor": "1",
-    "mapping.optimization_coarse_max_steps": "0",
-    "mapping.optimization_plateau_patience": "0",
-    "mapping.optimization_densify_interval": "0",
-    "mapping.optimization_selective_adam": "false",  # dense Adam, as the first fit
+    "mapping.fit.max_steps": "600",
+    "mapping.fit.coarse_factor": "1",
+    "mapping.fit.coarse_max_steps": "0",
+    "mapping.fit.plateau_patience": "0",
+    "mapping.fit.densify_interval": "0",
+    "mapping.fit.selective_adam": "false",  # dense Adam, as the first fit
 }
 
 

@@ -77,7 +77,7 @@ def run(name: str, unfitted: bool) -> dict | None:
         return None
     cfg = load_profile("default")
     if unfitted:
-        cfg = cfg.with_overrides({"mapping.optimization_epochs": 0})
+        cfg = cfg.with_overrides({"mapping.fit.epochs": 0})
     fused = fuse(manifest, cfg)
     world = build_gaussian_world(fused, select_keyframes_stage(manifest, fused, cfg), cfg, manifest=manifest)
     cam, f = manifest.camera, world.field

@@ -204,8 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     from atlas_pipeline.config import load_profile
 
     cfg = load_profile("default")
-    cfg = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, pose_source="estimated",
-                                                                optimization_epochs=0, colour_refinement_iterations=0))
+    cfg = cfg.with_overrides({"mapping.pose_source": "estimated", "mapping.fit.epochs": 0,
+                              "mapping.colour_refinement.iterations": 0})
     rows = []
     for label, v1, v2 in _pairs(args, cfg):
         print(f"running {label} ...", flush=True)

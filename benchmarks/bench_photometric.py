@@ -9,7 +9,7 @@
 
 For each dataset and each way of mapping (ground-truth poses, and the tracker's own poses with no
 ground truth), the world is built with the default profile (voxel Gaussians, then fitted to the
-keyframe images and depths: mapping.optimization_epochs), every frame is localized against it,
+keyframe images and depths: mapping.fit.epochs), every frame is localized against it,
 and every held-out frame (not a keyframe: it never fed the map) is rendered from its *estimated*
 pose and compared with the real image: PSNR over the whole frame, PSNR over the pixels with a
 sensor depth reading (what a depth-built map can hold), SSIM, depth L1. The world bundle is then
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
                          "e.g. colour_delay_s=0.015 (as bench_robustness.py)")
     ap.add_argument("--view-stride", type=int, default=1, help="evaluate every n-th held-out frame")
     ap.add_argument("--unfitted", action="store_true",
-                    help="also run with mapping.optimization_epochs 0 (the voxel field with fitted colours only)")
+                    help="also run with mapping.fit.epochs 0 (the voxel field with fitted colours only)")
     ap.add_argument("--sources", nargs="+", default=["ground_truth", "estimated"], choices=["ground_truth", "estimated"],
                     help="mapping pose sources to run")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -131,11 +131,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name}: skipped (TUM frames not found)")
             continue
         results[name] = {}
-        epochs = load_profile("default").mapping.optimization_epochs
+        epochs = load_profile("default").mapping.fit.epochs
         variants = [(src, epochs) for src in args.sources] + ([("ground_truth", 0)] if args.unfitted else [])
         for source, n_epochs in variants:
             cfg = load_profile("default").with_overrides({**overrides, "mapping.pose_source": source,
-                                                          "mapping.optimization_epochs": n_epochs,
+                                                          "mapping.fit.epochs": n_epochs,
                                                           "evaluation.view_stride": args.view_stride})
             label = source if n_epochs else f"{source}, unfitted"
             results[name][label] = r = run(m, cfg)

@@ -11,7 +11,6 @@ loop is timed), alternating, ``--repeats`` times each; the poses must be identic
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import platform
 import sys
 import time
@@ -42,8 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=2)
     args = ap.parse_args(argv)
     cfg = load_profile("default")
-    cfg = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, pose_source="estimated",
-                                                               loop_closure=False))
+    cfg = cfg.with_overrides({"mapping.pose_source": "estimated", "mapping.loop_closure": False})
     full = load_dataset(load_registry()[args.dataset], cfg)
     m = _slice(full, 0, min(args.frames, full.n_frames), args.dataset)
     depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)

@@ -44,7 +44,7 @@ def measure(dataset: str = "synthetic", fit: bool = False, voxel_m: float = 0.02
         raise SystemExit(f"{dataset} is not a synthetic dataset: its true geometry is unknown")
     cfg = load_profile("default")
     if not fit:
-        cfg = cfg.with_overrides({"mapping.optimization_epochs": 0, "mapping.colour_refinement_iterations": 0})
+        cfg = cfg.with_overrides({"mapping.fit.epochs": 0, "mapping.colour_refinement.iterations": 0})
     manifest = load_dataset(entry, cfg)
     fused = fuse(manifest, cfg)
     world = build_gaussian_world(fused, select_keyframes_stage(manifest, fused, cfg), cfg, manifest=manifest)

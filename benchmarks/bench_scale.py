@@ -11,7 +11,7 @@ an earlier stage may still be resident, so a stage's peak is an upper bound on i
     python benchmarks/bench_scale.py                       # N = 100 500 2000
     python benchmarks/bench_scale.py --frames 60 240 --json scale.json
     python benchmarks/bench_scale.py --graph --frames 1200   # atlas-gs run through Dagster: every asset
-    python benchmarks/bench_scale.py --frames 1200 --set mapping.optimization_epochs=0   # no fit
+    python benchmarks/bench_scale.py --frames 1200 --set mapping.fit.epochs=0   # no fit
 
 The table gives, per N: seconds and peak RSS (MB) per stage, the whole run's peak, seconds per
 frame and its ratio to the smallest N (the linear-cost check: 1.0 = per-frame cost unchanged), the
@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile", default="default")
     ap.add_argument("--json", help="also write the figures here")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="a config override for every N (as atlas-gs --set), e.g. mapping.optimization_epochs=0")
+                    help="a config override for every N (as atlas-gs --set), e.g. mapping.fit.epochs=0")
     ap.add_argument("--overrides", help=argparse.SUPPRESS)  # the child's: --set as JSON
     ap.add_argument("--graph", action="store_true",
                     help="instead: atlas-gs run through Dagster (every asset) per N: wall, CPU, peak RSS")

@@ -76,7 +76,7 @@ def small_world(small_manifest):
     from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
     from atlas_pipeline.perception.rgbd import fuse
 
-    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 0,
-                                                  "mapping.colour_refinement_iterations": 0})
+    cfg = load_profile("default").with_overrides({"mapping.fit.epochs": 0,
+                                                  "mapping.colour_refinement.iterations": 0})
     fused = fuse(small_manifest, cfg)
     return build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg).field

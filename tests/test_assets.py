@@ -127,16 +127,23 @@ def test_launchpad_shows_every_setting_with_its_description_and_the_profiles_def
     fields = _config_fields(build_definitions(isolated / "artifacts", profile="demo"))
     assert fields["profile"].default_value == "demo"
     n = 0
-    for section, values in demo.items():
-        if not isinstance(values, dict):
-            continue
-        sub = fields[section].config_type.fields
-        assert set(sub) == set(values), section
+
+    def check(fields_here, values, path):
+        nonlocal n
+        assert set(fields_here) == set(values), path
         for name, value in values.items():
-            f = sub[name]
-            assert f.description and f.default_provided and f.default_value == value, (section, name)
+            f = fields_here[name]
+            assert f.description, (path, name)
+            if isinstance(value, dict):  # a sub-section (mapping.fit)
+                check(f.config_type.fields, value, f"{path}.{name}")
+                continue
+            assert f.default_provided and f.default_value == value, (path, name)
             n += 1
-    assert n >= 40  # every field of every section
+
+    for section, values in demo.items():
+        if isinstance(values, dict):
+            check(fields[section].config_type.fields, values, section)
+    assert n >= 60  # every field of every section
     loc = fields["localization"].config_type.fields
     assert "allowed: > 0" in loc["max_ate_m"].description and "ATE" in loc["max_ate_m"].description
     assert "constant_velocity" in loc["motion_model"].description  # a Literal: an enum listing its choices
@@ -150,7 +157,7 @@ def test_run_config_sets_one_field_and_an_invalid_value_names_it(isolated):
     cfg = run.load()
     assert cfg.localization.photometric_weight == 0.5 and cfg.mapping.voxel_size_m == 0.04 and cfg.profile == "demo"
     assert cfg.localization.iterations == (12, 8, 5)
-    with pytest.raises(ConfigError, match=r"run config: mapping.voxel_size_m must be a finite number > 0, got -1"):
+    with pytest.raises(ConfigError, match=r"run config: mapping.voxel_size_m must be greater than 0, got -1.0"):
         type(atlas)(mapping={"voxel_size_m": -1.0}).load()
 
 

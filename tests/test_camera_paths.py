@@ -37,8 +37,8 @@ CLEARANCE_MIN_M = 0.2
 
 def _unfitted_cfg():
     # The fit changes how sharp renders are, not where the map is: skip it to keep the tests quick.
-    return load_profile("default").with_overrides({"mapping.optimization_epochs": 0,
-                                                   "mapping.colour_refinement_iterations": 0})
+    return load_profile("default").with_overrides({"mapping.fit.epochs": 0,
+                                                   "mapping.colour_refinement.iterations": 0})
 
 
 def _world_from(manifest):

@@ -126,8 +126,8 @@ def test_keyframe_fit_and_evaluation_take_the_colour_at_its_own_time(small_manif
     m = dataclasses.replace(small_manifest, rgb_timestamps_s=small_manifest.timestamps_s + delay)
     cfg = load_profile("default").with_overrides({
         "localization.colour_delay_compensation": compensate, "mapping.colour_delay_compensation": compensate,
-        "mapping.optimization_epochs": 1,
-        "mapping.colour_refinement_iterations": 0, "evaluation.view_stride": 1})
+        "mapping.fit.epochs": 1,
+        "mapping.colour_refinement.iterations": 0, "evaluation.view_stride": 1})
     moved = []
 
     def record(rgb, depth_m, camera, T_depth_colour):

@@ -19,7 +19,7 @@ import yaml
 from assets.cli import main
 from atlas_pipeline.io_utils import MARKER_NAME
 
-FAST = ["--set", "mapping.optimization_epochs=0", "--set", "mapping.colour_refinement_iterations=0"]
+FAST = ["--set", "mapping.fit.epochs=0", "--set", "mapping.colour_refinement.iterations=0"]
 SMALL = {"kind": "synthetic", "seed": 0, "n_frames": 12, "width": 160, "height": 120,
          "fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5}
 
@@ -306,7 +306,7 @@ def test_status_of_a_deleted_partition_folder_says_so_and_its_advice_works(isola
     code, text = _status(capsys, "mine")
     assert code == 0 and "raw_dataset" in text, text
     command = text[text.index("`") + 1:text.index("`", text.index("`") + 1)]
-    assert command.startswith("atlas-gs run mine --stale-only --set mapping.optimization_epochs=0"), command
+    assert command.startswith("atlas-gs run mine --stale-only --set mapping.fit.epochs=0"), command
     assert main(shlex.split(command)[1:]) == 0
     capsys.readouterr()
     code, text = _status(capsys, "mine")

@@ -10,10 +10,11 @@ import numba
 import numpy as np
 import pytest
 
+from atlas_pipeline.config import FitConfig
 from atlas_pipeline.gaussian_world import fit_kernels, fit_levels
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.optimize import (
-    CHILD_ID_BIT, FIT_STAGES, STOP_EPOCHS, STOP_PLATEAU, STOP_STEP_CAP, OptimizationSettings, optimize_gaussians,
+    CHILD_ID_BIT, FIT_STAGES, STOP_EPOCHS, STOP_PLATEAU, STOP_STEP_CAP, optimize_gaussians,
 )
 from atlas_pipeline.gaussian_world.render import render_gaussians
 
@@ -59,7 +60,7 @@ def test_early_stop_fires_on_a_plateau(small_manifest, small_world):
     without progress. A real one stops where the rule says, applied to the passes of the same fit
     run without a patience: the early-stopped fit is that fit's prefix, bit for bit."""
     imgs, deps, poses, K = _targets(_jitter(small_world, 3), small_manifest, [0, 4, 8])
-    frozen = OptimizationSettings(epochs=30, max_steps=None, coarse_max_steps=0, densify_interval=0,
+    frozen = FitConfig(epochs=30, max_steps=None, coarse_max_steps=0, densify_interval=0,
                                   plateau_patience=2, lr_position_m=0.0, lr_log_scale=0.0, lr_rotation_rad=0.0,
                                   lr_opacity_logit=0.0, lr_color=0.0)
     res = optimize_gaussians(small_world, imgs, deps, poses, K, frozen, **QUIET)
@@ -68,14 +69,14 @@ def test_early_stop_fires_on_a_plateau(small_manifest, small_world):
     means = res.loss.reshape(-1, 3).mean(axis=1)
     assert np.ptp(means) < 1e-6 * means[0]  # float32 state: the first step may renormalise a bit
 
-    full = optimize_gaussians(small_world, imgs, deps, poses, K, OptimizationSettings(epochs=12, **OFF), **QUIET)
+    full = optimize_gaussians(small_world, imgs, deps, poses, K, FitConfig(epochs=12, **OFF), **QUIET)
     assert full.record["stop_reason"] == STOP_EPOCHS and full.record["epochs"] == 12
     means = full.loss.reshape(-1, 3).mean(axis=1)
     assert means[-1] < 0.5 * means[0]  # it does learn
     stop = _plateau_stop(means, 1, 0.25)
     assert 2 <= stop < 12
     early = optimize_gaussians(small_world, imgs, deps, poses, K,
-                               OptimizationSettings(epochs=12, **{**OFF, "plateau_patience": 1, "plateau_rel_tol": 0.25}),
+                               FitConfig(epochs=12, **{**OFF, "plateau_patience": 1, "plateau_rel_tol": 0.25}),
                                **QUIET)
     assert early.record["stop_reason"] == STOP_PLATEAU and early.record["epochs"] == stop
     assert np.array_equal(early.loss, full.loss[: 3 * stop])
@@ -84,7 +85,7 @@ def test_early_stop_fires_on_a_plateau(small_manifest, small_world):
 
 def test_step_cap_is_reported_with_the_partial_pass(small_manifest, small_world):
     imgs, deps, poses, K = _targets(small_world, small_manifest, [0, 4, 8])
-    res = optimize_gaussians(small_world, imgs, deps, poses, K, OptimizationSettings(epochs=10, max_steps=7, min_steps_per_view=0, **OFF),
+    res = optimize_gaussians(small_world, imgs, deps, poses, K, FitConfig(epochs=10, max_steps=7, min_steps_per_keyframe=0, **OFF),
                              **QUIET)
     assert res.record["stop_reason"] == STOP_STEP_CAP and res.record["steps"] == 7
     assert res.record["epochs"] == 3  # two whole passes and one begun
@@ -102,7 +103,7 @@ def test_coarse_to_fine_changes_scale(small_manifest, small_world, monkeypatch):
         return inner(gaussians, view, target, *args, **kwargs)
 
     monkeypatch.setattr(fit_kernels, "view_gradients", spy)
-    s = OptimizationSettings(epochs=6, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=9,
+    s = FitConfig(epochs=6, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=9,
                              plateau_patience=0, densify_interval=0)
     res = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     assert sizes[:9] == [(40, 30, (30, 40))] * 9 and sizes[9:] == [(80, 60, (60, 80))] * 9
@@ -111,7 +112,7 @@ def test_coarse_to_fine_changes_scale(small_manifest, small_world, monkeypatch):
     assert coarse["scale"] == 0.25 and coarse["steps"] == 9 and coarse["epochs"] == 3
     assert res.record["epochs"] == 6 and res.record["steps"] == 18
     # the coarse level also ends when its loss stops falling: here after one stale pass
-    s1 = OptimizationSettings(epochs=6, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=100,
+    s1 = FitConfig(epochs=6, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=100,
                               plateau_patience=1, plateau_rel_tol=0.9, densify_interval=0)
     res1 = optimize_gaussians(small_world, imgs, deps, poses, K, s1, **QUIET)
     assert res1.record["coarse"]["epochs"] == 2 and res1.step_scale[6] == 0.5
@@ -169,7 +170,7 @@ def test_densification_adds_gaussians_where_the_image_is_unexplained():
     imgs, deps, poses = _wall_views(wall, textured=True)
     # on the plain wall 99 % of the Gaussians' mean NDC gradients stay under 2.6e-4, in the texture
     # the upper third of them exceeds 4e-4 (measured)
-    s = OptimizationSettings(epochs=6, max_steps=None, scale=1.0, densify_interval=3, densify_until_step=4,
+    s = FitConfig(epochs=6, max_steps=None, scale=1.0, densify_interval=3, densify_until_step=4,
                              densify_grad_threshold=3.5e-4, densify_scale_m=0.01, densify_max_growth=3.0,
                              prune_opacity=0.0, coarse_max_steps=0, plateau_patience=0)
     res = optimize_gaussians(wall, imgs, deps, poses, K_TINY, s, **QUIET)
@@ -195,8 +196,8 @@ def test_pruning_removes_transparent_gaussians():
     imgs, deps, poses = _wall_views(_wall(), textured=False)
     base = dict(epochs=2, max_steps=None, scale=1.0, coarse_max_steps=0, plateau_patience=0)
     pruned = optimize_gaussians(field, imgs, deps, poses, K_TINY,
-                                OptimizationSettings(densify_interval=2, densify_grad_threshold=1e9, **base), **QUIET)
-    kept = optimize_gaussians(field, imgs, deps, poses, K_TINY, OptimizationSettings(densify_interval=0, **base),
+                                FitConfig(densify_interval=2, densify_grad_threshold=1e9, **base), **QUIET)
+    kept = optimize_gaussians(field, imgs, deps, poses, K_TINY, FitConfig(densify_interval=0, **base),
                               **QUIET)
     assert not np.isin(ghosts.ids, pruned.field.ids).any() and pruned.record["n_pruned"] >= n
     assert np.isin(ghosts.ids, kept.field.ids).all() and kept.record["n_pruned"] == 0
@@ -210,7 +211,7 @@ def test_pruning_removes_transparent_gaussians():
 
 def test_record_is_the_truth_and_holds_no_timings(small_manifest, small_world):
     imgs, deps, poses, K = _targets(_jitter(small_world, 1), small_manifest, [0, 4, 8])
-    s = OptimizationSettings(epochs=5, max_steps=None, coarse_max_steps=6, plateau_patience=0, densify_interval=4,
+    s = FitConfig(epochs=5, max_steps=None, coarse_max_steps=6, plateau_patience=0, densify_interval=4,
                              densify_until_step=12)
     res = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     rec = res.record
@@ -229,7 +230,7 @@ def test_record_is_the_truth_and_holds_no_timings(small_manifest, small_world):
 
 def test_same_inputs_same_world_bits_whatever_the_threads(small_manifest, small_world):
     imgs, deps, poses, K = _targets(_jitter(small_world, 2), small_manifest, [0, 6])
-    s = OptimizationSettings(epochs=6, max_steps=None, coarse_max_steps=4, densify_interval=3,
+    s = FitConfig(epochs=6, max_steps=None, coarse_max_steps=4, densify_interval=3,
                              densify_until_step=10, densify_grad_threshold=5e-5)
     before = numba.get_num_threads()
     runs = []
@@ -248,20 +249,20 @@ def test_same_inputs_same_world_bits_whatever_the_threads(small_manifest, small_
 def test_input_field_is_left_alone(small_manifest, small_world):
     imgs, deps, poses, K = _targets(small_world, small_manifest, [0])
     h = small_world.content_hash()
-    optimize_gaussians(small_world, imgs, deps, poses, K, OptimizationSettings(epochs=2, **OFF), **QUIET)
+    optimize_gaussians(small_world, imgs, deps, poses, K, FitConfig(epochs=2, **OFF), **QUIET)
     assert small_world.content_hash() == h
 
 
 def test_profile_defaults_are_the_fits_defaults():
     from atlas_pipeline.config import load_profile
 
-    assert OptimizationSettings.from_mapping(load_profile("default").mapping) == OptimizationSettings()
+    assert load_profile("default").mapping.fit == FitConfig()
 
 
 def test_a_schedule_without_coarse_level_or_densification_runs_every_step_at_the_fit_scale(
         small_manifest, small_world):
     imgs, deps, poses, K = _targets(_jitter(small_world, 4), small_manifest, [0, 4])
-    s = OptimizationSettings(epochs=3, max_steps=600, min_steps_per_view=0, coarse_factor=1, coarse_max_steps=0,
+    s = FitConfig(epochs=3, max_steps=600, min_steps_per_keyframe=0, coarse_factor=1, coarse_max_steps=0,
                              plateau_patience=0, densify_interval=0, selective_adam=False)
     res = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     assert np.array_equal(res.step_scale, [0.5] * 6) and res.record["coarse"] is None
@@ -270,17 +271,17 @@ def test_a_schedule_without_coarse_level_or_densification_runs_every_step_at_the
 
 
 def test_long_sequences_get_proportionally_more_steps():
-    """The step budget grows with the keyframes past max_steps / min_steps_per_view, and
+    """The step budget grows with the keyframes past max_steps / min_steps_per_keyframe, and
     the schedule's step counts with it; below that nothing changes."""
     from atlas_pipeline.gaussian_world.optimize import stretch_schedule
 
-    s = OptimizationSettings(max_steps=300, min_steps_per_view=10, coarse_max_steps=160, densify_interval=50,
+    s = FitConfig(max_steps=300, min_steps_per_keyframe=10, coarse_max_steps=160, densify_interval=50,
                              densify_until_step=160)
     assert stretch_schedule(s, 30) is s and stretch_schedule(s, 4) is s
     long = stretch_schedule(s, 120)  # 4x the keyframes the cap covers
     assert (long.max_steps, long.coarse_max_steps, long.densify_interval, long.densify_until_step) == (1200, 640, 200, 640)
-    assert stretch_schedule(OptimizationSettings(max_steps=300, min_steps_per_view=0), 1000).max_steps == 300
-    assert stretch_schedule(OptimizationSettings(max_steps=None, min_steps_per_view=10), 1000).max_steps is None
+    assert stretch_schedule(FitConfig(max_steps=300, min_steps_per_keyframe=0), 1000).max_steps == 300
+    assert stretch_schedule(FitConfig(max_steps=None, min_steps_per_keyframe=10), 1000).max_steps is None
 
 
 def test_fit_inputs_read_on_demand_give_the_same_world(small_manifest, monkeypatch):
@@ -289,7 +290,7 @@ def test_fit_inputs_read_on_demand_give_the_same_world(small_manifest, monkeypat
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.perception.rgbd import fuse
 
-    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 2})
+    cfg = load_profile("default").with_overrides({"mapping.fit.epochs": 2})
     fused = fuse(small_manifest, cfg)
     kf = mapper.select_keyframes_stage(small_manifest, fused, cfg)
     held = mapper.build_gaussian_world(fused, kf, cfg, manifest=small_manifest)
@@ -306,7 +307,7 @@ def test_levels_made_per_view_give_the_same_fit(small_manifest, small_world, mon
     """Above LEVEL_MEMORY_BUDGET_BYTES each view's working copy is made when its step needs it:
     bit-identical fit, nothing held."""
     imgs, deps, poses, K = _targets(_jitter(small_world, 4), small_manifest, [0, 4, 8])
-    s = OptimizationSettings(epochs=4, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=3,
+    s = FitConfig(epochs=4, max_steps=None, scale=0.5, coarse_factor=2, coarse_max_steps=3,
                              plateau_patience=0, densify_interval=5, densify_until_step=10)
     held = optimize_gaussians(small_world, imgs, deps, poses, K, s, **QUIET)
     monkeypatch.setattr(fit_levels, "LEVEL_MEMORY_BUDGET_BYTES", 0)

@@ -299,7 +299,7 @@ def test_keyframes_read_the_tracker_settings_exactly_when_they_track(small_manif
     assert "localization.photometric_weight" in stage_settings(cfg, "keyframes", partial)
     # Per field, not per section: the keyframe fit's settings shape the world, not the keyframes;
     # the ATE bound is read by its check only (and recorded in the bundles' config).
-    assert "mapping.optimization_epochs" not in stage_settings(cfg, "keyframes", partial)
-    assert "mapping.optimization_epochs" in stage_settings(cfg, "gaussian_world")
+    assert "mapping.fit.epochs" not in stage_settings(cfg, "keyframes", partial)
+    assert "mapping.fit.epochs" in stage_settings(cfg, "gaussian_world")
     assert [s for s in STAGES if "localization.max_ate_m" in stage_settings(cfg, s, partial)] == [
         "world_bundle", "revisit_bundle"]

@@ -20,7 +20,7 @@ TRACKING_MAX_M = 4.0  # the default fusion.max_depth_m
 
 def _cfg(map_max_m: float, **more):
     over = {"mapping.pose_source": "ground_truth", "mapping.max_depth_m": map_max_m,
-            "mapping.optimization_epochs": 0, "mapping.colour_refinement_iterations": 0, **more}
+            "mapping.fit.epochs": 0, "mapping.colour_refinement.iterations": 0, **more}
     return load_profile("default").with_overrides(over)
 
 
@@ -264,8 +264,8 @@ def test_fitted_world_scores_higher_full_frame(small_manifest):
     < 1 there, never 0)."""
     from atlas_pipeline.gaussian_world.evaluation import evaluate_views
 
-    fit = {"mapping.optimization_epochs": 6, "mapping.optimization_max_steps": 36,
-           "mapping.colour_refinement_iterations": 1}
+    fit = {"mapping.fit.epochs": 6, "mapping.fit.max_steps": 36,
+           "mapping.colour_refinement.iterations": 1}
     held = None
     psnr = {}
     for r in (TRACKING_MAX_M, 8.0):

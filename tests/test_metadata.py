@@ -92,7 +92,7 @@ def test_cli_and_benchmarks_share_the_parser():
     from assets.cli import options
 
     assert options.parse_set_overrides is parse_set_overrides
-    items = ["fusion.max_depth_m=3.5", "mapping.optimization_selective_adam=false", "video.fps=24"]
+    items = ["fusion.max_depth_m=3.5", "mapping.fit.selective_adam=false", "video.fps=24"]
     assert options.overrides(argparse.Namespace(set=items)) == parse_set_overrides(items, "--set")
     with pytest.raises(ConfigError, match="fusion.max_depth_m=\\[1"):
         options.overrides(argparse.Namespace(set=["fusion.max_depth_m=[1"]))

@@ -1,7 +1,6 @@
 """Multiple maps. A run of lost frames starts a new map; recognising the old place
 merges the maps, and every pose ends in the main map's frame."""
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -96,8 +95,8 @@ class _Failures:
 def _cfg(new_map_after: int):
     cfg = load_profile("default")
     # every frame a keyframe: the 12-frame sequence then tries a merge on each frame of the new map
-    mapping = replace(cfg.mapping, keyframe_translation_m=0.0, keyframe_rotation_deg=0.0,
-                      new_map_after_lost_frames=new_map_after, loop_closure=False)
+    mapping = cfg.mapping.model_copy(update=dict(keyframe_translation_m=0.0, keyframe_rotation_deg=0.0,
+                                                 new_map_after_lost_frames=new_map_after, loop_closure=False))
     return cfg, mapping
 
 

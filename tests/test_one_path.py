@@ -10,7 +10,7 @@ from atlas_pipeline.scene_memory.bundle import read_metadata
 
 # Mapping from tracked poses (the route that differed); the keyframe fit does not move the map the
 # tracker uses, so it is off to keep the test short.
-SETTINGS = ["--set", "mapping.pose_source=estimated", "--set", "mapping.optimization_epochs=0"]
+SETTINGS = ["--set", "mapping.pose_source=estimated", "--set", "mapping.fit.epochs=0"]
 
 
 @pytest.mark.slow

@@ -11,7 +11,8 @@ from atlas_pipeline.gaussian_world import raster as rc
 from atlas_pipeline.gaussian_world._raster_reference import fit_gradients_reference, project_reference
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.fit_kernels import LossWeights
-from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians, render_loss_and_gradients
+from atlas_pipeline.config import FitConfig
+from atlas_pipeline.gaussian_world.optimize import optimize_gaussians, render_loss_and_gradients
 from atlas_pipeline.gaussian_world.raster import GaussianArrays, scale_intrinsics
 from atlas_pipeline.gaussian_world.render import render_gaussians
 
@@ -288,7 +289,7 @@ def _perturbed(f: GaussianField, seed: int) -> GaussianField:
 
 
 # Every step at the full image, no coarse level, early stop or densification: plain descent.
-FIRST_SCHEDULE = OptimizationSettings(epochs=15, max_steps=600, min_steps_per_view=0, scale=1.0, coarse_factor=1,
+FIRST_SCHEDULE = FitConfig(epochs=15, max_steps=600, min_steps_per_keyframe=0, scale=1.0, coarse_factor=1,
                                       coarse_max_steps=0, plateau_patience=0, densify_interval=0,
                                       selective_adam=False)
 
@@ -321,7 +322,7 @@ def test_optimisation_is_deterministic(small_manifest, small_world):
     targets = _views(small_world, small_manifest, train)
     start = _perturbed(small_world, 1)
     args = (start, [t[0] for t in targets], [t[1] for t in targets], [small_manifest.T_world_cam_gt[i] for i in train],
-            small_manifest.camera.K, OptimizationSettings(epochs=2, scale=0.5))
+            small_manifest.camera.K, FitConfig(epochs=2, scale=0.5))
     a = optimize_gaussians(*args, log=lambda _: None).field
     b = optimize_gaussians(*args, log=lambda _: None).field
     assert a.content_hash() == b.content_hash()
@@ -331,7 +332,7 @@ def test_bad_settings_and_inputs_are_refused(small_world):
     img = np.zeros((120, 160, 3), np.uint8)
     with pytest.raises(ValueError, match="1/n"):
         optimize_gaussians(small_world, [img], [np.zeros((120, 160))], [np.eye(4)], K_TINY,
-                           OptimizationSettings(scale=0.3))
+                           FitConfig(scale=0.3))
     with pytest.raises(ValueError, match="one depth image and one pose"):
         optimize_gaussians(small_world, [img], [], [np.eye(4)], K_TINY)
     with pytest.raises(ValueError, match="view 1: image"):
@@ -344,8 +345,8 @@ def test_profile_refuses_an_unusable_optimisation_scale():
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="optimization_scale"):
-        load_profile("default").with_overrides({"mapping.optimization_scale": 0.3})
+    with pytest.raises(ConfigError, match="fit.scale"):
+        load_profile("default").with_overrides({"mapping.fit.scale": 0.3})
 
 
 @pytest.mark.slow
@@ -356,8 +357,8 @@ def test_pipeline_fits_the_world_to_its_keyframes_and_records_it(small_manifest,
     from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
     from atlas_pipeline.perception.rgbd import fuse
 
-    cfg = load_profile("default").with_overrides({"mapping.optimization_epochs": 3,
-                                                  "mapping.optimization_coarse_max_steps": 4})
+    cfg = load_profile("default").with_overrides({"mapping.fit.epochs": 3,
+                                                  "mapping.fit.coarse_max_steps": 4})
     fused = fuse(small_manifest, cfg)
     kf = select_keyframes_stage(small_manifest, fused, cfg)
     world = build_gaussian_world(fused, kf, cfg, manifest=small_manifest)
@@ -378,7 +379,7 @@ def test_step_cap_bounds_the_work(small_manifest, small_world):
     targets = _views(small_world, small_manifest, train)
     res = optimize_gaussians(small_world, [t[0] for t in targets], [t[1] for t in targets],
                              [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
-                             OptimizationSettings(epochs=10, max_steps=7, min_steps_per_view=0, scale=0.5), log=lambda _: None)
+                             FitConfig(epochs=10, max_steps=7, min_steps_per_keyframe=0, scale=0.5), log=lambda _: None)
     assert len(res.loss) == 7  # two full passes and one view of a third
 
 
@@ -405,9 +406,9 @@ def test_normal_offset_bound_holds_centres_to_their_surface(small_manifest, smal
         off = np.einsum("ij,ij->i", fitted.positions[mine] - start.positions[kept], normal[kept])
         return np.abs(off), limit[kept]
 
-    held = optimize_gaussians(*args, OptimizationSettings(epochs=4, scale=0.5, normal_offset_max_scales=bound),
+    held = optimize_gaussians(*args, FitConfig(epochs=4, scale=0.5, normal_offset_max_scales=bound),
                               log=lambda _: None).field
-    free = optimize_gaussians(*args, OptimizationSettings(epochs=4, scale=0.5), log=lambda _: None).field
+    free = optimize_gaussians(*args, FitConfig(epochs=4, scale=0.5), log=lambda _: None).field
     off, lim = along_normal(held)
     assert len(off) > 0.9 * len(start) and (off <= lim + 1e-5).all()
     off_free, lim_free = along_normal(free)
@@ -418,11 +419,11 @@ def test_profile_sets_the_normal_offset_bound():
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.errors import ConfigError
 
-    cfg = load_profile("default").with_overrides({"mapping.optimization_normal_offset_max_scales": 0.5})
-    assert OptimizationSettings.from_mapping(cfg.mapping).normal_offset_max_scales == 0.5
-    assert OptimizationSettings.from_mapping(load_profile("default").mapping).normal_offset_max_scales == 0.0
+    cfg = load_profile("default").with_overrides({"mapping.fit.normal_offset_max_scales": 0.5})
+    assert cfg.mapping.fit.normal_offset_max_scales == 0.5
+    assert load_profile("default").mapping.fit.normal_offset_max_scales == 0.0
     with pytest.raises(ConfigError, match="normal_offset_max_scales"):
-        load_profile("default").with_overrides({"mapping.optimization_normal_offset_max_scales": -1})
+        load_profile("default").with_overrides({"mapping.fit.normal_offset_max_scales": -1})
 
 
 def _adam_state(n: int, seed: int):
@@ -511,7 +512,7 @@ def test_a_gaussian_no_keyframe_draws_leaves_the_fit_as_it_came(small_manifest, 
                         np.concatenate([small_world.ids, [np.uint64(123456789)]]))
     res = optimize_gaussians(far, [t[0] for t in targets], [t[1] for t in targets],
                              [small_manifest.T_world_cam_gt[i] for i in train], small_manifest.camera.K,
-                             OptimizationSettings(epochs=2, scale=0.5, densify_interval=0), log=lambda _: None)
+                             FitConfig(epochs=2, scale=0.5, densify_interval=0), log=lambda _: None)
     k = int(np.flatnonzero(res.field.ids == np.uint64(123456789))[0])
     np.testing.assert_allclose(res.field.positions[k], behind, atol=1e-5)
     assert res.field.colors[k].tolist() == [200, 10, 10]

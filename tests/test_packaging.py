@@ -28,7 +28,7 @@ STATE_VARS = ("ATLAS_PROJECT_ROOT", "ATLAS_GS_HOME", "ATLAS_LOCAL_REGISTRY", "AT
 # of the install's home, so the run also proves that file is read from there.
 SMALL_SYNTHETIC = {"kind": "synthetic", "seed": 0, "n_frames": 12, "width": 160, "height": 120,
                    "fx": 131.25, "fy": 131.25, "cx": 79.5, "cy": 59.5}
-QUICK = ["--profile", "demo", "--set", "mapping.optimization_epochs=0", "--set", "video.orbit_frames=4"]
+QUICK = ["--profile", "demo", "--set", "mapping.fit.epochs=0", "--set", "video.orbit_frames=4"]
 
 
 def _source_packages() -> list[str]:

@@ -18,7 +18,7 @@ from assets.cli import ASSET_ORDER, main
 from assets.cli.pipeline import run_words, status_words
 from atlas_pipeline.progress import Progress, Terminal, use_terminal
 
-QUICK = ["--set", "mapping.optimization_epochs=0", "--set", "video.orbit_frames=4"]
+QUICK = ["--set", "mapping.fit.epochs=0", "--set", "video.orbit_frames=4"]
 MAX_QUIET_LINES = 30
 DAGSTER_PREFIX = " - atlas_gs_all - "  # Dagster's console format: "<time> - dagster - DEBUG - atlas_gs_all - <run id> - ..."
 

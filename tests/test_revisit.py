@@ -82,7 +82,7 @@ def test_a_second_visit_extends_the_first_visits_world_with_its_lineage(two_visi
     defs = build_definitions(art)
     assert stale_assets(defs, instance, SECOND, atlas_config()) == {}
     # The first visit's world changes: the second visit's revisit bundle is stale for that reason.
-    _run(root, instance, FIRST, {"mapping.optimization_epochs": 1})
+    _run(root, instance, FIRST, {"mapping.fit.epochs": 1})
     stale = stale_assets(defs, instance, SECOND, atlas_config())
     assert stale == {"revisit_bundle": [f"gaussian_world [{FIRST}] has a new data version"]}
 

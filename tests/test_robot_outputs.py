@@ -118,7 +118,7 @@ def test_export_assets_materialize_after_a_run_and_are_reused(isolated):
     from assets.cli import main
     from assets.definitions import build_definitions
 
-    assert main(["run", "synth-small", "--set", "mapping.optimization_epochs=0"]) == 0
+    assert main(["run", "synth-small", "--set", "mapping.fit.epochs=0"]) == 0
     defs = build_definitions()
     job = defs.resolve_job_def("atlas_gs_exports")
     with DagsterInstance.get() as inst:

@@ -105,8 +105,8 @@ def test_export_command_end_to_end_and_its_errors(isolated, capsys, caplog):
     from assets.cli import main
 
     world = isolated / "world"
-    assert main(["build", "--input", "synth-small", "--output", str(world), "--set", "mapping.optimization_epochs=0",
-                 "--set", "mapping.colour_refinement_iterations=0"]) == 0
+    assert main(["build", "--input", "synth-small", "--output", str(world), "--set", "mapping.fit.epochs=0",
+                 "--set", "mapping.colour_refinement.iterations=0"]) == 0
     capsys.readouterr()
     out = isolated / "colmap"
     assert main(["export", str(world), "--format", "colmap", "--output", str(out)]) == 0

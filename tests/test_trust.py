@@ -29,7 +29,7 @@ from atlas_pipeline.io_utils import (
     sha256_file,
 )
 
-FAST = ["--set", "mapping.optimization_epochs=0", "--set", "mapping.colour_refinement_iterations=0"]
+FAST = ["--set", "mapping.fit.epochs=0", "--set", "mapping.colour_refinement.iterations=0"]
 
 
 def _snapshot(folder: Path) -> dict[str, str]:

@@ -3,7 +3,6 @@ density control (clone, split, prune)."""
 
 from __future__ import annotations
 
-import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -12,7 +11,7 @@ from atlas_pipeline.gaussian_world.fit_adam import CHILD_ID_BIT, FitState
 from atlas_pipeline.geometry import quat_xyzw_to_rotmat
 
 if TYPE_CHECKING:
-    from atlas_pipeline.gaussian_world.optimize import OptimizationSettings
+    from atlas_pipeline.config import FitConfig
 
 __all__ = ["COARSE_MAX_PASS_FRACTION", "MIN_COARSE_WIDTH_PX", "SPLIT_SCALE_DIV", "stretch_schedule",
            "coarse_passes", "densify_and_prune"]
@@ -26,20 +25,20 @@ COARSE_MAX_PASS_FRACTION = 0.5
 MIN_COARSE_WIDTH_PX = 32
 
 
-def stretch_schedule(s: OptimizationSettings, n_views: int) -> OptimizationSettings:
-    """``s`` with its step counts grown for ``n_views`` keyframes (``min_steps_per_view``): the
+def stretch_schedule(s: FitConfig, n_views: int) -> FitConfig:
+    """``s`` with its step counts grown for ``n_views`` keyframes (``min_steps_per_keyframe``): the
     cap, the coarse level's cap and the densification interval and end, all by the same factor
-    ``min_steps_per_view * n_views / max_steps`` when that exceeds 1; else ``s`` unchanged."""
-    if s.max_steps is None or s.min_steps_per_view <= 0 or s.min_steps_per_view * n_views <= s.max_steps:
+    ``min_steps_per_keyframe * n_views / max_steps`` when that exceeds 1; else ``s`` unchanged."""
+    if s.max_steps is None or s.min_steps_per_keyframe <= 0 or s.min_steps_per_keyframe * n_views <= s.max_steps:
         return s
-    k = s.min_steps_per_view * n_views / s.max_steps
-    return dataclasses.replace(s, max_steps=s.min_steps_per_view * n_views,
-                               coarse_max_steps=int(round(s.coarse_max_steps * k)),
-                               densify_interval=int(round(s.densify_interval * k)),
-                               densify_until_step=int(round(s.densify_until_step * k)))
+    k = s.min_steps_per_keyframe * n_views / s.max_steps
+    return s.model_copy(update=dict(max_steps=s.min_steps_per_keyframe * n_views,
+                                    coarse_max_steps=int(round(s.coarse_max_steps * k)),
+                                    densify_interval=int(round(s.densify_interval * k)),
+                                    densify_until_step=int(round(s.densify_until_step * k))))
 
 
-def coarse_passes(s: OptimizationSettings, n_views: int, n_cap: int, coarse_width_px: float) -> int:
+def coarse_passes(s: FitConfig, n_views: int, n_cap: int, coarse_width_px: float) -> int:
     """Whole passes at the coarse scale: at most ``coarse_max_steps`` steps and
     ``COARSE_MAX_PASS_FRACTION`` of the ``n_cap`` steps' passes; 0 without a coarse level (off, or
     its image narrower than ``MIN_COARSE_WIDTH_PX``)."""
@@ -48,7 +47,7 @@ def coarse_passes(s: OptimizationSettings, n_views: int, n_cap: int, coarse_widt
     return max(0, min(s.coarse_max_steps // n_views, int(n_cap // n_views * COARSE_MAX_PASS_FRACTION)))
 
 
-def densify_and_prune(st: FitState, s: OptimizationSettings, n_start: int,
+def densify_and_prune(st: FitState, s: FitConfig, n_start: int,
                       rng: np.random.Generator) -> tuple[int, int, int]:
     """One round of Kerbl et al.'s adaptive density control; returns ``(cloned, split, pruned)``.
 

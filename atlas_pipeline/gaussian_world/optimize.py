@@ -63,6 +63,7 @@ from typing import Callable
 
 import numpy as np
 
+from atlas_pipeline.config import FitConfig
 from atlas_pipeline.gaussian_world import fit_kernels, fit_levels, raster
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.fit_adam import CHILD_ID_BIT, AdamHyper, FitState, adam_step, bias_corrections
@@ -75,7 +76,7 @@ from atlas_pipeline.progress import Progress
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["OptimizationSettings", "OptimizationResult", "optimize_gaussians", "render_loss_and_gradients",
+__all__ = ["FitConfig", "OptimizationResult", "optimize_gaussians", "render_loss_and_gradients",
            "LossWeights", "OnDemandViews", "stretch_schedule",
            "STOP_PLATEAU", "STOP_STEP_CAP", "STOP_EPOCHS", "FIT_STAGES", "CHILD_ID_BIT"]
 
@@ -83,115 +84,6 @@ STOP_PLATEAU = "plateau"  # plateau_patience passes in a row without a relative 
 STOP_STEP_CAP = "step_cap"  # max_steps reached
 STOP_EPOCHS = "epochs"  # every allowed pass ran
 ADAM_BETA1, ADAM_BETA2, ADAM_EPS = 0.9, 0.999, 1e-15
-
-
-@dataclass(frozen=True)
-class OptimizationSettings:
-    """How the keyframe fit runs.
-
-    Attributes:
-        epochs: cap on the passes over the keyframes (one Adam step per keyframe per pass); 0 = off.
-        max_steps: cap on the steps in all (None: no cap), so a long sequence with many keyframes
-            costs a bounded time (each step renders one keyframe forward and backward).
-        min_steps_per_view: with ``max_steps``, at least this many steps per keyframe: beyond
-            ``max_steps / min_steps_per_view`` keyframes the cap, ``coarse_max_steps``,
-            ``densify_interval`` and ``densify_until_step`` all grow by the same factor, so the
-            fit's cost is linear in the keyframes and each keyframe gets the same share of it
-            (a fixed cap would give a long sequence one step per keyframe). 0: a fixed cap.
-        scale: image scale of the fit (0.5 = half size: 4x cheaper, enough for 2 cm Gaussians).
-        lr_position_m, lr_log_scale, lr_rotation_rad, lr_opacity_logit, lr_color: Adam step sizes
-            (colours in [0, 1]).
-        depth_weight: weight of the depth L1 term (metres) against the colour L1 term ([0, 1]).
-        coverage_weight: weight of the transparency left at pixels with a sensor reading (a surface
-            was measured there, so the render should be opaque).
-        max_scale_m, min_scale_m: clamp of the scales after each step.
-        normal_offset_max_scales: how far a centre may move along its starting surface normal (the
-            axis of its smallest starting scale), in its largest starting scale; clamped after each
-            step (0: free). Without it the fit spreads centres into a layer a few cm thick while the
-            blended depth holds, which an exported PLY's geometry keeps; bounded, an imported PLY
-            relocalizes more precisely at about the same PSNR. Off by default.
-        lr_final_ratio: every step size decays exponentially to this fraction of its start over
-            the step cap. 1 = constant: with a few hundred steps the fit is still improving at the
-            end, and a decay costs detail.
-        seed: order of the keyframes in each pass, and the samples of split Gaussians.
-        coarse_factor: the first passes run at ``scale / coarse_factor`` (2: a quarter of the image
-            side when the fit is at half; 1 = no coarse level).
-        coarse_max_steps: cap on the steps at the coarse scale (whole passes, at most
-            ``fit_schedule.COARSE_MAX_PASS_FRACTION`` of the fit's passes; 0 = no coarse level; none
-            either when its image would be narrower than ``fit_schedule.MIN_COARSE_WIDTH_PX``); the
-            level also ends on a plateau.
-        coarse_lr_scale: every step size times this at the coarse level (the gross geometry: scales
-            growing over what depth did not map, positions moving; the fit scale then refines).
-        plateau_patience: passes in a row without progress that end a level (0: never stop early).
-            A pass mean moves a few per cent with the keyframe order, so one stale pass is no plateau.
-        plateau_rel_tol: a pass makes progress when its mean loss is below ``(1 - plateau_rel_tol)``
-            times the best pass mean so far at that scale.
-        densify_interval: steps between two densify-and-prune rounds (0: never).
-        densify_until_step: no densification at or after this step; rounds in the fine phase upset
-            its loss, so by default they end with the coarse level.
-        densify_grad_threshold: mean view-space (NDC) positional gradient above which a Gaussian is
-            cloned or split (3DGS: 2e-4 with its loss; this loss has its depth and coverage terms).
-        densify_scale_m: a Gaussian with all scales at most this is cloned, a larger one split.
-        densify_max_growth: the densified field holds at most this times the starting count.
-        prune_opacity: Gaussians below this opacity are removed at each round (3DGS: 0.005).
-        selective_adam: Adam steps only the Gaussians the view draws (as gsplat's ``SelectiveAdam``,
-            after Mallick et al.'s Taming 3DGS), each with the bias correction of its own step count
-            (gsplat's kernel has none; the step sizes here are set for corrected Adam).
-            Dense Adam (False, 3DGS) also moves every unseen Gaussian on its momentum: a Gaussian
-            seen in a fraction f of the steps then travels about 1/sqrt(f) step sizes per view that
-            sees it, so the longer the path (the smaller each Gaussian's f), the larger its
-            effective step and the noisier the fit. Selective, its updates depend only on the
-            views that see it, and each step costs the Gaussians in view, not all of them.
-
-    The step sizes are larger than 3DGS's (which runs 30,000 steps): here a few hundred steps start
-    from a field already close to the images. The coarse level's larger steps on a cheaper image do
-    the large moves (walls beyond the depth range, covered by growing Gaussians) about as far per
-    step as fine ones would at a quarter of the cost; ``docs/benchmarks.md`` has the figures
-    (``benchmarks/bench_fit.py``).
-    """
-
-    epochs: int = 30
-    max_steps: int | None = 300
-    min_steps_per_view: int = 10
-    scale: float = 0.5
-    lr_position_m: float = 5e-4
-    lr_log_scale: float = 2e-2
-    lr_rotation_rad: float = 1e-2
-    lr_opacity_logit: float = 5e-2
-    lr_color: float = 1e-2
-    depth_weight: float = 1.0
-    coverage_weight: float = 2.0
-    lr_final_ratio: float = 1.0
-    max_scale_m: float = 0.1
-    min_scale_m: float = 1e-4
-    normal_offset_max_scales: float = 0.0
-    seed: int = 0
-    coarse_factor: int = 2
-    coarse_max_steps: int = 160
-    coarse_lr_scale: float = 4.0
-    plateau_patience: int = 3
-    plateau_rel_tol: float = 0.005
-    densify_interval: int = 50
-    densify_until_step: int = 160
-    densify_grad_threshold: float = 2e-4
-    densify_scale_m: float = 0.02
-    densify_max_growth: float = 1.3
-    prune_opacity: float = 0.005
-    selective_adam: bool = True
-
-    @classmethod
-    def from_mapping(cls, mc) -> "OptimizationSettings":
-        """The settings of a ``config.MappingConfig``."""
-        return cls(epochs=mc.optimization_epochs, max_steps=mc.optimization_max_steps,
-                   min_steps_per_view=mc.optimization_min_steps_per_keyframe, scale=mc.optimization_scale,
-                   depth_weight=mc.optimization_depth_weight, coarse_factor=mc.optimization_coarse_factor,
-                   normal_offset_max_scales=mc.optimization_normal_offset_max_scales,
-                   coarse_max_steps=mc.optimization_coarse_max_steps, coarse_lr_scale=mc.optimization_coarse_lr_scale,
-                   plateau_patience=mc.optimization_plateau_patience, plateau_rel_tol=mc.optimization_plateau_rel_tol,
-                   densify_interval=mc.optimization_densify_interval,
-                   densify_until_step=mc.optimization_densify_until_step,
-                   densify_grad_threshold=mc.optimization_densify_grad_threshold,
-                   prune_opacity=mc.optimization_prune_opacity, selective_adam=mc.optimization_selective_adam)
 
 
 @dataclass
@@ -225,7 +117,7 @@ class OptimizationResult:
 
 
 def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depths_m: Sequence[np.ndarray],
-                       poses: Sequence[np.ndarray], K: np.ndarray, settings: OptimizationSettings = OptimizationSettings(),
+                       poses: Sequence[np.ndarray], K: np.ndarray, settings: FitConfig = FitConfig(),
                        log: Callable[[str], None] | None = None,
                        depth_weights: Sequence[np.ndarray] | None = None,
                        coverage_bands_m: Sequence[np.ndarray] | None = None) -> OptimizationResult:

@@ -313,12 +313,12 @@ def _keyframe_reads(n: int, read: Callable[[int], np.ndarray], in_memory: bool) 
 def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: PipelineConfig,
                          log: LogFn | None = None, manifest: FrameManifest | None = None) -> GaussianWorld:
     """Merge the keyframes into a world; with the sequence's ``manifest``, then fit it to the
-    keyframe images: colours first (``mapping.colour_refinement_iterations``, cheap), then every
-    Gaussian parameter against colour and depth (``mapping.optimization_epochs``)."""
+    keyframe images: colours first (``mapping.colour_refinement.iterations``, cheap), then every
+    Gaussian parameter against colour and depth (``mapping.fit.epochs``)."""
     world = build_world(fused, keyframes, cfg.mapping, log, manifest)
     mc = cfg.mapping
-    fit_colours = mc.colour_refinement_iterations > 0
-    optimize = mc.optimization_epochs > 0
+    fit_colours = mc.colour_refinement.iterations > 0
+    optimize = mc.fit.epochs > 0
     if manifest is None or not len(world.field) or not (fit_colours or optimize):
         return world
     idx = [int(i) for i in world.keyframe_indices]
@@ -343,9 +343,9 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
         from atlas_pipeline.gaussian_world.refine import refine_colours
 
         world.field = refine_colours(world.field, images, world.T_world_cam_keyframes, manifest.camera.K,
-                                     mc.colour_refinement_iterations, mc.colour_refinement_scale, log)
+                                     mc.colour_refinement.iterations, mc.colour_refinement.scale, log)
     if optimize:
-        from atlas_pipeline.gaussian_world.optimize import OptimizationSettings, optimize_gaussians
+        from atlas_pipeline.gaussian_world.optimize import optimize_gaussians
 
         lo, hi = cfg.fusion.min_depth_m, max(mc.max_depth_m, cfg.fusion.max_depth_m)
 
@@ -359,7 +359,7 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
         # the measured surface itself must be opaque, not one behind it
         bands = _keyframe_reads(len(idx), lambda k: coverage_band_m(depths[k], mc.voxel_size_m), in_memory)
         res = optimize_gaussians(world.field, images, depths, list(world.T_world_cam_keyframes), manifest.camera.K,
-                                 OptimizationSettings.from_mapping(mc), log, depth_weights=weights,
+                                 mc.fit, log, depth_weights=weights,
                                  coverage_bands_m=bands)
         world.field = res.field
         world.fit = res.record  # no timing: the record is content
