@@ -391,8 +391,8 @@ def build_targets(root: Path) -> dict[str, FuzzTarget]:
     # -- 3DGS PLY: ours, a reference-implementation one (f_rest, no ids / colours), one with faces
     tmp = _make_folder(root, "seeds")
     ours = write_gaussian_ply(fld, tmp / "ours.ply").read_bytes()
-    props = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "f_rest_0", "f_rest_1", "opacity",
-             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    props = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
+             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
     vals = np.zeros((3, len(props)), np.float32)
     vals[:, props.index("rot_0")] = 1.0
     ref = ("ply\nformat binary_little_endian 1.0\nelement vertex 3\n" + "".join(f"property float {p}\n" for p in props)

@@ -176,8 +176,11 @@ def test_atlasgs2_truncated_wrong_version_or_nan(field, tmp_path):
     p.write_bytes(data[:-5])
     with pytest.raises(BundleFormatError, match="needs .* bytes"):
         read_atlasgs2(p)
-    p.write_bytes(data[:8] + struct.pack("<IIQ", 3, 0, 0))
-    with pytest.raises(BundleFormatError, match="version 3 is not supported"):
+    p.write_bytes(data[:8] + struct.pack("<IIQ", 4, 0, 0))
+    with pytest.raises(BundleFormatError, match="version 4 is not supported"):
+        read_gaussian_binary(p)
+    p.write_bytes(data[:8] + struct.pack("<IIQ", 3, 0, 0))  # version 3 carries SH: degree 1-3
+    with pytest.raises(BundleFormatError, match="SH degree 0"):
         read_gaussian_binary(p)
     bad = bytearray(data)
     bad[24:28] = struct.pack("<f", float("nan"))

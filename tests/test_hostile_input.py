@@ -326,21 +326,35 @@ def test_importing_a_ply_of_no_vertices_names_the_file(isolated, caplog, n_rest,
     assert not out.exists()
 
 
-@pytest.mark.parametrize("n_rest, degree", [(45, "degree 3"), (24, "degree 2"), (9, "degree 1"),
-                                            (10, "no whole degree"), (0, None)])
-def test_spherical_harmonics_dropped_on_import_are_a_visible_warning(isolated, capsys, n_rest, degree):
+@pytest.mark.parametrize("n_rest, degree", [(45, 3), (24, 2), (9, 1), (0, 0)])
+def test_spherical_harmonics_are_kept_on_import(isolated, capsys, n_rest, degree):
+    import numpy as np
+
     from assets.cli import main
+    from atlas_pipeline.scene_memory.bundle import load_world_bundle
 
     src = _ply(isolated / "splats.ply", 5, n_rest)
     out = isolated / "world"
     assert main(["import-ply", str(src), "--output", str(out)]) == 0  # no -v
-    err = capsys.readouterr().err
-    if degree is None:
-        assert "f_rest" not in err
-        return
-    assert (f"warning: {src}: {n_rest} f_rest_* properties (spherical harmonics of {degree}" in err
-            and "are dropped" in err), err
-    assert err.count("f_rest_*") == 1  # once per file, not per chunk of vertices
+    assert "dropped" not in capsys.readouterr().err
+    for source in ("bin", "ply"):  # both of the bundle's copies carry them
+        field = load_world_bundle(out, source=source).field
+        assert field.sh_degree == degree and field.sh_rest.shape == (5, (degree + 1) ** 2 - 1, 3)
+        assert np.all(field.sh_rest == 0.0)
+
+
+@pytest.mark.parametrize("n_rest, problem", [
+    (10, "10 f_rest_* properties: spherical harmonics of degree 1, 2 or 3 have 9, 24 or 45"),
+    (72, "72 f_rest_* properties: spherical harmonics of degree 1, 2 or 3 have 9, 24 or 45"),  # degree 4
+])
+def test_spherical_harmonics_of_no_supported_degree_are_refused(isolated, caplog, n_rest, problem):
+    from assets.cli import main
+
+    src = _ply(isolated / "splats.ply", 5, n_rest)
+    out = isolated / "world"
+    assert main(["import-ply", str(src), "--output", str(out)]) == 2
+    assert f"{src}: {problem}" in caplog.text
+    assert "Traceback" not in caplog.text and not out.exists()
 
 
 # ---- the command line's output ---------------------------------------------------------------------

@@ -7,6 +7,11 @@ them into a whole renderer. The one deliberate difference: ``ReferenceProjection
 model's full ``SIGMA_EXTENT``-sigma footprint, which the reference renderer draws, so comparing it
 with the compiled renderer also checks the compiled box cut to the visible ellipse.
 
+``view_colors_reference`` (from :mod:`atlas_pipeline.gaussian_world.sh`) is the stage before the
+projection for a field with view-dependent colour: each Gaussian's spherical harmonics evaluated
+along the ray from the camera centre, the reference of the compiled ``sh.view_colors`` that
+``raster_bounded.project_visible`` runs per chunk.
+
 ``fit_gradients_reference`` is the keyframe fit's forward and image-space backward pass in the
 textbook prefix-sum form (``tests/test_optimize.py`` checks the compiled tile kernels against it).
 """
@@ -45,10 +50,12 @@ from atlas_pipeline.gaussian_world.raster import (
     T_MIN,
     TILE_SIZE,
 )
+from atlas_pipeline.gaussian_world.sh import view_colors_reference
 
 __all__ = ["ReferenceProjection", "project_reference", "sort_reference", "bin_tiles_reference",
            "composite_reference", "plane_slopes_reference", "fit_gradients_reference", "visible_reference",
-           "tile_pair_counts_reference", "bin_tile_batch_reference"]
+           "tile_pair_counts_reference", "bin_tile_batch_reference",
+           "view_colors_reference"]
 
 
 class ReferenceProjection(NamedTuple):

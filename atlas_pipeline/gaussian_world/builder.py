@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from atlas_pipeline.errors import ArtifactError
-from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
+from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize, sh_degree_of_rest_count
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 from atlas_pipeline.safe_arrays import (
     is_finite_number,
@@ -291,6 +291,7 @@ _WORLD_MEMBERS = {
     "voxel_n_keyframes": ("iu", 1), "keyframe_indices": ("iu", 1), "T_world_cam_keyframes": ("f", 3),
     "history": ("iu", 1),
 }
+_SH_MEMBER = "sh_rest"  # optional: [N, K, 3] SH coefficients of a field with view-dependent colour
 # The mapping statistics (optional: worlds saved before mapping had its own depth range lack them).
 _MAP_PREFIX = "map_voxel_"
 _MAP_MEMBERS = {
@@ -354,6 +355,8 @@ class GaussianWorld:
                 voxel_sum_rgb=b.sum_rgb, voxel_sum_sq=b.sum_sq, voxel_n_keyframes=b.n_keyframes,
                 keyframe_indices=self.keyframe_indices, T_world_cam_keyframes=self.T_world_cam_keyframes,
                 history=self.history, **self._mapping_members(),
+                # view-dependent colour only when the field has it: degree-0 worlds keep their bytes
+                **({_SH_MEMBER: self.field.sh_rest} if self.field.sh_degree else {}),
             )
         meta = write_json_atomic(directory / "world.json", {
             "map_id": self.map_id, "n_gaussians": len(self.field), "voxel_size_m": b.voxel_size_m,
@@ -391,8 +394,11 @@ class GaussianWorld:
 
         with zipfile.ZipFile(path) as zf:  # already checked as an archive by load_npz_checked
             has_map = any(name.startswith(_MAP_PREFIX) for name in zf.namelist())
+            has_sh = f"{_SH_MEMBER}.npy" in zf.namelist()
         if has_map:
             z.update(load_npz_checked(path, _MAP_MEMBERS, error_type=ArtifactError))
+        if has_sh:
+            z.update(load_npz_checked(path, {_SH_MEMBER: ("f", 3)}, error_type=ArtifactError))
 
         def bad(msg: str) -> ArtifactError:
             return ArtifactError(f"{path}: {msg}")
@@ -409,8 +415,10 @@ class GaussianWorld:
         for name, shape in want.items():
             if z[name].shape != shape:
                 raise bad(f"{name} has shape {list(z[name].shape)}, expected {list(shape)}")
+        if has_sh and not (z[_SH_MEMBER].shape[::2] == (n, 3) and sh_degree_of_rest_count(z[_SH_MEMBER].shape[1])):
+            raise bad(f"{_SH_MEMBER} has shape {list(z[_SH_MEMBER].shape)}, expected [{n}, K, 3] with K in 3, 8, 15")
         finite = ["positions", "scales", "rotations_xyzw", "opacities", "voxel_sum_xyz", "voxel_sum_rgb",
-                  "voxel_sum_sq", "T_world_cam_keyframes"]
+                  "voxel_sum_sq", "T_world_cam_keyframes"] + ([_SH_MEMBER] if has_sh else [])
         for name in finite + (["map_voxel_weight", "map_voxel_sum_xyz", "map_voxel_sum_rgb", "map_voxel_sum_sq"]
                               if has_map else []):
             if not np.isfinite(z[name]).all():
@@ -438,7 +446,8 @@ class GaussianWorld:
         def f64(name: str) -> np.ndarray:  # no copy when the archive already holds native float64
             return np.asarray(z[name], dtype=np.float64)
 
-        fld = GaussianField(z["positions"], z["scales"], z["rotations_xyzw"], z["colors"], z["opacities"], z["ids"])
+        fld = GaussianField(z["positions"], z["scales"], z["rotations_xyzw"], z["colors"], z["opacities"], z["ids"],
+                            z.get(_SH_MEMBER))
         builder = VoxelGaussianBuilder(
             float(voxel_size_m), np.asarray(z["voxel_ids"], np.uint64), counts("voxel_count", np.int64),
             f64("voxel_sum_xyz"), f64("voxel_sum_rgb"), f64("voxel_sum_sq"), counts("voxel_n_keyframes", np.int32))

@@ -187,7 +187,7 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     ``colour_poses``: frame -> the camera's pose ``[4, 4]`` when that frame's colour image was
     taken, where it differs from its depth image's: the colour is compared with a render there,
     the depth with one at ``T_world_cam[i]``."""
-    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.gaussian_world.render import render_field
     from atlas_pipeline.progress import Progress
     from atlas_pipeline.viz.plots import error_panels_png, preview_size
 
@@ -199,8 +199,7 @@ def evaluate_views(field_: GaussianField, manifest, T_world_cam: np.ndarray, fra
     colour_poses = colour_poses or {}
 
     def render(T: np.ndarray):
-        return render_gaussians(field_.positions, field_.scales, field_.rotations_xyzw, field_.colors,
-                                field_.opacities, T, cam.K, cam.width, cam.height, background=background)
+        return render_field(field_, T, cam.K, cam.width, cam.height, background=background)
 
     for k, i in enumerate(idx):
         real = manifest.read_rgb(i)

@@ -9,13 +9,37 @@ import numpy as np
 
 __all__ = [
     "GaussianField", "opacity_to_logit", "logit_to_opacity", "scale_to_log", "log_to_scale", "canonicalize",
-    "FIELD_BYTES_PER_GAUSSIAN", "ids_unique",
+    "FIELD_BYTES_PER_GAUSSIAN", "ids_unique", "SH_MAX_DEGREE", "sh_rest_count", "sh_degree_of_rest_count",
+    "field_bytes_per_gaussian",
 ]
 
 # Memory of one Gaussian in a GaussianField: positions, scales (3 x float32 each), rotation
 # (4 x float32), colour (3 x uint8), opacity (float32), id (uint64) -- the same 55 bytes as a
 # Gaussian in ATLASGS2 (gaussians.bin), so a loaded field is the file's size.
 FIELD_BYTES_PER_GAUSSIAN = 12 + 12 + 16 + 3 + 4 + 8
+
+# View-dependent colour: spherical harmonics up to degree 3, as 3D Gaussian Splatting trains them.
+# The degree-0 term is the uint8 colour; degree d adds (d + 1)^2 - 1 coefficients per channel.
+SH_MAX_DEGREE = 3
+_SH_REST_COUNTS = {d: (d + 1) ** 2 - 1 for d in range(SH_MAX_DEGREE + 1)}  # 0, 3, 8, 15
+_SH_DEGREE_OF_COUNT = {k: d for d, k in _SH_REST_COUNTS.items()}
+
+
+def sh_rest_count(degree: int) -> int:
+    """Coefficients per channel beyond the degree-0 colour: 0, 3, 8, 15 for degree 0-3."""
+    if degree not in _SH_REST_COUNTS:
+        raise ValueError(f"SH degree must be 0..{SH_MAX_DEGREE}, got {degree!r}")
+    return _SH_REST_COUNTS[degree]
+
+
+def sh_degree_of_rest_count(count: int) -> int | None:
+    """The SH degree with ``count`` coefficients per channel beyond degree 0 (0, 3, 8 or 15), else None."""
+    return _SH_DEGREE_OF_COUNT.get(int(count))
+
+
+def field_bytes_per_gaussian(sh_degree: int = 0) -> int:
+    """Memory of one Gaussian in a field of SH degree ``sh_degree``: 55 bytes plus 12 per SH coefficient."""
+    return FIELD_BYTES_PER_GAUSSIAN + 12 * sh_rest_count(sh_degree)
 
 
 def ids_unique(ids: np.ndarray) -> bool:
@@ -47,6 +71,11 @@ class GaussianField:
         opacities: ``[N]`` float32 in (0, 1].
         ids: ``[N]`` uint64 stable identifiers (unique; the same surface patch keeps its id across
             incremental merges and reruns).
+        sh_rest: ``[N, K, 3]`` float32 spherical-harmonic coefficients beyond degree 0 (``K`` = 0, 3,
+            8 or 15 for SH degree 0-3), in the order of 3D Gaussian Splatting's ``features_rest``:
+            coefficient ``k + 1`` of the basis, then the RGB channel; in the units of ``f_dc_*`` (the
+            colour in [0, 1] is ``0.5 + C0 f_dc + sum_k Y_k(d) sh_rest[:, k]``, see
+            :mod:`atlas_pipeline.gaussian_world.sh`). ``None`` (the default) is degree 0, ``[N, 0, 3]``.
     """
 
     positions: np.ndarray
@@ -55,6 +84,7 @@ class GaussianField:
     colors: np.ndarray
     opacities: np.ndarray
     ids: np.ndarray
+    sh_rest: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.ascontiguousarray(self.positions, dtype=np.float32)
@@ -64,6 +94,13 @@ class GaussianField:
         self.opacities = np.ascontiguousarray(self.opacities, dtype=np.float32)
         self.ids = np.ascontiguousarray(self.ids, dtype=np.uint64)
         n = len(self.positions)
+        if self.sh_rest is None:
+            self.sh_rest = np.zeros((n, 0, 3), np.float32)
+        self.sh_rest = np.ascontiguousarray(self.sh_rest, dtype=np.float32)
+        sh = self.sh_rest.shape
+        if len(sh) != 3 or sh[0] != n or sh[2] != 3 or sh_degree_of_rest_count(sh[1]) is None:
+            raise ValueError(f"GaussianField.sh_rest has shape {sh}, expected ({n}, K, 3) with K in "
+                             f"{sorted(_SH_DEGREE_OF_COUNT)} (SH degree 0-{SH_MAX_DEGREE})")
         expect = {
             "positions": (n, 3), "scales": (n, 3), "rotations_xyzw": (n, 4), "colors": (n, 3),
             "opacities": (n,), "ids": (n,),
@@ -77,10 +114,15 @@ class GaussianField:
         return len(self.positions)
 
     @property
+    def sh_degree(self) -> int:
+        """Degree of the view-dependent colour: 0 (none) to ``SH_MAX_DEGREE``."""
+        return _SH_DEGREE_OF_COUNT[self.sh_rest.shape[1]]
+
+    @property
     def nbytes(self) -> int:
-        """Bytes the arrays hold: ``FIELD_BYTES_PER_GAUSSIAN * len(self)``."""
+        """Bytes the arrays hold: ``field_bytes_per_gaussian(self.sh_degree) * len(self)``."""
         return sum(getattr(self, k).nbytes for k in ("positions", "scales", "rotations_xyzw", "colors",
-                                                      "opacities", "ids"))
+                                                      "opacities", "ids", "sh_rest"))
 
     @classmethod
     def empty(cls) -> "GaussianField":
@@ -95,18 +137,21 @@ class GaussianField:
         return bool(
             np.isfinite(self.positions).all() and np.isfinite(self.scales).all()
             and np.isfinite(self.rotations_xyzw).all() and np.isfinite(self.opacities).all()
+            and np.isfinite(self.sh_rest).all()
         )
 
     def subset(self, mask_or_index: np.ndarray) -> "GaussianField":
         m = mask_or_index
         return GaussianField(self.positions[m], self.scales[m], self.rotations_xyzw[m],
-                             self.colors[m], self.opacities[m], self.ids[m])
+                             self.colors[m], self.opacities[m], self.ids[m], self.sh_rest[m])
 
     def content_hash(self) -> str:
         """sha256 over every array, in a fixed order: the map id of a world state (the arrays are
-        hashed in place, contiguous as ``__post_init__`` makes them: no copy)."""
+        hashed in place, contiguous as ``__post_init__`` makes them: no copy). ``sh_rest`` is hashed
+        only when the field has any, so a degree-0 world keeps the id it had before fields carried SH."""
         h = hashlib.sha256()
-        for name in ("ids", "positions", "scales", "rotations_xyzw", "colors", "opacities"):
+        names = ("ids", "positions", "scales", "rotations_xyzw", "colors", "opacities")
+        for name in names + (("sh_rest",) if self.sh_degree else ()):
             arr = getattr(self, name)
             h.update(name.encode())
             h.update(str(arr.shape).encode())
@@ -117,7 +162,7 @@ class GaussianField:
         """Bit-for-bit equality of every array."""
         return all(
             np.array_equal(getattr(self, k), getattr(other, k))
-            for k in ("ids", "positions", "scales", "rotations_xyzw", "colors", "opacities")
+            for k in _ARRAYS
         )
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -125,6 +170,9 @@ class GaussianField:
         if len(self) == 0:
             return np.zeros(3), np.zeros(3)
         return self.positions.min(axis=0).astype(np.float64), self.positions.max(axis=0).astype(np.float64)
+
+
+_ARRAYS = ("positions", "scales", "rotations_xyzw", "colors", "opacities", "ids", "sh_rest")
 
 
 # ---- the 3DGS parametrisation: opacity as a logit, scales as logarithms ----------------------
@@ -170,4 +218,5 @@ def canonicalize(field: GaussianField) -> GaussianField:
         field.colors,
         _fixed_point(field.opacities, opacity_to_logit, logit_to_opacity),
         field.ids,
+        field.sh_rest,
     )

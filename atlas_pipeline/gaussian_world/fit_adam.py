@@ -3,6 +3,7 @@ moments) and one fused Adam step over every Gaussian (selective or dense)."""
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import NamedTuple
 
@@ -13,6 +14,8 @@ from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
 from atlas_pipeline.gaussian_world.fit_kernels import N_PARAM, P_COL, P_LOG_SCALE, P_LOGIT, P_POS, P_ROT
 from atlas_pipeline.gaussian_world.raster import GaussianArrays
 from atlas_pipeline.geometry import quat_xyzw_to_rotmat
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["ADAM_BLOCK", "LOGIT_CLAMP", "CHILD_ID_BIT", "AdamHyper", "FitParams", "FitState", "adam_step",
            "bias_corrections"]
@@ -171,6 +174,13 @@ class FitState:
         self.logit = np.log(op / (1 - op)).astype(np.float32)
         self.col = (field.colors.astype(np.float64) / 255.0).astype(np.float32)
         self.ids = field.ids.copy()
+        # The fit is degree 0: it renders and fits the base colour only. SH coefficients ride along
+        # unchanged (split and cloned Gaussians copy their parent's), so none are dropped.
+        self.sh_rest = field.sh_rest  # [N, K, 3]; [N, 0, 3] at degree 0
+        if field.sh_degree:
+            logger.warning("the keyframe fit renders and fits degree-0 colour only: the SH coefficients of "
+                           "degree %d (view-dependent colour) of the %d Gaussians are kept unchanged",
+                           field.sh_degree, len(field))
         # Where each Gaussian started ([N, 3]), its surface normal there ([N, 3], the axis of its
         # smallest scale) and how far along it the fit may move it ([N, 1], normal_offset_max_scales
         # times its largest scale). Without a bound they are [N, 0] and never read: no memory.
@@ -210,7 +220,7 @@ class FitState:
         self.vs_sum = np.zeros(len(self))
         self.vs_cnt = np.zeros(len(self), np.int32)
 
-    _ROWS = ("pos", "log_s", "quat", "logit", "col", "ids", "anchor", "anchor_n", "anchor_b", "n_steps")
+    _ROWS = ("pos", "log_s", "quat", "logit", "col", "ids", "sh_rest", "anchor", "anchor_n", "anchor_b", "n_steps")
     _MOMENTS = ("m1", "m2")  # [N_PARAM, N]: Gaussians along axis 1
 
     def take(self, rows: np.ndarray) -> None:
@@ -248,4 +258,4 @@ class FitState:
     def to_field(self, keep: np.ndarray) -> GaussianField:
         return canonicalize(GaussianField(self.pos[keep], np.exp(self.log_s[keep].astype(np.float64)),
                                           self.quat[keep], np.rint(self.col[keep].astype(np.float64) * 255.0),
-                                          self.opa[keep], self.ids[keep]))
+                                          self.opa[keep], self.ids[keep], self.sh_rest[keep]))

@@ -21,6 +21,7 @@ from atlas_pipeline.gaussian_world.raster import (
     MAX_TILE_PAIRS, N_AUX, N_FEAT, NEAR_M, PROJECT_CHUNK, TILE_SIZE, GaussianArrays, RasterView, project_kernel,
     radix_argsort_positive,
 )
+from atlas_pipeline.gaussian_world.sh import view_colors
 
 __all__ = ["VisibleSplats", "project_visible", "sort_visible", "tile_pair_counts", "tile_batches", "bin_tile_batch"]
 
@@ -66,9 +67,12 @@ def project_visible(
     view: RasterView,
     near_m: float = NEAR_M,
     chunk: int = PROJECT_CHUNK,
+    sh_rest: np.ndarray | None = None,  # [N, K, 3] float32 view-dependent colour (None: colors as given)
 ) -> VisibleSplats:
     """Stage 3 in bounded memory: ``project_gaussians`` on ``chunk`` Gaussians at a time, keeping the
     drawn rows only (input order). The rows equal ``project_gaussians``'s valid rows bit for bit.
+    With ``sh_rest`` each chunk's colours are first those seen from the camera (``sh.view_colors``,
+    ``colors`` the degree-0 term), so no per-Gaussian colour buffer is needed.
 
     Memory: the outputs are allocated for N rows but only the M drawn ones are written and kept
     (64 bytes per drawn Gaussian: ``N_FEAT`` float32, 4 int32, a float64 depth), plus the per-chunk
@@ -82,7 +86,8 @@ def project_visible(
     m = 0
     for i in range(0, n, max(1, int(chunk))):
         c = slice(i, i + chunk)
-        chunk_gaussians = GaussianArrays(positions[c], scales[c], rotations_xyzw[c], colors[c], opacities[c])
+        col = colors[c] if sh_rest is None else view_colors(positions[c], colors[c], sh_rest[c], view.centre_world)
+        chunk_gaussians = GaussianArrays(positions[c], scales[c], rotations_xyzw[c], col, opacities[c])
         valid, d, f, b, _ = project_kernel(chunk_gaussians, view, near_m, no_aux)
         m = _compact_rows(valid, d, f, b, depth, feat, box, m)
     return VisibleSplats(_shrink_rows(feat, m), _shrink_rows(box, m), _shrink_rows(depth, m))

@@ -13,6 +13,7 @@ same alpha, so the weights are exactly those of the forward image.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Callable, Sequence
 
@@ -32,11 +33,12 @@ _N_WORKERS = 4  # fixed, so the sums (and the refined world) do not depend on th
 
 
 @njit(cache=True)
-def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles,
-                    residual, gsum, wsum):
-    """Tiles ``worker, worker + n_workers, ...``: ``gsum[k] += w_k(p) residual(p)``, ``wsum[k] += w_k(p)``
-    over the pixels ``p`` of each Gaussian row ``k``, with ``w = alpha T`` as in the forward pass."""
+def _backward_tiles(worker, n_workers, bins, feat, box, width, height, residual, gsum, wsum):
+    """Tiles ``worker, worker + n_workers, ...`` of ``bins`` (:class:`raster.TileBins`):
+    ``gsum[k] += w_k(p) residual(p)``, ``wsum[k] += w_k(p)`` over the pixels ``p`` of each Gaussian
+    row ``k``, with ``w = alpha T`` as in the forward pass."""
     t_min = T_MIN
+    tile_start, tile_ids, tiles_x, n_tiles = bins
     for t in range(worker, n_tiles, n_workers):
         px0, py0, px1, py1 = tile_pixel_bounds(t, tiles_x, width, height)
         for py in range(py0, py1 + 1):
@@ -59,13 +61,12 @@ def _backward_tiles(worker, n_workers, tile_start, tile_ids, feat, box, width, h
 
 
 @njit(cache=True, parallel=True)
-def _backward(tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles, residual, n_workers):
+def _backward(bins, feat, box, width, height, residual, n_workers):
     m = feat.shape[0]
     gs = np.zeros((n_workers, m, 3))
     ws = np.zeros((n_workers, m))
     for w in prange(n_workers):
-        _backward_tiles(w, n_workers, tile_start, tile_ids, feat, box, width, height, tiles_x, n_tiles,
-                        residual, gs[w], ws[w])
+        _backward_tiles(w, n_workers, bins, feat, box, width, height, residual, gs[w], ws[w])
     g = np.zeros((m, 3))
     wsum = np.zeros(m)
     for w in range(n_workers):  # fixed order: deterministic
@@ -89,8 +90,8 @@ def _accumulate_view(field: GaussianField, colors: np.ndarray, image: np.ndarray
     rgb = composite_tiles(sp, inp.background)[0]
     # Residual of the unrounded colour image would be slightly better; the uint8 one is within 0.5.
     residual = rgb.astype(np.float32) - image.astype(np.float32)
-    g_s, w_s = _backward(sp.tile_start, sp.tile_ids, sp.feat, sp.box, sp.width, sp.height, sp.tiles_x, sp.n_tiles,
-                         residual, _N_WORKERS)
+    bins = raster.TileBins(sp.tile_start, sp.tile_ids, sp.tiles_x, sp.n_tiles)
+    g_s, w_s = _backward(bins, sp.feat, sp.box, sp.width, sp.height, residual, _N_WORKERS)
     g = np.zeros((n, 3))
     w = np.zeros(n)
     g[sp.order] = g_s
@@ -110,6 +111,9 @@ def refine_colours(field: GaussianField, images: Sequence[np.ndarray], poses: Se
     h0, w0 = images[0].shape[:2]
     w, h, Ks = raster.scale_camera(K, w0, h0, scale)  # pixel centres kept (see raster.scale_intrinsics)
     small = [img if (w, h) == (w0, h0) else _resize(img, w, h) for img in images]
+    if field.sh_degree:
+        logger.warning("colour refinement renders and fits degree-0 colour only: the SH coefficients of degree %d "
+                       "(view-dependent colour) are kept unchanged", field.sh_degree)
     colors = field.colors.astype(np.float64)
     for it in range(iterations):
         g = np.zeros((len(field), 3))
@@ -124,8 +128,8 @@ def refine_colours(field: GaussianField, images: Sequence[np.ndarray], poses: Se
         colors[seen] = np.clip(colors[seen] - g[seen] / ws[seen, None], 0.0, 255.0)
         msg = f"colour refinement {it + 1}/{iterations}: image RMS residual before the step {np.mean(rms):.2f}"
         (log or logger.info)(msg)
-    return GaussianField(field.positions, field.scales, field.rotations_xyzw, np.rint(colors).astype(np.uint8),
-                         field.opacities, field.ids)
+    # degree 0: only the base colour is refined; SH coefficients, if any, are kept (said once, above)
+    return dataclasses.replace(field, colors=np.rint(colors).astype(np.uint8))
 
 
 def _resize(img: np.ndarray, w: int, h: int) -> np.ndarray:

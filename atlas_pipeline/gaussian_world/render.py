@@ -21,6 +21,11 @@ The image model is the one of Kerbl et al. 2023 / gsplat (EWA splatting):
 5. ``rgb = round(C + T background)``, ``alpha = 1 - T``, ``depth = D / alpha`` where
    ``alpha >= 0.5``, else 0.
 
+``render_field`` renders a ``GaussianField`` with its view-dependent colour: before step 1, each
+Gaussian's colour is its spherical harmonics evaluated along the ray from the camera centre to its
+mean (:mod:`atlas_pipeline.gaussian_world.sh`; 3DGS's ``eval_sh`` + 0.5, clamped at 0), a chunk at
+a time inside the bounded-memory projection. A degree-0 field renders exactly as ``render_gaussians``.
+
 Pixel centres are at integer pixel coordinates, so a point projecting to ``(u, v) = K p / z``
 lands in the centre of pixel ``(round(u), round(v))`` (the convention of ``CameraIntrinsics``).
 Skew in ``K`` is ignored.
@@ -58,10 +63,15 @@ import numpy as np
 
 from atlas_pipeline.gaussian_world import raster, raster_bounded
 from atlas_pipeline.gaussian_world.composite import composite_tile_batch
-from atlas_pipeline.gaussian_world._raster_reference import composite_reference, project_reference, sort_reference
+from atlas_pipeline.gaussian_world._raster_reference import (
+    composite_reference, project_reference, sort_reference, view_colors_reference,
+)
+from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.gaussian_world.raster import TILE_SIZE
+from atlas_pipeline.gaussian_world.sh import check_sh_rest
 
-__all__ = ["RenderResult", "render_gaussians", "render_gaussians_reference", "TILE_SIZE", "render_peak_bytes",
+__all__ = ["RenderResult", "render_gaussians", "render_gaussians_reference", "render_field", "render_field_reference",
+           "TILE_SIZE", "render_peak_bytes",
            "RENDER_BYTES_PER_GAUSSIAN", "RENDER_BYTES_PER_DRAWN", "RENDER_BYTES_PER_PIXEL",
            "RENDER_FIXED_BYTES"]
 
@@ -164,11 +174,40 @@ def render_gaussians(
     """
     inp = raster.validate_inputs(positions, scales, rotations_xyzw, colors, opacities, T_world_cam, K, width,
                                  height, background, near_m, float_colors=False)
+    return _render_checked(inp, None, max_tile_pairs)
+
+
+def render_field(
+    field: GaussianField,
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    background: tuple[int, int, int] = (0, 0, 0),
+    near_m: float = raster.NEAR_M,
+    max_tile_pairs: int | None = raster.MAX_TILE_PAIRS,
+) -> RenderResult:
+    """Render a :class:`GaussianField` into one view, its view-dependent colour included: each
+    Gaussian's colour is its spherical harmonics (``field.sh_rest``, :mod:`~atlas_pipeline.gaussian_world.sh`)
+    evaluated along the ray from the camera centre to its mean, as 3DGS does. A degree-0 field gives
+    exactly ``render_gaussians`` of its arrays. Arguments and result as ``render_gaussians``."""
+    if not field.sh_degree:
+        return render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
+                                T_world_cam, K, width, height, background, near_m, max_tile_pairs)
+    inp = raster.validate_inputs(field.positions, field.scales, field.rotations_xyzw, field.colors,
+                                 field.opacities, T_world_cam, K, width, height, background, near_m,
+                                 float_colors=False)
+    return _render_checked(inp, check_sh_rest(field.sh_rest, len(field)), max_tile_pairs)
+
+
+def _render_checked(inp: raster.RasterInputs, sh_rest: np.ndarray | None,
+                    max_tile_pairs: int | None) -> RenderResult:
+    """The fast path on checked inputs; ``sh_rest`` ``[N, K, 3]`` float32 or None (colours as given)."""
     if max_tile_pairs is not None and int(max_tile_pairs) < 1:
         raise ValueError(f"max_tile_pairs must be a positive integer or None, got {max_tile_pairs!r}")
     view = raster.view_from_pose(inp.T_world_cam, inp.K, inp.width, inp.height)
     vis = raster_bounded.project_visible(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities,
-                                 view, inp.near_m)
+                                         view, inp.near_m, sh_rest=sh_rest)
     if len(vis.depth) == 0:
         return _empty_result(inp.width, inp.height, inp.background)
     bg = inp.background
@@ -210,9 +249,31 @@ def render_gaussians_reference(
     """
     inp = raster.validate_inputs(positions, scales, rotations_xyzw, colors, opacities, T_world_cam, K, width,
                                  height, background, near_m)
+    return _render_reference_checked(inp, None)
+
+
+def render_field_reference(
+    field: GaussianField,
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    background: tuple[int, int, int] = (0, 0, 0),
+    near_m: float = raster.NEAR_M,
+) -> RenderResult:
+    """``render_field`` by the NumPy references of the stages (the SH stage ``view_colors_reference``
+    included): the check of ``render_field``, as ``render_gaussians_reference`` is of ``render_gaussians``."""
+    inp = raster.validate_inputs(field.positions, field.scales, field.rotations_xyzw, field.colors,
+                                 field.opacities, T_world_cam, K, width, height, background, near_m)
+    return _render_reference_checked(inp, check_sh_rest(field.sh_rest, len(field)) if field.sh_degree else None)
+
+
+def _render_reference_checked(inp: raster.RasterInputs, sh_rest: np.ndarray | None) -> RenderResult:
     if inp.positions.shape[0] == 0:
         return _empty_result(inp.width, inp.height, inp.background)
-    proj = project_reference(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities,
+    colors = inp.colors if sh_rest is None else view_colors_reference(inp.positions, inp.colors, sh_rest,
+                                                                      inp.T_world_cam[:3, 3])
+    proj = project_reference(inp.positions, inp.scales, inp.rotations_xyzw, colors, inp.opacities,
                              inp.T_world_cam, inp.K, inp.width, inp.height, inp.near_m)
     order = sort_reference(proj.valid, proj.depth)
     rgb, depth_m, alpha, depth_median_m = composite_reference(

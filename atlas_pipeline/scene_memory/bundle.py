@@ -15,7 +15,8 @@ Memory and disk of a world of N Gaussians (and V voxels of statistics; a mapped 
 one voxel per Gaussian) are stated by :func:`bundle_disk_bytes`, :func:`world_memory_bytes`,
 :func:`save_peak_bytes` and :func:`load_peak_bytes` (checked against measured RSS by
 ``benchmarks/bench_big_world.py`` and ``tests/test_big_world.py``): 55 bytes per Gaussian in
-memory (``FIELD_BYTES_PER_GAUSSIAN``) and in ``gaussians.bin``, 79 in ``gaussians.ply``, 55 per
+memory (``FIELD_BYTES_PER_GAUSSIAN``) and in ``gaussians.bin``, 79 in ``gaussians.ply`` (12 more in
+each per SH coefficient of a field with view-dependent colour, which both files carry), 55 per
 Gaussian plus 116 per voxel in ``world.npz``; writing needs a few bytes per Gaussian beyond the
 world (every file is streamed or written in chunks), loading the arrays it returns plus about 10
 bytes per Gaussian of checks.
@@ -43,7 +44,7 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from atlas_pipeline.errors import BundleFormatError
-from atlas_pipeline.gaussian_world.field import FIELD_BYTES_PER_GAUSSIAN, GaussianField
+from atlas_pipeline.gaussian_world.field import GaussianField, field_bytes_per_gaussian
 from atlas_pipeline.io_utils import (
     ARTIFACT_KIND,
     ARTIFACT_RECORD,
@@ -64,10 +65,16 @@ from atlas_pipeline.localization.metrics import write_tum_trajectory
 from atlas_pipeline.scene_memory.binary import (
     BYTES_PER_GAUSSIAN,
     HEADER_BYTES,
+    atlasgs2_bytes_per_gaussian,
     read_gaussian_binary,
     write_gaussian_binary,
 )
-from atlas_pipeline.scene_memory.ply import PLY_BYTES_PER_GAUSSIAN, read_gaussian_ply, write_gaussian_ply
+from atlas_pipeline.scene_memory.ply import (
+    ply_bytes_per_gaussian,
+    ply_header_max_bytes,
+    read_gaussian_ply,
+    write_gaussian_ply,
+)
 from atlas_pipeline.transition_log.transitions import write_transitions
 
 __all__ = [
@@ -93,7 +100,6 @@ logger = logging.getLogger(__name__)
 # VoxelGaussianBuilder per voxel: id uint64, count int64, sum_xyz / sum_rgb [3] and sum_sq [6]
 # float64, n_keyframes int32.
 VOXEL_BYTES_PER_VOXEL = 8 + 8 + 24 + 24 + 48 + 4
-_PLY_HEADER_MAX_BYTES = 1024  # write_gaussian_ply's header: 24 property lines and a count
 _NPZ_OVERHEAD_BYTES = 64 * 1024  # world.npz: ~20 members' npy and zip headers, keyframe poses
 # Writing: chunk buffers of the PLY encoder (~300 bytes per row of ply._CHUNK), numpy's savez
 # buffers (16 MB), hashing reads (1 MB), with room for the allocator.
@@ -105,22 +111,26 @@ LOAD_CHECK_BYTES = 10
 LOAD_FIXED_BYTES = 32 << 20  # chunked reads and checks, hashing reads, allocator slack
 
 
-def world_memory_bytes(n_gaussians: int, n_voxels: int = 0) -> int:
+def world_memory_bytes(n_gaussians: int, n_voxels: int = 0, sh_degree: int = 0) -> int:
     """Bytes a loaded ``GaussianField`` of ``n_gaussians`` (plus ``n_voxels`` of voxel statistics,
-    as ``GaussianWorld.load`` returns them) holds: ``55 N + 116 V``."""
-    return FIELD_BYTES_PER_GAUSSIAN * int(n_gaussians) + VOXEL_BYTES_PER_VOXEL * int(n_voxels)
+    as ``GaussianWorld.load`` returns them) holds: ``55 N + 116 V`` (``12 K N`` more with ``K`` SH
+    coefficients per channel beyond degree 0)."""
+    return field_bytes_per_gaussian(sh_degree) * int(n_gaussians) + VOXEL_BYTES_PER_VOXEL * int(n_voxels)
 
 
-def bundle_disk_bytes(n_gaussians: int, n_voxels: int | None = None, isotropic: bool = False) -> dict[str, int]:
+def bundle_disk_bytes(n_gaussians: int, n_voxels: int | None = None, isotropic: bool = False,
+                      sh_degree: int = 0) -> dict[str, int]:
     """Upper bounds of the bundle's Gaussian files in bytes: ``gaussians.bin`` (exact: 24 + 55 N, or
-    16 + 31 N for an isotropic field), ``gaussians.ply`` (at most 1 kB of header + 79 N) and, with
-    ``n_voxels``, ``world.npz`` (55 N + 116 V + at most 64 kB of headers and keyframes)."""
+    16 + 31 N for an isotropic field; 12 K N more with ``K`` SH coefficients per channel),
+    ``gaussians.ply`` (at most ~1 kB of header, ~2.5 kB at SH degree 3, + 79 N + 12 K N) and, with
+    ``n_voxels``, ``world.npz`` (55 N + 12 K N + 116 V + at most 64 kB of headers and keyframes)."""
     n = int(n_gaussians)
-    v = 1 if isotropic else 2
-    out = {"gaussians.bin": HEADER_BYTES[v] + BYTES_PER_GAUSSIAN[v] * n,
-           "gaussians.ply": _PLY_HEADER_MAX_BYTES + PLY_BYTES_PER_GAUSSIAN * n}
+    v = 1 if isotropic and not sh_degree else 2
+    per_bin = BYTES_PER_GAUSSIAN[1] if v == 1 else atlasgs2_bytes_per_gaussian(sh_degree)
+    out = {"gaussians.bin": HEADER_BYTES[v] + per_bin * n,
+           "gaussians.ply": ply_header_max_bytes(sh_degree) + ply_bytes_per_gaussian(sh_degree) * n}
     if n_voxels is not None:
-        out["world.npz"] = world_memory_bytes(n, n_voxels) + _NPZ_OVERHEAD_BYTES
+        out["world.npz"] = world_memory_bytes(n, n_voxels, sh_degree) + _NPZ_OVERHEAD_BYTES
     return out
 
 

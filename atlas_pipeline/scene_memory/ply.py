@@ -6,6 +6,9 @@ Per vertex (binary little endian, float32 unless noted)::
     nx ny nz              unit normal: the axis of the smallest scale (zeros where the Gaussian is
                           not flat; the reference writes zeros, viewers of point clouds shade with it)
     f_dc_0 f_dc_1 f_dc_2  SH degree-0 colour: (rgb - 0.5) / C0, C0 = 0.28209479
+    f_rest_0 .. f_rest_{3K-1}  SH coefficients beyond degree 0 (only for a field with view-dependent
+                          colour; K = 3, 8, 15 for degree 1-3), channel-major as the reference
+                          writes them: f_rest_{c K + k} = sh_rest[:, k, c]
     opacity               logit(opacity)
     scale_0 scale_1 scale_2   log(standard deviation)
     rot_0 rot_1 rot_2 rot_3   quaternion w x y z
@@ -16,14 +19,16 @@ Gaussian-splat viewers and gsplat read the 3DGS properties and ignore the extra 
 through plyfile (the reference implementation's own reader) and accepts any PLY with at least the
 3DGS properties, in any format (ascii, binary little or big endian) and with any property types
 (ids are assigned when absent); our header pass before it names the header line of a problem and
-checks the counts against the file size before anything is allocated. Spherical
-harmonics beyond degree 0 (``f_rest_*``, 45 of them at the reference's degree 3) are not supported
-yet: they are dropped with a warning naming the file, their number and the SH degree.
+checks the counts against the file size before anything is allocated. Spherical harmonics beyond
+degree 0 (``f_rest_*``, 45 of them at the reference's degree 3) are kept as the field's ``sh_rest``;
+the degree follows from their number (9, 24 or 45), and any other number, or names that are not
+``f_rest_0 .. f_rest_{n-1}``, is an error naming the file and the property.
 
 Writing is ours, in chunks of ``_CHUNK`` vertices (faster than plyfile's writer and without its
 copy of the whole vertex table: ``benchmarks/bench_ply.py``); binary vertex data is memory-mapped
 by plyfile and decoded ``_CHUNK`` at a time, so a PLY of any size is written and read with the
-field plus a few MB: ``PLY_BYTES_PER_GAUSSIAN`` (79) bytes per vertex on disk; reading
+field plus a few MB: ``PLY_BYTES_PER_GAUSSIAN`` (79) bytes per vertex on disk, 12 more per SH
+coefficient (``ply_bytes_per_gaussian``); reading
 holds the field (``FIELD_BYTES_PER_GAUSSIAN``), one chunk and, for foreign files whose ids are not
 sorted, one sorted copy of the ids.
 """
@@ -31,7 +36,6 @@ sorted, one sorted copy of the ids.
 from __future__ import annotations
 
 import logging
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,12 +50,15 @@ from atlas_pipeline.gaussian_world.field import (
     log_to_scale as _decode_scale,
     opacity_to_logit as _encode_opacity,
     scale_to_log as _encode_scale,
+    sh_degree_of_rest_count,
+    sh_rest_count,
 )
 from atlas_pipeline.io_utils import atomic_path
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SH_C0", "write_gaussian_ply", "read_gaussian_ply", "PLY_BYTES_PER_GAUSSIAN"]
+__all__ = ["SH_C0", "write_gaussian_ply", "read_gaussian_ply", "PLY_BYTES_PER_GAUSSIAN", "ply_bytes_per_gaussian",
+           "ply_header_max_bytes"]
 
 SH_C0 = 0.28209479177387814
 
@@ -75,9 +82,36 @@ _MAX_COUNT_DIGITS = 20
 # Vertices encoded or decoded at a time: a chunk's structured rows and float64 temporaries stay
 # ~20 MB, and a few thousand write calls cover millions of Gaussians.
 _CHUNK = 1 << 16
-_WRITE_DTYPE = np.dtype([(p, "<f4") for p in _FLOAT_PROPS] + [("red", "u1"), ("green", "u1"), ("blue", "u1"),
-                                                              ("id_hi", "<u4"), ("id_lo", "<u4")])
-PLY_BYTES_PER_GAUSSIAN = _WRITE_DTYPE.itemsize  # 79: what write_gaussian_ply stores per vertex
+_REST_PREFIX = "f_rest_"
+_REST_AFTER = "f_dc_2"  # where the reference puts f_rest_* among the properties
+
+
+def _write_dtype(sh_degree: int = 0) -> np.dtype:
+    """The vertex row ``write_gaussian_ply`` writes for a field of SH degree ``sh_degree``."""
+    floats = []
+    for p in _FLOAT_PROPS:
+        floats.append(p)
+        if p == _REST_AFTER:
+            floats += [f"{_REST_PREFIX}{j}" for j in range(3 * sh_rest_count(sh_degree))]
+    return np.dtype([(p, "<f4") for p in floats] + [("red", "u1"), ("green", "u1"), ("blue", "u1"),
+                                                    ("id_hi", "<u4"), ("id_lo", "<u4")])
+
+
+_WRITE_DTYPE = _write_dtype(0)
+PLY_BYTES_PER_GAUSSIAN = _WRITE_DTYPE.itemsize  # 79: what write_gaussian_ply stores per vertex of degree 0
+# Header bytes beyond the property lines: magic, format, comment, element and end_header lines.
+_HEADER_FIXED_BYTES = 160
+_HEADER_BYTES_PER_PROPERTY = 32  # "property float f_rest_44\n" and the like
+
+
+def ply_bytes_per_gaussian(sh_degree: int = 0) -> int:
+    """Bytes per vertex of ``write_gaussian_ply``: 79, plus 12 per SH coefficient beyond degree 0."""
+    return _write_dtype(sh_degree).itemsize
+
+
+def ply_header_max_bytes(sh_degree: int = 0) -> int:
+    """Upper bound of ``write_gaussian_ply``'s header (its property lines and a 20-digit count)."""
+    return _HEADER_FIXED_BYTES + _HEADER_BYTES_PER_PROPERTY * len(_write_dtype(sh_degree).names)
 
 
 def _normals(field: GaussianField) -> np.ndarray:
@@ -97,14 +131,18 @@ def _normals(field: GaussianField) -> np.ndarray:
     return out
 
 
-def _encode_vertices(field: GaussianField) -> np.ndarray:
-    """``[N]`` structured vertex rows (``_WRITE_DTYPE``) of ``field``."""
+def _encode_vertices(field: GaussianField, dtype: np.dtype) -> np.ndarray:
+    """``[N]`` structured vertex rows (``_write_dtype(field.sh_degree)``) of ``field``."""
     n = len(field)
-    v = np.empty(n, dtype=_WRITE_DTYPE)
+    v = np.empty(n, dtype=dtype)
     v["x"], v["y"], v["z"] = field.positions.T
     v["nx"], v["ny"], v["nz"] = _normals(field).T
     dc = ((field.colors.astype(np.float64) / 255.0) - 0.5) / SH_C0
     v["f_dc_0"], v["f_dc_1"], v["f_dc_2"] = dc.astype(np.float32).T
+    k_rest = field.sh_rest.shape[1]
+    for c in range(3):  # channel-major, as the reference's save_ply
+        for k in range(k_rest):
+            v[f"{_REST_PREFIX}{c * k_rest + k}"] = field.sh_rest[:, k, c]
     v["opacity"] = _encode_opacity(field.opacities)
     ls = _encode_scale(field.scales)
     v["scale_0"], v["scale_1"], v["scale_2"] = ls.T
@@ -118,20 +156,22 @@ def _encode_vertices(field: GaussianField) -> np.ndarray:
 
 def write_gaussian_ply(field: GaussianField, path: str | Path) -> Path:
     """Write ``field`` as a binary little-endian 3DGS PLY (atomically), ``_CHUNK`` vertices at a
-    time (every value is encoded per vertex, so the bytes do not depend on the chunking)."""
+    time (every value is encoded per vertex, so the bytes do not depend on the chunking). A field with
+    view-dependent colour gets its ``f_rest_*`` after ``f_dc_*``, as the reference writes them."""
     path = Path(path)
     n = len(field)
+    dtype = _write_dtype(field.sh_degree)
     header = ["ply", "format binary_little_endian 1.0", "comment Atlas-GS Gaussian world (3DGS layout)",
               f"element vertex {n}"]
-    for name in _WRITE_DTYPE.names:
-        t = _WRITE_DTYPE[name].str
+    for name in dtype.names:
+        t = dtype[name].str
         header.append(f"property {'float' if t == '<f4' else 'uchar' if t == '|u1' else 'uint'} {name}")
     header.append("end_header")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))
             for i in range(0, n, _CHUNK):
-                f.write(_encode_vertices(field.subset(slice(i, i + _CHUNK))).tobytes())
+                f.write(_encode_vertices(field.subset(slice(i, i + _CHUNK)), dtype).tobytes())
     return path
 
 
@@ -236,18 +276,31 @@ def _min_bytes(fmt: str, element: _Element) -> int:
     return element.count * row
 
 
-def _warn_dropped_sh(path: Path, names: tuple[str, ...]) -> None:
-    """Warn (visible without -v) that the ``f_rest_*`` properties of ``path`` are not imported:
-    view-dependent colour is not supported yet, so only the degree-0 colour (``f_dc_*``) is kept."""
-    n_rest = sum(1 for p in names if p.startswith("f_rest_"))
-    if not n_rest:
-        return
-    # 3 colour channels x ((degree + 1)^2 - 1) coefficients beyond degree 0: 9, 24, 45 for 1, 2, 3
-    degree = round(math.sqrt(n_rest / 3 + 1) - 1)
-    whole = 3 * ((degree + 1) ** 2 - 1) == n_rest
-    logger.warning("%s: %d f_rest_* properties (spherical harmonics of %s) are dropped: only the degree-0 "
-                   "colour (f_dc_*) is imported, so view-dependent colour is lost", path, n_rest,
-                   f"degree {degree}" if whole else "no whole degree: 3 x ((degree + 1)^2 - 1) expected")
+def _sh_rest_names(path: Path, vertex: _Element) -> list[str]:
+    """The vertex's ``f_rest_*`` property names in coefficient order (``f_rest_0`` first); none for
+    a degree-0 file. Their number must be a whole SH degree (9, 24, 45 for 1-3) and their names
+    ``f_rest_0 .. f_rest_{n-1}``, each a scalar: else a ``BundleFormatError`` naming the property."""
+    props = [(p, n) for p, _, n in vertex.props if p.startswith(_REST_PREFIX)]
+    if not props:
+        return []
+    index: dict[int, str] = {}
+    for p, length in props:
+        suffix = p[len(_REST_PREFIX):]
+        if length is not None:
+            raise BundleFormatError(path, f"property '{p[:40]}' must be a scalar, not a list")
+        if not re.fullmatch(r"0|[1-9][0-9]{0,3}", suffix):
+            raise BundleFormatError(path, f"property '{p[:40]}': expected f_rest_<index> (0, 1, 2, ...)")
+        index[int(suffix)] = p
+    n_rest = len(props)
+    degree = sh_degree_of_rest_count(n_rest // 3) if n_rest % 3 == 0 else None
+    if not degree:
+        raise BundleFormatError(path, f"{n_rest} f_rest_* properties: spherical harmonics of degree 1, 2 or 3 have "
+                                      "9, 24 or 45 (3 channels x ((degree + 1)^2 - 1))")
+    missing = [j for j in range(n_rest) if j not in index]
+    if missing:
+        raise BundleFormatError(path, f"property 'f_rest_{missing[0]}' is missing (f_rest_* must be numbered "
+                                      f"0..{n_rest - 1}, found '{index[max(index)]}')")
+    return [index[j] for j in range(n_rest)]
 
 
 def _finite_float32(path: Path, v: np.ndarray, names: list[str]) -> np.ndarray:
@@ -289,7 +342,7 @@ def read_gaussian_ply(path: str | Path, allow_empty: bool = False) -> GaussianFi
             if vertex.count == 0 and not allow_empty:
                 raise BundleFormatError(path, "header declares 0 vertices: the file holds no Gaussians, "
                                               "so there is no world to read")
-            _warn_dropped_sh(path, tuple(p for p, _, _ in vertex.props))
+            rest_names = _sh_rest_names(path, vertex)
             need = sum(_min_bytes(fmt, e) for e in elements)
             if size - data_start < need:
                 what = (f"{vertex.count} vertices" if len(elements) == 1 else
@@ -304,14 +357,15 @@ def read_gaussian_ply(path: str | Path, allow_empty: bool = False) -> GaussianFi
                 raise
             except Exception as exc:  # plyfile's parse errors, and numpy's on data it cannot convert
                 raise BundleFormatError(path, f"cannot parse the PLY data: {exc}") from None
-            return _decode_vertices(path, ply["vertex"].data)
+            return _decode_vertices(path, ply["vertex"].data, rest_names)
     except OSError as exc:
         raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
 
 
-def _decode_vertices(path: Path, data: np.ndarray) -> GaussianField:
+def _decode_vertices(path: Path, data: np.ndarray, rest_names: list[str]) -> GaussianField:
     """Decode the ``[N]`` structured vertex rows ``data`` (any byte order and property types, as
-    plyfile returns them: memory-mapped for binary files), ``_CHUNK`` at a time."""
+    plyfile returns them: memory-mapped for binary files), ``_CHUNK`` at a time; ``rest_names``: the
+    ``f_rest_*`` properties in coefficient order (``_sh_rest_names``)."""
     col = {p: k for k, p in enumerate(_REQUIRED)}
     count = len(data)
     dtype = data.dtype
@@ -327,6 +381,7 @@ def _decode_vertices(path: Path, data: np.ndarray) -> GaussianField:
     colors = np.empty((count, 3), np.uint8)
     opacities = np.empty(count, np.float32)
     ids = np.empty(count, np.uint64) if has_ids and ids_ok else np.arange(count, dtype=np.uint64)
+    sh_rest = np.empty((count, len(rest_names) // 3, 3), np.float32)
     for i in range(0, count, _CHUNK):
         m = min(_CHUNK, count - i)
         v = data[i:i + m]
@@ -351,8 +406,10 @@ def _decode_vertices(path: Path, data: np.ndarray) -> GaussianField:
             ids[c] = (v["id_hi"].astype(np.uint64) << np.uint64(32)) | v["id_lo"].astype(np.uint64)
         with np.errstate(over="ignore"):  # exp(-logit) may overflow to inf: opacity 0, as intended
             opacities[c] = _decode_opacity(vals[:, col["opacity"]])
+        if rest_names:  # [m, 3 K] channel-major -> [m, K, 3]
+            sh_rest[c] = _finite_float32(path, v, rest_names).reshape(m, 3, -1).transpose(0, 2, 1)
     if not ids_ok:
         raise BundleFormatError(path, "properties id_hi and id_lo must be unsigned integers of at most 32 bits")
     if has_ids and not ids_unique(ids):
         raise BundleFormatError(path, "Gaussian ids are not unique")
-    return GaussianField(pos, scales, rot, colors, opacities, ids)
+    return GaussianField(pos, scales, rot, colors, opacities, ids, sh_rest)

@@ -577,13 +577,12 @@ class _RenderCheck:
     def measure(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Coverage (share of pixels with accumulated opacity > 0.5) and sharpness (mean gradient
         magnitude of the grey image, 8-bit levels per pixel), ``[P]`` each, of poses ``[P, 4, 4]``."""
-        from atlas_pipeline.gaussian_world.render import render_gaussians
+        from atlas_pipeline.gaussian_world.render import render_field
 
         f = self.world
         cov, sharp = [], []
         for T in np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4):
-            r = render_gaussians(f.positions, f.scales, f.rotations_xyzw, f.colors, f.opacities, T, self.K,
-                                 self.size[0], self.size[1])
+            r = render_field(f, T, self.K, self.size[0], self.size[1])
             cov.append(float(np.mean(r.alpha > 0.5)))
             sharp.append(image_sharpness(r.rgb))
         return np.array(cov), np.array(sharp)

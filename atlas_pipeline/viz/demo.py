@@ -108,7 +108,7 @@ def orbit_trajectory(field: GaussianField, cfg: PipelineConfig, T_world_cam_keyf
 def render_video(field: GaussianField, poses_se3: np.ndarray, camera_K: np.ndarray, width: int, height: int,
                  cfg: PipelineConfig, path: Path, label: str, log: LogFn | None = None) -> tuple[int, tuple[int, int]]:
     """Render ``field`` from every finite pose of ``poses_se3`` ``[n, 4, 4]`` into an MP4 at ``path``."""
-    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.gaussian_world.render import render_field
     from atlas_pipeline.progress import Progress
     from atlas_pipeline.viz.video import write_mp4
 
@@ -120,8 +120,7 @@ def render_video(field: GaussianField, poses_se3: np.ndarray, camera_K: np.ndarr
     def frames():
         progress = Progress(f"rendering {label} video", len(poses), log)
         for T in poses:
-            r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors,
-                                 field.opacities, T, K, w, h)
+            r = render_field(field, T, K, w, h)
             progress.update()
             yield r.rgb
 
@@ -135,7 +134,7 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
     at the dataset's frame size (frames read one at a time). A colour image taken at another time
     than its depth image is shown beside a render at the trajectory's pose at the colour's time
     (``localization.colour_delay_compensation``, as the render evaluation)."""
-    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.gaussian_world.render import render_field
     from atlas_pipeline.perception.colour_timing import colour_time_poses
     from atlas_pipeline.progress import Progress
     from atlas_pipeline.viz.video import side_by_side, write_mp4
@@ -149,8 +148,7 @@ def render_side_by_side_video(field: GaussianField, manifest: FrameManifest, pos
     def frames():
         progress = Progress("rendering side-by-side video", len(idx), log)
         for i in idx:
-            r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
-                                 colour_poses.get(int(i), poses_se3[i]), cam.K, cam.width, cam.height)
+            r = render_field(field, colour_poses.get(int(i), poses_se3[i]), cam.K, cam.width, cam.height)
             progress.update()
             yield side_by_side(manifest.read_rgb(int(i)), r.rgb)
 

@@ -89,11 +89,10 @@ def render_preview_png(field: GaussianField, T_world_cam: np.ndarray, width: int
                        K: np.ndarray | None = None) -> bytes:
     """Render ``field`` from ``T_world_cam`` at ``width`` x ``height`` with intrinsics ``K`` (the
     dataset's camera, scaled to that size), else :func:`preview_intrinsics`."""
-    from atlas_pipeline.gaussian_world.render import render_gaussians
+    from atlas_pipeline.gaussian_world.render import render_field
 
     K = preview_intrinsics(width, height) if K is None else np.asarray(K, np.float64)
-    r = render_gaussians(field.positions, field.scales, field.rotations_xyzw, field.colors, field.opacities,
-                         np.asarray(T_world_cam, np.float64), K, width, height)
+    r = render_field(field, np.asarray(T_world_cam, np.float64), K, width, height)
     return png_bytes(r.rgb)
 
 
