@@ -313,9 +313,26 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
     # race on the z-buffer and the result does not depend on the number of threads.
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
     for band in prange(N_SPLAT_BANDS):
-        _splat_band(min(h, band * band_h), min(h, (band + 1) * band_h), cam, box, order, r2, fx, fy, cx, cy, params, zbuf, pts,
-                    nrm)
+        _splat_band(min(h, band * band_h), min(h, (band + 1) * band_h), VisibleSurfels(cam, box, order, r2),
+                    (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm))
     return pts, nrm
+
+
+class VisibleSurfels(NamedTuple):
+    """The surfels a view sees, in its camera frame (pass 1 of :func:`splat_surfels`)."""
+
+    cam: np.ndarray  # [M, 7] float64: centre xyz, normal xyz, normal . centre (camera frame)
+    box: np.ndarray  # [M, 4] int64: pixel bounds ulo, uhi, vlo, vhi of each disk's footprint
+    order: np.ndarray  # [V] int64: the visible ones, ascending
+    radius_sq: float  # squared disk radius (m^2)
+
+
+class SplatBuffers(NamedTuple):
+    """What :func:`splat_surfels` writes, per pixel of the view."""
+
+    zbuf: np.ndarray  # [h, w] float64 blended depth (inf: empty)
+    points_cam: np.ndarray  # [h, w, 3] float64
+    normals_cam: np.ndarray  # [h, w, 3] float64
 
 
 @njit(cache=True, inline="always")
@@ -338,7 +355,7 @@ def _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, min_incidence_cos):
 
 
 @njit(cache=True)
-def _splat_band(row_lo, row_hi, cam, box, order, r2, fx, fy, cx, cy, params, zbuf, pts, nrm):
+def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out):
     """Surfels ``order`` (visible ones, ascending) into rows ``row_lo:row_hi`` of the buffers (see
     :func:`splat_surfels`).
 
@@ -347,6 +364,9 @@ def _splat_band(row_lo, row_hi, cam, box, order, r2, fx, fy, cx, cy, params, zbu
     depth and normal (surface splatting's blending, Zwicker et al. 2001). A surface seen by few
     noisy frames is a layer of disks as thick as the depth noise; the nearest disk alone lies
     about a sigma in front of it, and a frame aligned to it is pulled towards its camera."""
+    cam, box, order, r2 = surfels
+    fx, fy, cx, cy = intrinsics
+    zbuf, pts, nrm = out
     mic = params.min_incidence_cos
     rows = row_hi - row_lo
     w = zbuf.shape[1]
