@@ -18,7 +18,7 @@ from functools import lru_cache
 from typing import Annotated, Any, Literal, get_args, get_origin
 
 from annotated_types import Ge, Gt, Le, Lt
-from dagster import Config, ConfigurableResource
+from dagster import Config, ConfigurableResource, Failure
 from pydantic import BaseModel, Field, create_model
 
 from atlas_pipeline.config import PipelineConfig, load_profile
@@ -32,6 +32,14 @@ PROFILE_ENV = "ATLAS_PROFILE"  # the profile when none is named (the code locati
 _BOUNDS = ((Gt, "gt", ">"), (Ge, "ge", ">="), (Lt, "lt", "<"), (Le, "le", "<="))
 
 
+class RunConfigError(Failure, ConfigError):
+    """A run config the library's model refuses. A Dagster ``Failure``, so the UI's first line is
+    the message (naming the field), not a stack trace; a ``ConfigError`` for every other caller."""
+
+    def __init__(self, message: str):
+        Failure.__init__(self, description=message, allow_retries=False)
+
+
 class AtlasConfig(ConfigurableResource):
     """The run's settings: the profile's values, each overridable per run (launchpad, ``--set``).
 
@@ -43,7 +51,10 @@ class AtlasConfig(ConfigurableResource):
     def load(self) -> PipelineConfig:
         """The run's :class:`PipelineConfig`, validated whole; a bad value raises ``ConfigError``
         naming the dotted field (``run config: localization.max_ate_m must be ...``)."""
-        return _validated(json.dumps(self.model_dump(), sort_keys=True))
+        try:
+            return _validated(json.dumps(self.model_dump(), sort_keys=True))
+        except ConfigError as exc:
+            raise RunConfigError(str(exc)) from None
 
 
 @lru_cache(maxsize=64)

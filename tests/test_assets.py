@@ -198,3 +198,16 @@ def test_the_data_version_tag_is_dagsters():
     from assets.versioning import DATA_VERSION_TAG as ours
 
     assert ours == DATA_VERSION_TAG
+
+
+def test_a_bad_run_config_fails_the_run_with_the_field_as_its_first_line(isolated):
+    """In the UI a refused run config reads as our message (an intentional failure), not a stack trace."""
+    from dagster import DagsterInstance
+
+    job = build_definitions(isolated / "artifacts").resolve_job_def("atlas_gs_all")
+    res = job.execute_in_process(partition_key="synth-small", instance=DagsterInstance.ephemeral(), raise_on_error=False,
+                                 run_config={"resources": {"atlas": {"config": {"mapping": {"voxel_size_m": -1.0}}}}})
+    failure = next(ev for ev in res.all_events if ev.event_type_value == "STEP_FAILURE")
+    assert failure.event_specific_data.user_failure_data.description == (
+        "run config: mapping.voxel_size_m must be greater than 0, got -1.0")
+    assert not (isolated / "artifacts").exists() or not any((isolated / "artifacts").rglob("*.npz"))
