@@ -28,6 +28,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.errors import ArtifactError, ConfigError
 from atlas_pipeline.interop.frames import ExportSource, undistorted_depth_m, undistorted_rgb
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
@@ -40,7 +41,7 @@ __all__ = ["MESH_VOXEL_M", "TriangleMesh", "tsdf_mesh", "write_mesh_ply", "write
 MESH_VOXEL_M = 0.02
 SDF_TRUNC_VOXELS = 4.0
 MIN_VOXEL_M, MAX_VOXEL_M = 0.002, 0.5  # below: memory explodes; above: no room is left
-MESH_MAX_DEPTH_M = 8.0  # the map's own depth range (mapping.max_depth_m's default)
+MESH_MAX_DEPTH_M = MappingConfig().max_depth_m  # the map's own depth range
 MIN_COMPONENT_TRIANGLES = 50
 # Blocks of 64^3 voxels (1.28 m at 2 cm; ~9 MB each in Open3D's voxel layout): a room needs a few
 # dozen, allocated where the depth lands.
