@@ -131,9 +131,11 @@ def _normals(field: GaussianField) -> np.ndarray:
     return out
 
 
-def _encode_vertices(field: GaussianField, dtype: np.dtype) -> np.ndarray:
-    """``[N]`` structured vertex rows (``_write_dtype(field.sh_degree)``) of ``field``."""
+def _encode_vertices(field: GaussianField, dtype: np.dtype | None = None) -> np.ndarray:
+    """``[N]`` structured vertex rows (``dtype``: ``_write_dtype(field.sh_degree)``, computed when
+    not given) of ``field``."""
     n = len(field)
+    dtype = _write_dtype(field.sh_degree) if dtype is None else dtype
     v = np.empty(n, dtype=dtype)
     v["x"], v["y"], v["z"] = field.positions.T
     v["nx"], v["ny"], v["nz"] = _normals(field).T
