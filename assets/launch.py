@@ -145,8 +145,11 @@ def run_request(profile: str, overrides: dict[str, Any]) -> tuple[dict[str, Any]
     resource's config (the other fields keep the profile's values) and as tags ``atlas/set/KEY``."""
     config: dict[str, Any] = {}
     for dotted, value in overrides.items():
-        section, key = dotted.split(".", 1)
-        config.setdefault(section, {})[key] = list(value) if isinstance(value, tuple) else value
+        *sections, key = dotted.split(".")
+        node = config
+        for section in sections:  # mapping.fit.epochs: nested like the resource's config
+            node = node.setdefault(section, {})
+        node[key] = list(value) if isinstance(value, tuple) else value
     tags = {"atlas/profile": profile, **{f"atlas/set/{k}": json.dumps(v) for k, v in overrides.items()}}
     return ({"resources": {"atlas": {"config": config}}} if config else {}), tags
 
