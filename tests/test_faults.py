@@ -131,9 +131,11 @@ def dagster_bundle(isolated, capsys):
 
 
 @pytest.mark.parametrize("how, code, says", [
-    ("artifact", 2, ["world_bundle artifact of the Dagster IO manager", "cp -a", "--world"]),
-    ("cp -a", 0, []),
-    ("cp -a, marker removed", 0, []),
+    # one case in the quick tier (each runs the pipeline first); CI runs them all
+    pytest.param("artifact", 2, ["world_bundle artifact of the Dagster IO manager", "cp -a", "--world"],
+                 marks=pytest.mark.slow),
+    pytest.param("cp -a", 0, [], marks=pytest.mark.slow),
+    pytest.param("cp -a, marker removed", 0, [], marks=pytest.mark.slow),
     ("cp -a, a file of yours added", 2, ["notes.txt", "move them out"]),
 ])
 def test_localizing_into_a_copy_of_the_dagster_bundle(dagster_bundle, isolated, capsys, monkeypatch, how, code, says):
@@ -255,10 +257,10 @@ def _status(capsys, partition: str = "synth-small") -> tuple[int, str]:
 
 @pytest.mark.parametrize("what, path, stale, says", [
     ("a ground-truth pose, mtime restored", "data/synth-small/groundtruth.txt", "raw_dataset", "dataset files changed"),
-    ("world.npz of the cached world, mtime restored", "artifacts/gaussian_world/synth-small/world.npz",
-     "gaussian_world", "artifact files changed"),
-    ("surfels.npz of the bundle, mtime restored", "artifacts/world_bundle/synth-small/surfels.npz",
-     "world_bundle", "artifact files changed"),
+    pytest.param("world.npz of the cached world, mtime restored", "artifacts/gaussian_world/synth-small/world.npz",
+                 "gaussian_world", "artifact files changed", marks=pytest.mark.slow),
+    pytest.param("surfels.npz of the bundle, mtime restored", "artifacts/world_bundle/synth-small/surfels.npz",
+                 "world_bundle", "artifact files changed", marks=pytest.mark.slow),
 ])
 def test_a_changed_byte_behind_a_restored_mtime_is_stale_and_recomputed(dagster_bundle, isolated, capsys,
                                                                          what, path, stale, says):
@@ -286,6 +288,7 @@ def test_a_changed_byte_behind_a_restored_mtime_is_stale_and_recomputed(dagster_
 # ---- status of a partition whose folder is gone ---------------------------------------------------
 
 
+@pytest.mark.slow
 def test_status_of_a_deleted_partition_folder_says_so_and_its_advice_works(isolated, small_synthetic, capsys):
     import shlex
 
@@ -340,7 +343,8 @@ CLI = "import sys; from assets.cli import command; sys.exit(command())"
 
 
 @pytest.mark.parametrize("argv, ready", [
-    (["-v", "build", "--input", "sig", "--output", "{root}/new-world"], "RGB-D frames"),
+    pytest.param(["-v", "build", "--input", "sig", "--output", "{root}/new-world"], "RGB-D frames",
+                 marks=pytest.mark.slow),
     pytest.param(["run", "sig"], "keyframes", marks=pytest.mark.slow),
     pytest.param(["-v", "localize", "--world", "{root}/world", "--input", "sig"], "RGB-D frames", marks=pytest.mark.slow),
     pytest.param(["-v", "demo-video", "--world", "{root}/world", "--output", "{root}/orbit.mp4",
