@@ -332,3 +332,13 @@ def test_keyframe_fit_state_carries_sh_unchanged_and_says_so(caplog):
     out = st.to_field(np.ones(len(st), bool))
     assert out.sh_degree == 2
     assert np.array_equal(out.sh_rest[:5], f.sh_rest[:5]) and np.array_equal(out.sh_rest[5], f.sh_rest[3])
+
+
+def test_gaussian_world_npz_keeps_sh(tmp_path):
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld, VoxelGaussianBuilder
+
+    f = _field(20, 3, seed=8)
+    none = VoxelGaussianBuilder(0.05, np.zeros(0, np.uint64), np.zeros(0, np.int64), np.zeros((0, 3)),
+                                np.zeros((0, 3)), np.zeros((0, 6)), np.zeros(0, np.int32))
+    GaussianWorld(f, none, np.zeros(0, np.int64), np.zeros((0, 4, 4)), "estimated", np.zeros(0, np.int64)).save(tmp_path)
+    assert GaussianWorld.load(tmp_path).field.equals(f)
