@@ -83,8 +83,9 @@ RENDER_BYTES_PER_GAUSSIAN = 4  # validation temporaries (isfinite masks, quatern
 RENDER_BYTES_PER_DRAWN = 4 * raster.N_FEAT + 16 + 8 + 8  # feature row 40, box 16, depth 8, sort order 8
 RENDER_BYTES_PER_PAIR = 4  # one int32 per (tile, Gaussian) pair of the current batch
 RENDER_BYTES_PER_PIXEL = 3 + 4 + 4 + 4  # the result: rgb uint8, depth, alpha, median depth float32
-# Per-chunk projection outputs (65 bytes per chunk row, counted as 80), the radix sort's
-# histograms and per-thread tile buffers, with room for allocator rounding.
+# Per-chunk projection outputs (65 bytes per chunk row, counted as 80; render_field's per-view SH
+# colours of a chunk add 12), the radix sort's histograms and per-thread tile buffers, with room
+# for allocator rounding.
 RENDER_FIXED_BYTES = 80 * raster.PROJECT_CHUNK + (4 << 20)
 
 
