@@ -223,7 +223,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             out = versioned(context, world, {
                 "n_gaussians": len(world.field),
                 "map_id": world.map_id,
-                "voxel_size_m": _num(world.builder.voxel_size_m),
+                "voxel_size_m": _num(world.tracking_voxels.voxel_size_m),
                 "extent_m": MetadataValue.json([round(float(v), 3) for v in hi - lo]),
                 "gaussians_after_each_keyframe": MetadataValue.json([int(h) for h in world.history]),
                 "fit": MetadataValue.json(_rounded(world.fit)),  # with its timing (world.json keeps the rest)

@@ -115,7 +115,7 @@ def bench_relocalization(manifest, frames, cfg) -> dict:
     fused = fuse(first, gcfg)
     world = build_gaussian_world(fused, select_keyframes_stage(first, fused, gcfg), gcfg)
     # As a later session sees it: Gaussian centres from the bundle, keyframe poses from its metadata.
-    model = SurfelModel.from_field(world.field.positions, world.builder.voxel_size_m)
+    model = SurfelModel.from_field(world.field.positions, world.tracking_voxels.voxel_size_m)
     tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
     reloc = Relocalizer(tracker, model, world.T_world_cam_keyframes)
     ok, errs, confs, times = [], [], [], []

@@ -83,7 +83,7 @@ def test_mid_world_round_trips_exactly(mid_world, tmp_path):
     world = GaussianWorld.load(folder)
     assert world.field.equals(mid_world.field)
     for k in ("ids", "count", "sum_xyz", "sum_rgb", "sum_sq", "n_keyframes"):
-        assert np.array_equal(getattr(world.builder, k), getattr(mid_world.builder, k)), k
+        assert np.array_equal(getattr(world.tracking_voxels, k), getattr(mid_world.tracking_voxels, k)), k
     assert world.map_id == mid_world.map_id
 
 
@@ -117,7 +117,7 @@ def test_world_load_refuses_decreasing_voxel_ids(tmp_path):
     world = B.make_world(2_000)
     world.save(tmp_path)
     GaussianWorld.load(tmp_path)  # sorted: fine
-    world.builder.ids = world.builder.ids[::-1].copy()  # a uint64 difference would wrap and pass
+    world.tracking_voxels.ids = world.tracking_voxels.ids[::-1].copy()  # a uint64 difference would wrap and pass
     world.save(tmp_path)
     with pytest.raises(ArtifactError, match="strictly increasing"):
         GaussianWorld.load(tmp_path)

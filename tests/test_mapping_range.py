@@ -85,10 +85,10 @@ def test_held_out_views_cover_more_and_score_higher(small_manifest, worlds):
 def test_tracking_map_keeps_the_fusion_range(worlds):
     """The tracking map (the world's voxel statistics localization tracks against) is the same,
     bit for bit, whatever the mapping range; only the Gaussians' own statistics reach further."""
-    a, b = worlds[TRACKING_MAX_M].builder, worlds[8.0].builder
+    a, b = worlds[TRACKING_MAX_M].tracking_voxels, worlds[8.0].tracking_voxels
     for name in ("ids", "count", "sum_xyz", "sum_rgb", "sum_sq", "n_keyframes", "weight"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
-    assert len(worlds[8.0].mapping_builder) > len(b)
+    assert len(worlds[8.0].map_voxels) > len(b)
 
 
 def test_tracker_depth_range_is_the_fusion_range(small_manifest, worlds, monkeypatch):
@@ -231,13 +231,13 @@ def test_world_roundtrip_keeps_the_mapping_statistics(tmp_path, worlds):
     w.save(tmp_path / "w")
     back = GaussianWorld.load(tmp_path / "w")
     for name in ("ids", "count", "weight", "sum_xyz", "sum_sq", "sum_rgb", "n_keyframes"):
-        assert np.array_equal(getattr(back.mapping_builder, name), getattr(w.mapping_builder, name)), name
-        assert np.array_equal(getattr(back.builder, name), getattr(w.builder, name)), name
+        assert np.array_equal(getattr(back.map_voxels, name), getattr(w.map_voxels, name)), name
+        assert np.array_equal(getattr(back.tracking_voxels, name), getattr(w.tracking_voxels, name)), name
     # a world saved before mapping had its own range: no mapping statistics, the tracking ones serve
-    old = GaussianWorld(w.field, w.builder, w.keyframe_indices, w.T_world_cam_keyframes, w.pose_source, w.history)
+    old = GaussianWorld(w.field, w.tracking_voxels, w.keyframe_indices, w.T_world_cam_keyframes, w.pose_source, w.history)
     old.save(tmp_path / "old")
     back_old = GaussianWorld.load(tmp_path / "old")
-    assert back_old.mapping_builder is None and back_old.field_builder is back_old.builder
+    assert back_old.map_voxels is None and back_old.field_voxels is back_old.tracking_voxels
 
 
 def test_extending_a_world_extends_its_map_too(small_manifest):
@@ -248,13 +248,13 @@ def test_extending_a_world_extends_its_map_too(small_manifest):
     from dataclasses import replace
 
     first = mapper.build_world(fused, replace(kf, indices=kf.indices[:half]), cfg.mapping, manifest=small_manifest)
-    n_map, n_track = len(first.mapping_builder), len(first.builder)
+    n_map, n_track = len(first.map_voxels), len(first.tracking_voxels)
     both = mapper.extend_world(first, fused, replace(kf, indices=kf.indices[half:]), cfg.mapping,
                                manifest=small_manifest)
     whole = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
-    assert len(both.mapping_builder) > n_map and len(both.builder) > n_track
-    assert np.array_equal(both.mapping_builder.ids, whole.mapping_builder.ids)
-    np.testing.assert_allclose(both.mapping_builder.sum_xyz, whole.mapping_builder.sum_xyz, rtol=1e-12)
+    assert len(both.map_voxels) > n_map and len(both.tracking_voxels) > n_track
+    assert np.array_equal(both.map_voxels.ids, whole.map_voxels.ids)
+    np.testing.assert_allclose(both.map_voxels.sum_xyz, whole.map_voxels.sum_xyz, rtol=1e-12)
 
 
 @pytest.mark.slow

@@ -147,7 +147,7 @@ def small_world(small_manifest):
 def test_a_frame_with_no_depth_is_lost_and_tracking_recovers(small_manifest, small_world):
     cfg, world = small_world
     m = small_manifest
-    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder))
+    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.tracking_voxels))
     frames = [(read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera)) for i in range(4)]
     e0 = st.process(0, *frames[0], T_given=m.T_world_cam_gt[0])
     e1 = st.process(1, frames[1][0], np.zeros_like(frames[1][1]))
@@ -161,7 +161,7 @@ def test_frames_of_another_scene_get_a_status_not_a_crash(small_manifest, small_
     cfg, world = small_world
     m = small_manifest
     rng = np.random.default_rng(0)
-    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder),
+    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.tracking_voxels),
                          prior_poses=world.T_world_cam_keyframes)
     statuses = []
     for i in range(3):  # speckle: depth with no surface at all, random colour
@@ -176,7 +176,7 @@ def test_frames_of_another_scene_get_a_status_not_a_crash(small_manifest, small_
 def test_motion_model_carries_the_velocity_over_short_gaps_only(small_manifest, small_world):
     cfg, world = small_world
     m = small_manifest
-    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.builder))
+    st = SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), model=SurfelModel.from_builder(world.tracking_voxels))
     for i in range(2):
         st.process(i, read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera),
                    T_given=m.T_world_cam_gt[0] if i == 0 else None, timestamp_s=i / 30.0)
@@ -201,7 +201,7 @@ def test_relocalization_of_unseen_frames_in_a_half_sequence_world(medium_manifes
     first = load_tum_sequence(medium_manifest.root, medium_manifest.camera, "first-half", 12)
     fused = fuse(first, cfg)
     world = build_gaussian_world(fused, select_keyframes_stage(first, fused, cfg), cfg)
-    model = SurfelModel.from_field(world.field.positions, world.builder.voxel_size_m)
+    model = SurfelModel.from_field(world.field.positions, world.tracking_voxels.voxel_size_m)
     tracker = RGBDTracker(medium_manifest.camera, cfg.localization, (0.1, 4.0))
     reloc = Relocalizer(tracker, model, world.T_world_cam_keyframes)
     m = medium_manifest
@@ -239,7 +239,7 @@ def test_second_session_relocalizes_then_maps_into_the_saved_world(medium_manife
 @pytest.mark.slow
 def test_localize_sequence_without_start_pose_relocalizes_its_first_frame(small_manifest, small_world):
     cfg, world = small_world
-    rep = localize_sequence(small_manifest, SurfelModel.from_builder(world.builder), cfg.localization, None,
+    rep = localize_sequence(small_manifest, SurfelModel.from_builder(world.tracking_voxels), cfg.localization, None,
                             prior_poses=world.T_world_cam_keyframes)
     assert rep.status[0] == "relocalized" and rep.summary["start"] == "relocalized"
     assert rep.summary["rmse_t_unaligned_m"] < 0.01

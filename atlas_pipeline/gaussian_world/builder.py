@@ -307,12 +307,12 @@ class GaussianWorld:
 
     Attributes:
         field: the Gaussians.
-        builder: the voxel statistics of the tracking map (points within the tracking depth range,
+        tracking_voxels: the voxel statistics of the tracking map (points within the tracking depth range,
             ``fusion``, unweighted): localization tracks against their surfels, and a later session
             keeps merging into them.
-        mapping_builder: the voxel statistics the field was made from (points within the mapping
+        map_voxels: the voxel statistics the field was made from (points within the mapping
             depth range, ``mapping.max_depth_m``, weighted by inverse depth variance), or None when
-            they are ``builder`` itself (a world saved before mapping had its own range).
+            they are ``tracking_voxels`` itself (a world saved before mapping had its own range).
         keyframe_indices: ``[K]`` frames merged, in merge order.
         T_world_cam_keyframes: ``[K, 4, 4]`` the poses they were merged with.
         pose_source: ``ground_truth`` or ``estimated``.
@@ -324,27 +324,27 @@ class GaussianWorld:
     """
 
     field: GaussianField
-    builder: VoxelGaussianBuilder
+    tracking_voxels: VoxelGaussianBuilder
     keyframe_indices: np.ndarray
     T_world_cam_keyframes: np.ndarray
     pose_source: str
     history: np.ndarray
     fit: dict = field(default_factory=dict)
-    mapping_builder: VoxelGaussianBuilder | None = None
+    map_voxels: VoxelGaussianBuilder | None = None
 
     @property
     def map_id(self) -> str:
         return self.field.content_hash()[:16]
 
     @property
-    def field_builder(self) -> VoxelGaussianBuilder:
-        """The statistics the field is made from: ``mapping_builder``, else ``builder``."""
-        return self.builder if self.mapping_builder is None else self.mapping_builder
+    def field_voxels(self) -> VoxelGaussianBuilder:
+        """The statistics the field is made from: ``map_voxels``, else ``tracking_voxels``."""
+        return self.tracking_voxels if self.map_voxels is None else self.map_voxels
 
     def save(self, directory: Path) -> list[Path]:
         directory.mkdir(parents=True, exist_ok=True)
         path = directory / "world.npz"
-        b = self.builder
+        b = self.tracking_voxels
         with atomic_path(path) as tmp:
             save_npz_deterministic(
                 tmp,
@@ -367,7 +367,7 @@ class GaussianWorld:
         return [path, meta]
 
     def _mapping_members(self) -> dict[str, np.ndarray]:
-        m = self.mapping_builder
+        m = self.map_voxels
         if m is None:
             return {}
         return {"map_voxel_ids": m.ids, "map_voxel_count": m.count, "map_voxel_weight": m.weight,

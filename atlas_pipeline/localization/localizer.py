@@ -400,9 +400,9 @@ def tracking_map(world: GaussianWorld) -> SurfelModel:
     Gaussians' colours as its appearance (as a bundle reloaded gives it)."""
     from atlas_pipeline.localization.tracker import VoxelAppearance
 
-    model = SurfelModel.from_builder(world.builder)
+    model = SurfelModel.from_builder(world.tracking_voxels)
     model.builder = None
-    model.appearance_map = VoxelAppearance.from_field(world.field, world.builder.voxel_size_m)
+    model.appearance_map = VoxelAppearance.from_field(world.field, world.tracking_voxels.voxel_size_m)
     return model
 
 

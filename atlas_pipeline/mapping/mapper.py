@@ -5,7 +5,7 @@ voxel Gaussians, then fitted to the keyframe images) and the policy of extending
 (:func:`extend_saved_world`).
 
 Two depth ranges: the tracker sees depth within the fusion range (``fusion.max_depth_m``, 4 m), and
-the world keeps those points, unweighted, as its tracking map (``GaussianWorld.builder``); the
+the world keeps those points, unweighted, as its tracking map (``GaussianWorld.tracking_voxels``); the
 Gaussians are made from every keyframe point within the longer mapping range
 (``mapping.max_depth_m``, 8 m: walls past 4 m are mapped instead of rendering as background),
 each weighted by its inverse depth variance (:func:`depth_weight`), so a far, noisy reading moves a
@@ -189,22 +189,22 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
     """
     import copy
 
-    if world is not None and abs(world.builder.voxel_size_m - cfg.voxel_size_m) > 1e-12:
+    if world is not None and abs(world.tracking_voxels.voxel_size_m - cfg.voxel_size_m) > 1e-12:
         raise ValueError(
-            f"cannot extend a world built with {world.builder.voxel_size_m} m voxels using {cfg.voxel_size_m} m"
+            f"cannot extend a world built with {world.tracking_voxels.voxel_size_m} m voxels using {cfg.voxel_size_m} m"
         )
-    builder = VoxelGaussianBuilder(cfg.voxel_size_m) if world is None else world.builder
+    tracking = VoxelGaussianBuilder(cfg.voxel_size_m) if world is None else world.tracking_voxels
     if world is None:
         mapping = VoxelGaussianBuilder(cfg.voxel_size_m)
     else:  # a world saved before mapping had its own range: its tracking statistics seed the map's
-        mapping = world.mapping_builder if world.mapping_builder is not None else copy.deepcopy(world.builder)
+        mapping = world.map_voxels if world.map_voxels is not None else copy.deepcopy(world.tracking_voxels)
     history = [] if world is None else list(world.history)
     progress = Progress("merging keyframes", len(keyframes.indices), log, unit="keyframes")
     for k in keyframes.indices:
         pts, cols = fused.frame(int(k))
         T = keyframes.T_world_cam[k]
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-        builder.integrate(pw, cols)
+        tracking.integrate(pw, cols)
         measured, holes = _mapping_points(fused, int(k), cfg, manifest)
         _integrate_mapping(mapping, *measured, T, cfg.voxel_size_m, cfg.noise_adaptive_cells)
         _integrate_mapping(mapping, *holes, T, cfg.voxel_size_m, cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
@@ -214,12 +214,12 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
     prev_T = np.zeros((0, 4, 4)) if world is None else world.T_world_cam_keyframes
     return GaussianWorld(
         field=mapping.to_field(),
-        builder=builder,
+        tracking_voxels=tracking,
         keyframe_indices=np.concatenate([prev_idx, keyframes.indices]).astype(np.int64),
         T_world_cam_keyframes=np.concatenate([prev_T, keyframes.T_world_cam[keyframes.indices]]),
         pose_source=keyframes.pose_source,
         history=np.asarray(history, dtype=np.int64),
-        mapping_builder=mapping,
+        map_voxels=mapping,
     )
 
 
@@ -228,7 +228,7 @@ def build_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: MappingConfig,
     """A new world from the keyframes of one sequence (``manifest``: map out to ``cfg.max_depth_m``)."""
     world = extend_world(None, fused, keyframes, cfg, log, manifest)
     logger.info("built world: %d Gaussians from %d keyframes (tracking map: %d voxels within %.1f m)",
-                len(world.field), len(keyframes.indices), len(world.builder), fused.max_depth_m)
+                len(world.field), len(keyframes.indices), len(world.tracking_voxels), fused.max_depth_m)
     return world
 
 
@@ -247,12 +247,12 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     from atlas_pipeline.errors import DatasetError
     from atlas_pipeline.localization.sequence import STATUS_LOST, SequenceTracker
 
-    if abs(world.builder.voxel_size_m - mapping.voxel_size_m) > 1e-12:
-        raise ValueError(f"cannot extend a world built with {world.builder.voxel_size_m} m voxels "
+    if abs(world.tracking_voxels.voxel_size_m - mapping.voxel_size_m) > 1e-12:
+        raise ValueError(f"cannot extend a world built with {world.tracking_voxels.voxel_size_m} m voxels "
                          f"using {mapping.voxel_size_m} m")
-    builder = copy.deepcopy(world.builder)
-    mapping_builder = copy.deepcopy(world.field_builder)
-    st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=builder,
+    tracking = copy.deepcopy(world.tracking_voxels)
+    map_voxels = copy.deepcopy(world.field_voxels)
+    st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=tracking,
                          keyframe_translation_m=mapping.keyframe_translation_m,
                          keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
                          prior_poses=world.T_world_cam_keyframes)
@@ -277,10 +277,10 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     for i in idx:
         pts, cols = backproject(manifest.read_depth_m(int(i), allow_empty=True), manifest.read_rgb(int(i)),
                                 manifest.camera, fusion_stride, depth_range_m[0], max(mapping.max_depth_m, depth_range_m[1]))
-        _integrate_mapping(mapping_builder, pts, cols, poses[i], mapping.voxel_size_m, mapping.noise_adaptive_cells)
-        history.append(len(mapping_builder))
+        _integrate_mapping(map_voxels, pts, cols, poses[i], mapping.voxel_size_m, mapping.noise_adaptive_cells)
+        history.append(len(map_voxels))
     extended = GaussianWorld(
-        field=mapping_builder.to_field(), builder=builder, mapping_builder=mapping_builder,
+        field=map_voxels.to_field(), tracking_voxels=tracking, map_voxels=map_voxels,
         keyframe_indices=np.concatenate([world.keyframe_indices, idx]).astype(np.int64),
         T_world_cam_keyframes=np.concatenate([world.T_world_cam_keyframes, poses[idx]]) if len(idx) else world.T_world_cam_keyframes,
         pose_source="estimated", history=np.asarray(history, np.int64),

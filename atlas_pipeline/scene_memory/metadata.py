@@ -76,7 +76,7 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
         "partition": partition,
         "dataset": {"name": manifest.dataset, "root": str(manifest.root), "n_frames": manifest.n_frames,
                     "content_hash": manifest.content_hash, "camera": manifest.camera.to_dict()},
-        "gaussians": {"voxel_size_m": world.builder.voxel_size_m, "isotropic": world.field.is_isotropic,
+        "gaussians": {"voxel_size_m": world.tracking_voxels.voxel_size_m, "isotropic": world.field.is_isotropic,
                       "n_keyframes": int(len(world.keyframe_indices)), "pose_source": world.pose_source},
         # Where a session on the same sequence starts: the first keyframe's frame and pose.
         "anchor": {"frame_index": int(world.keyframe_indices[0]),
