@@ -8,7 +8,23 @@ What the scene shows:
   records), else as bare frusta;
 * the estimated trajectory of the bundle's localization report (or ``--report``) and the
   ground-truth trajectory, in the world frame;
-* lost frames as red markers, relocalized frames as orange ones.
+* lost frames as red markers, relocalized frames as orange ones;
+* the world's triangle mesh (vertex colours) and its 2D occupancy grid (a quad on the floor:
+  free, occupied, unknown), from export folders or computed from the keyframes
+  (:mod:`atlas_pipeline.viz.viewer_layers`);
+* a frame slider moving a yellow camera along the trajectory, with that frame's image and its
+  localization status; reset-view and splat-size controls; a switch per layer
+  (:mod:`atlas_pipeline.viz.viewer_controls`, which also says how the orbit is kept in the room).
+
+Keyframe frusta are thinned: at most :data:`MAX_FRUSTA`, evenly spread, smaller as more are drawn,
+so a recording's fan of keyframes does not cover the room; the slider shows any frame in full.
+
+Page size: the Gaussians as the bundle holds them (32 bytes each), plus at most
+:data:`MAX_FRUSTA` thumbnails of :data:`THUMBNAIL_MAX_WIDTH_PX` px, a mesh of at most
+:data:`~atlas_pipeline.viz.viewer_layers.MAX_MESH_TRIANGLES` triangles (~3 MB), an occupancy
+texture of at most :data:`~atlas_pipeline.viz.viewer_layers.MAX_OCCUPANCY_PX` px a side, the
+trajectories (a few dozen bytes a frame) and one frame thumbnail at a time, sent when the slider
+moves.
 
 Every input goes through the verified loaders: the bundle through
 :func:`~atlas_pipeline.scene_memory.bundle.load_world_bundle` (schema and checksums of every listed
@@ -46,6 +62,8 @@ import numpy as np
 from atlas_pipeline.errors import AtlasError, BundleFormatError, ConfigError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.geometry import quat_xyzw_to_rotmat, rotmat_to_quat_xyzw
+from atlas_pipeline.viz import viewer_controls as controls
+from atlas_pipeline.viz.viewer_layers import MeshLayer, OccupancyLayer, layer_summary, load_layers, mesh_glb
 from atlas_pipeline.localization.sequence import (
     STATUS_ANCHOR,
     STATUS_LOST,
@@ -73,12 +91,12 @@ RELOCALIZED_RGB = (255, 140, 0)     # orange: relocalized frames
 TRAJECTORY_WIDTH_PX = 3.0
 # Frusta and markers are sized from the world's extent (a desk and a building differ 100-fold).
 FRUSTUM_SIZE_FRACTION = 0.03
-FRUSTUM_SIZE_RANGE_M = (0.03, 0.5)
+FRUSTUM_SIZE_RANGE_M = (0.015, 0.5)
+MAX_FRUSTA = 12  # keyframes drawn as frusta (evenly spread); the slider reaches every frame
 MARKER_SIZE_FRACTION = 0.012
 # Thumbnails: small enough that hundreds travel over the websocket in a second or two.
 THUMBNAIL_MAX_WIDTH_PX = 160
 THUMBNAIL_JPEG_QUALITY = 80
-MAX_KEYFRAME_IMAGES = 300  # more keyframes than this: images on an evenly spread subset
 # Variances below float16's smallest subnormal (viser ships covariances as float16) would become
 # 0 and make a degenerate splat; 0.5 mm is far below any Gaussian a 2 cm map holds.
 MIN_SPLAT_SIGMA_M = 5e-4
@@ -86,9 +104,6 @@ MAX_SPLAT_SIGMA_M = 200.0  # float16's largest value is 65504 (m^2): no map Gaus
 # Robust extent: the 2nd..98th percentile box of the Gaussian centres (floaters far out would
 # otherwise set the frustum size and the starting view).
 EXTENT_PERCENTILES = (2.0, 98.0)
-# Starting view: behind and above the first keyframe, by these fractions of the world's size.
-START_BACKOFF_FRACTION = 0.15
-START_RAISE_FRACTION = 0.08
 MAX_REPORT_BYTES = 256 * 1024 * 1024  # a localization.json of a 100k-frame session is ~40 MB
 KNOWN_STATUSES = (STATUS_ANCHOR, STATUS_TRACKED, STATUS_RELOCALIZED, STATUS_LOST, STATUS_NOT_ATTEMPTED)
 
@@ -114,6 +129,10 @@ class ViewerData:
         T_world_cam_gt: ``[N, 4, 4]`` ground truth in the world frame (NaN where unknown), or None.
         ground_truth_note: how the ground truth got into the world frame (or why there is none).
         report_source: the folder the localization report was read from ("" without one).
+        report_timestamps_s: ``[N]`` the report's frame times, or None.
+        keyframe_manifest, report_manifest: the recordings of the keyframes and of the report's
+            frames when on disk and unchanged (the slider's images), else None.
+        mesh, occupancy: the layers (:mod:`atlas_pipeline.viz.viewer_layers`), or None.
         notes: what could not be shown and why (logged, and listed in the viewer's panel).
     """
 
@@ -130,6 +149,11 @@ class ViewerData:
     T_world_cam_gt: np.ndarray | None = None
     ground_truth_note: str = ""
     report_source: str = ""
+    report_timestamps_s: np.ndarray | None = None
+    keyframe_manifest: Any = None
+    report_manifest: Any = None
+    mesh: MeshLayer | None = None
+    occupancy: OccupancyLayer | None = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -275,11 +299,14 @@ def _ground_truth_in_world(T_est: np.ndarray, T_gt: np.ndarray, status: list[str
             "aligned onto the estimate (ATE alignment; the world was not mapped in its frame)")
 
 
-def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, read_dataset: bool = True) -> ViewerData:
+def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, read_dataset: bool = True,
+                     layers: tuple[str | Path, ...] | list[str | Path] = (), compute_layers: bool = False) -> ViewerData:
     """Load and check what the viewer shows: the bundle at ``world_dir`` (checksums verified), its
     localization report (``report``: a folder with ``localization.json``; default the bundle's own),
-    and with ``read_dataset`` the keyframe thumbnails and the ground truth from the dataset's frames
-    when they are on disk and unchanged (bundles keep neither)."""
+    with ``read_dataset`` the keyframe thumbnails and the ground truth from the dataset's frames
+    when they are on disk and unchanged (bundles keep neither), and the mesh and occupancy layers
+    from the export folders ``layers``, the missing ones computed from the keyframes when
+    ``compute_layers`` and ``read_dataset`` (:func:`~atlas_pipeline.viz.viewer_layers.load_layers`)."""
     from atlas_pipeline.scene_memory.bundle import load_world_bundle
     from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -310,11 +337,9 @@ def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, re
         manifest = _dataset_manifest(name, root, cam_dict, content_hash, n_frames, data.notes)
     elif len(T_kf):
         _note(data.notes, "dataset not read: keyframe frusta without images")
+    data.keyframe_manifest = manifest
     if manifest is not None:
-        shown = np.unique(np.linspace(0, len(T_kf) - 1, min(len(T_kf), MAX_KEYFRAME_IMAGES)).round().astype(int))
-        if len(shown) < len(T_kf):
-            _note(data.notes, "%d keyframes: images on %d of them", len(T_kf), len(shown))
-        for k in shown:
+        for k in controls.thinned_indices(len(T_kf), MAX_FRUSTA):  # images on the frusta drawn
             i = int(idx[k])
             if not 0 <= i < manifest.n_frames:
                 continue
@@ -336,6 +361,10 @@ def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, re
                            "another frame", rep_dir, rep.map_id, bundle.map_id)
         data.status = list(rep.status)
         data.T_world_cam_est = rep.T_world_cam
+        data.report_timestamps_s = rep.timestamps_s
+        if manifest is not None and rep.dataset == name and manifest.n_frames >= rep.n_frames and np.allclose(
+                manifest.timestamps_s[:rep.n_frames], rep.timestamps_s, atol=1e-3):
+            data.report_manifest = manifest
         T_gt = rep.T_world_cam_gt
         if not np.isfinite(T_gt).all(axis=(1, 2)).any():
             # Bundles keep no ground truth: take it from the dataset when its frames are on disk.
@@ -353,6 +382,9 @@ def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, re
                                                                              same_frame)
         if data.T_world_cam_gt is None:
             _note(data.notes, "ground truth not shown: %s", data.ground_truth_note)
+    if layers or (compute_layers and read_dataset):
+        data.mesh, data.occupancy = load_layers(world_dir, [Path(p) for p in layers], compute_layers and read_dataset,
+                                                data.notes)
     return data
 
 
@@ -402,21 +434,6 @@ def _up_direction(T_world_cam: np.ndarray) -> np.ndarray:
     return np.array([0.0, 0.0, 1.0])
 
 
-def _start_view(data: ViewerData, centre: np.ndarray, diag_m: float, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(position [3], look_at [3])`` of the first view: a step behind and above the first keyframe,
-    looking where it looked (the recording's own first view, framed a little wider); without
-    keyframes, from outside the world's box towards its centre."""
-    if len(data.T_world_cam_keyframes):
-        T0 = data.T_world_cam_keyframes[0]
-        p0, forward = T0[:3, 3], T0[:3, 2]
-        depth = max(float(np.dot(centre - p0, forward)), 0.5)  # how far ahead the world's middle is
-        position = p0 - forward * START_BACKOFF_FRACTION * diag_m + up * START_RAISE_FRACTION * diag_m
-        return position, p0 + forward * depth
-    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    side /= np.linalg.norm(side)
-    return centre + (side + 0.6 * up) * diag_m, centre
-
-
 def build_scene(server: Any, data: ViewerData) -> dict[str, Any]:
     """Fill ``server`` (a ``viser.ViserServer``) with the scene of ``data``; returns a summary (what
     was drawn: counts per layer, the ground truth's frame, the notes)."""
@@ -425,26 +442,42 @@ def build_scene(server: Any, data: ViewerData) -> dict[str, Any]:
     up = _up_direction(data.T_world_cam_keyframes)
     scene.set_up_direction(tuple(float(v) for v in up))
     f = data.field
-    handles: dict[str, list[Any]] = {"Gaussians": [], "Trajectories": [], "Keyframes": [], "Lost / relocalized": []}
+    handles: dict[str, list[Any]] = {"Gaussians": [], "Mesh": [], "Occupancy": [], "Trajectories": [],
+                                     "Keyframes": [], "Lost / relocalized": []}
 
+    splats, covariances = None, None
     if len(f):
-        handles["Gaussians"].append(scene.add_gaussian_splats(
+        covariances = splat_covariances(f.scales, f.rotations_xyzw)  # [N, 3, 3]
+        splats = scene.add_gaussian_splats(
             "/world/gaussians",
             centers=f.positions.astype(np.float32),  # [N, 3]
-            covariances=splat_covariances(f.scales, f.rotations_xyzw),  # [N, 3, 3]
+            covariances=covariances,
             rgbs=f.colors,  # [N, 3] uint8
             opacities=f.opacities.reshape(-1, 1).astype(np.float32),  # [N, 1]
-        ))
+        )
+        handles["Gaussians"].append(splats)
+    if data.mesh is not None:
+        handles["Mesh"].append(scene.add_glb("/world/mesh", mesh_glb(data.mesh), cast_shadow=False,
+                                             receive_shadow=False))
+    if data.occupancy is not None:
+        occ = data.occupancy
+        handles["Occupancy"].append(scene.add_image(
+            "/world/occupancy", occ.rgba, occ.width_m, occ.height_m, format="png", cast_shadow=False,
+            receive_shadow=False, wxyz=_wxyz(occ.T_world_quad[:3, :3]), position=occ.T_world_quad[:3, 3]))
 
-    frustum_m = float(np.clip(FRUSTUM_SIZE_FRACTION * diag_m, *FRUSTUM_SIZE_RANGE_M))
+    drawn = controls.thinned_indices(len(data.T_world_cam_keyframes), MAX_FRUSTA)
+    if len(drawn) < len(data.T_world_cam_keyframes):
+        _note(data.notes, "%d keyframes: %d of them drawn as frusta (the slider reaches every frame)",
+              len(data.T_world_cam_keyframes), len(drawn))
+    frustum_m = controls.frustum_size(diag_m, len(drawn), FRUSTUM_SIZE_FRACTION, FRUSTUM_SIZE_RANGE_M)
     n_images = 0
-    for k, T in enumerate(data.T_world_cam_keyframes):
-        img = data.keyframe_images[k]
+    for k in drawn:
+        T, img = data.T_world_cam_keyframes[k], data.keyframe_images[k]
         n_images += img is not None
         handles["Keyframes"].append(scene.add_camera_frustum(
             f"/keyframes/kf_{k:05d}", fov=data.camera_fov_y_rad, aspect=data.camera_aspect, scale=frustum_m,
             color=KEYFRAME_RGB, image=img, format="jpeg", jpeg_quality=THUMBNAIL_JPEG_QUALITY,
-            wxyz=_wxyz(T[:3, :3]), position=T[:3, 3], thickness=1.5, thickness_units="screen",
+            wxyz=_wxyz(T[:3, :3]), position=T[:3, 3], thickness=1.0, thickness_units="screen",
             cast_shadow=False, receive_shadow=False))
 
     est_xyz = data.T_world_cam_est[:, :3, 3]  # [N, 3], NaN rows: never placed
@@ -474,26 +507,43 @@ def build_scene(server: Any, data: ViewerData) -> dict[str, Any]:
                 f"/frames/{label}", points=xyz.astype(np.float32), colors=rgb, point_size=marker_m,
                 point_shape="circle", point_shading="flat"))
 
-    position, look_at = _start_view(data, centre, diag_m, up)
-    server.initial_camera.position = tuple(float(v) for v in position)
-    server.initial_camera.look_at = tuple(float(v) for v in look_at)
+    view = controls.orbit_view(f.positions, data.T_world_cam_keyframes[:, :3, 3], centre, diag_m, up,
+                               EXTENT_PERCENTILES)
+    server.initial_camera.position = tuple(float(v) for v in view.position)
+    server.initial_camera.look_at = tuple(float(v) for v in view.pivot)
     server.initial_camera.up = tuple(float(v) for v in up)
+    controls.install_camera_limits(server, view)
 
     summary = {
         "world": str(data.world_dir), "map_id": data.metadata.get("map_id"), "n_gaussians": len(f),
         "n_keyframes": len(data.T_world_cam_keyframes), "n_keyframe_images": int(n_images),
+        "n_frusta": int(len(drawn)),
         "n_frames": len(data.status), "n_estimated_poses": int(np.isfinite(est_xyz).all(axis=1).sum()),
         "n_ground_truth_poses": int(np.isfinite(gt_xyz).all(axis=1).sum()),
         "ground_truth_frame": data.ground_truth_note or None, "report": data.report_source or None,
         "n_lost_marked": shown[STATUS_LOST], "n_relocalized_marked": shown[STATUS_RELOCALIZED],
+        **layer_summary(data.mesh, data.occupancy),
+        "start_view": {"position": view.position.tolist(), "look_at": view.pivot.tolist(), "radius_m": view.radius_m},
         "notes": list(data.notes),
     }
-    _add_panel(server, summary, handles)
+    track = controls.frame_track(data.T_world_cam_est, data.T_world_cam_gt, data.status, data.report_timestamps_s,
+                                 data.report_manifest, data.T_world_cam_keyframes, data.keyframe_indices,
+                                 data.keyframe_manifest)
+    widgets = _add_panel(server, summary, handles)
+    widgets["frame"] = controls.add_frame_slider(
+        server, track, data.camera_fov_y_rad, data.camera_aspect, frustum_m, marker_m, _thumbnail,
+        {STATUS_LOST: LOST_RGB, STATUS_RELOCALIZED: RELOCALIZED_RGB, STATUS_TRACKED: ESTIMATED_RGB})
+    widgets.update(controls.add_view_controls(server, view, splats, covariances))
+    if summary["notes"]:
+        server.gui.add_markdown("  \n".join(f"- {n}" for n in summary["notes"]))
+    summary["widgets"] = widgets
+    summary["view"] = view
     return summary
 
 
-def _add_panel(server: Any, summary: dict[str, Any], handles: dict[str, list[Any]]) -> None:
-    """The side panel: a legend with the counts, and a switch per layer."""
+def _add_panel(server: Any, summary: dict[str, Any], handles: dict[str, list[Any]]) -> dict[str, Any]:
+    """The side panel's legend with the counts, and a switch per layer drawn; returns the switches
+    by layer name."""
     gui = server.gui
 
     def swatch(rgb: tuple[int, int, int]) -> str:
@@ -501,25 +551,34 @@ def _add_panel(server: Any, summary: dict[str, Any], handles: dict[str, list[Any
 
     lines = [
         f"**{summary['n_gaussians']:,} Gaussians**, map `{summary['map_id']}`",
-        f"{swatch(KEYFRAME_RGB)} {summary['n_keyframes']} keyframes ({summary['n_keyframe_images']} with images)",
+        f"{swatch(KEYFRAME_RGB)} {summary['n_keyframes']} keyframes ({summary['n_frusta']} drawn, "
+        f"{summary['n_keyframe_images']} with images)",
         f"{swatch(ESTIMATED_RGB)} estimated trajectory: {summary['n_estimated_poses']} of {summary['n_frames']} frames",
         f"{swatch(GROUND_TRUTH_RGB)} ground truth: {summary['n_ground_truth_poses']} frames",
         f"{swatch(LOST_RGB)} lost: {summary['n_lost_marked']}  {swatch(RELOCALIZED_RGB)} relocalized: "
         f"{summary['n_relocalized_marked']}",
     ]
+    if summary["n_mesh_triangles"]:
+        lines.append(f"mesh: {summary['n_mesh_triangles']:,} triangles (of {summary['n_mesh_source_triangles']:,})")
+    if summary["occupancy_cells"]:
+        c = summary["occupancy_cells"]
+        lines.append(f"occupancy: {c['free']:,} free, {c['occupied']:,} occupied, {c['unknown']:,} unknown cells")
     gui.add_markdown("  \n".join(lines))
-    for layer, hs in handles.items():
-        if not hs:
-            continue
-        box = gui.add_checkbox(layer, initial_value=True)
+    boxes: dict[str, Any] = {}
+    with gui.add_folder("Layers"):
+        for layer, hs in handles.items():
+            if not hs:
+                continue
+            box = gui.add_checkbox(layer, initial_value=True)
 
-        def toggle(_event: Any, hs: list[Any] = hs, box: Any = box) -> None:
-            for h in hs:
-                h.visible = box.value
+            def toggle(_event: Any, hs: list[Any] = hs, box: Any = box) -> None:
+                for h in hs:
+                    h.visible = box.value
 
-        box.on_update(toggle)
-    if summary["notes"]:
-        gui.add_markdown("  \n".join(f"- {n}" for n in summary["notes"]))
+            box.on_update(toggle)
+            boxes[layer] = box
+    return boxes
+
 
 
 # ---- the server ---------------------------------------------------------------------------------
@@ -611,7 +670,8 @@ def _refuse_share_url(*_args: Any, **_kwargs: Any) -> None:
 
 
 def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report: str | Path | None = None,
-          read_dataset: bool = True, allow_remote: bool = False, data: ViewerData | None = None) -> ViewerHandle:
+          read_dataset: bool = True, allow_remote: bool = False, data: ViewerData | None = None,
+          layers: tuple[str | Path, ...] | list[str | Path] = (), compute_layers: bool = True) -> ViewerHandle:
     """Start a viewer of the bundle at ``world_dir`` on ``host:port`` (``port`` 0: a free one) and
     return its handle; the server runs in background threads until ``handle.stop()``.
 
@@ -619,7 +679,8 @@ def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report
     and serves the map and camera images of a recorded place to whoever connects. Its websocket
     takes pages from a loopback origin or from ``host`` itself (:func:`allowed_origins`), so a
     remote viewer must be bound to the name or address its browsers use, not a wildcard
-    (``0.0.0.0``). ``data`` (from :func:`load_viewer_data`) skips loading.
+    (``0.0.0.0``). ``data`` (from :func:`load_viewer_data`) skips loading; ``layers`` (export
+    folders) and ``compute_layers`` go to it otherwise.
     """
     import viser
 
@@ -630,7 +691,7 @@ def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report
     if not 0 <= int(port) <= 65535:
         raise ConfigError(f"--port {port}: must be 0 (any free port) to 65535")
     if data is None:
-        data = load_viewer_data(world_dir, report, read_dataset)
+        data = load_viewer_data(world_dir, report, read_dataset, layers, compute_layers)
     with _quiet_stdout(), _origin_checked_websocket(allowed_origins(host)) as checked:
         server = viser.ViserServer(host=host, port=int(port), label="atlas-gs", verbose=False)
     try:
@@ -658,11 +719,13 @@ def serve(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report
 
 def run_viewer(world_dir: str | Path, host: str = DEFAULT_HOST, port: int = 0, report: str | Path | None = None,
                read_dataset: bool = True, allow_remote: bool = False,
-               announce: Callable[[str], None] = print, stop_event: threading.Event | None = None) -> int:
+               announce: Callable[[str], None] = print, stop_event: threading.Event | None = None,
+               layers: tuple[str | Path, ...] | list[str | Path] = (), compute_layers: bool = True) -> int:
     """Serve the viewer and block until Ctrl-C, SIGTERM (``docker stop``, ``kill``) or ``stop_event``;
     the server is always stopped before returning 0. ``announce`` receives the line naming the URL
-    (the CLI prints it on stdout)."""
-    handle = serve(world_dir, host, port, report, read_dataset, allow_remote)
+    (the CLI prints it on stdout); ``layers`` and ``compute_layers`` as for :func:`serve`."""
+    handle = serve(world_dir, host, port, report, read_dataset, allow_remote, layers=layers,
+                   compute_layers=compute_layers)
     stop_event = stop_event or threading.Event()
     previous = None
     if threading.current_thread() is threading.main_thread():  # signal handlers live in the main thread
