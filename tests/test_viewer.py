@@ -45,7 +45,7 @@ MIN_SELECTED_PX = 30  # the slider's yellow camera (dot and frustum) seen from ~
 # found as teal-ish (red low, green and blue high), not by its exact colour.
 MESH_RGB = (20, 200, 200)
 FREE_RGB = viewer_layers.FREE_RGBA[:3]
-LAYER_TOLERANCE = 20  # images are drawn untone-mapped: exact colours; grey text sits 35 away
+LAYER_TOLERANCE = 20  # images are drawn without tone mapping, in their exact colours; grey text is 35 away
 MIN_LAYER_SHARE = 0.01
 KEYFRAMES = [0, 4, 8]
 LOST, RELOCALIZED = 5, 6
@@ -297,6 +297,9 @@ def test_view_command_arguments(viewer_world, monkeypatch):
     monkeypatch.setattr(viewer, "run_viewer", lambda world, **kw: seen.update(world=world, **kw) or 0)
     assert args.func(args) == 0
     assert seen["world"] == viewer_world and seen["host"] == "127.0.0.1" and seen["report"] is None
+    assert seen["layers"] == [] and seen["compute_layers"] is True
+    args = p.parse_args(["view", str(viewer_world), "--layers", "a", "b", "--no-layers"])
+    assert args.func(args) == 0 and seen["layers"] == [Path("a"), Path("b")] and seen["compute_layers"] is False
     with pytest.raises(ConfigError, match="neither a bundle folder nor a partition"):
         args.func(p.parse_args(["view", "no-such-partition"]))
 
@@ -484,12 +487,18 @@ def _look(client, position, look_at, settle_s: float = 1.0) -> None:
 @pytest.mark.slow  # 4-12 s: Chromium's start and software WebGL on a shared 2-core machine
 def test_browser_draws_the_splats(viewer_world, small_manifest, tmp_path):
     """Serve the bundle on 127.0.0.1, open it in headless Chromium (software WebGL): the splats fill
-    a noticeable share of the first view, the lost and relocalized markers show when the camera
-    looks at them, and the console logs no error of ours."""
+    a noticeable share of the first view and shrink with the splat-size slider, the lost and
+    relocalized markers show when the camera looks at them, and the console logs no error of ours."""
     with viewer.serve(viewer_world, port=0, compute_layers=False) as h, _page(h.url, tmp_path) as cdp:
         im = _wait_for(cdp, lambda im: _share(im, SPLAT_RGB, SPLAT_TOLERANCE) >= MIN_SPLAT_SHARE,
                        f"splats on {MIN_SPLAT_SHARE:.0%} of the view")
         client = _client(h)
+        # Splat size: a quarter of each sigma opens gaps between the sheet's Gaussians (3 cm apart).
+        full = _share(im, SPLAT_RGB, SPLAT_TOLERANCE)
+        h.summary["widgets"]["splat_size"].value = 0.25
+        _wait_for(cdp, lambda im: _share(im, SPLAT_RGB, SPLAT_TOLERANCE) < 0.6 * full, "smaller splats", 30)
+        h.summary["widgets"]["splat_size"].value = 1.0
+        _wait_for(cdp, lambda im: _share(im, SPLAT_RGB, SPLAT_TOLERANCE) > 0.9 * full, "splats back to size", 30)
         view = h.summary["view"]
         markers = small_manifest.T_world_cam_gt[[LOST, RELOCALIZED], :3, 3].mean(axis=0)
         h.summary["widgets"]["Keyframes"].value = False  # frusta between the markers and this view

@@ -238,6 +238,11 @@ def _add_view_command(sub) -> argparse.ArgumentParser:
     v.add_argument("--no-dataset", action="store_true",
                    help="do not read the dataset's frames: keyframe frusta without images, ground truth "
                         "only from the report")
+    v.add_argument("--layers", nargs="+", default=[], metavar="DIR",
+                   help="export folders with the mesh and occupancy layers to show (`atlas-gs export --format "
+                        "mesh|occupancy --output DIR`; default for a partition: its world_mesh and occupancy_map)")
+    v.add_argument("--no-layers", action="store_true",
+                   help="do not compute the mesh and occupancy layers from the keyframes when no folder has them")
     v.add_argument("--rrd", default=None, metavar="FILE.rrd",
                    help="write a Rerun recording instead of serving: the Gaussians, trajectories, keyframes, "
                         "and per frame the pose, RGB, depth and tracking status (open with `rerun FILE.rrd`)")

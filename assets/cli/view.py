@@ -42,8 +42,15 @@ def cmd_view(args: argparse.Namespace) -> int:
         report = partition_report
     if args.rrd:
         return _write_rrd(args, world, report)
+    layers = [Path(d).expanduser() for d in args.layers]
+    if not layers and not Path(args.world).expanduser().is_dir():
+        # A partition: its own mesh and occupancy artifacts, where its exports job made them.
+        from assets.io_managers import artifacts_root
+
+        layers = [d for d in (artifacts_root() / a / world.name for a in ("world_mesh", "occupancy_map")) if d.is_dir()]
     return run_viewer(world, host=args.host, port=args.port, report=report, read_dataset=not args.no_dataset,
-                      announce=lambda line: print(line, flush=True))
+                      announce=lambda line: print(line, flush=True), layers=layers,
+                      compute_layers=not args.no_layers)
 
 
 def _write_rrd(args: argparse.Namespace, world: Path, report: Path | None) -> int:

@@ -300,7 +300,8 @@ def _ground_truth_in_world(T_est: np.ndarray, T_gt: np.ndarray, status: list[str
 
 
 def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, read_dataset: bool = True,
-                     layers: tuple[str | Path, ...] | list[str | Path] = (), compute_layers: bool = False) -> ViewerData:
+                     layers: tuple[str | Path, ...] | list[str | Path] = (),
+                     compute_layers: bool = False) -> ViewerData:
     """Load and check what the viewer shows: the bundle at ``world_dir`` (checksums verified), its
     localization report (``report``: a folder with ``localization.json``; default the bundle's own),
     with ``read_dataset`` the keyframe thumbnails and the ground truth from the dataset's frames
