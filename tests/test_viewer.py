@@ -51,7 +51,8 @@ KEYFRAMES = [0, 4, 8]
 LOST, RELOCALIZED = 5, 6
 SCREEN_W, SCREEN_H = 1000, 600
 SCENE_W = 660  # the scene left of viser's panel (the panel's thumbnails have colours of their own)
-BROWSER_DEADLINE_S = float(os.environ.get("ATLAS_BROWSER_DEADLINE_S", 120.0))  # swiftshader on a loaded 2-core machine: first frames take a while
+# SwiftShader on a loaded 2-core machine: first frames take a while.
+BROWSER_DEADLINE_S = float(os.environ.get("ATLAS_BROWSER_DEADLINE_S", 120.0))
 # Software WebGL: headless Chromium has no GPU here; ANGLE on SwiftShader gives it WebGL 2.
 CHROMIUM_FLAGS = ["--headless=new", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
                   "--disable-dev-shm-usage", "--no-first-run", "--no-default-browser-check",
