@@ -40,11 +40,28 @@ def test_mesh_files_read_back(tmp_path, small_source):
     scene = trimesh.load(tmp_path / "mesh.glb")
     g = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
     assert len(g.faces) == len(mesh.triangles)
-    assert np.array_equal(g.visual.vertex_colors[:, :3], mesh.colors)
+    # COLOR_0 is linear (glTF's definition), 16 bits: back to sRGB, the mesh's own colours
+    linear = np.asarray(_glb_color0(tmp_path / "mesh.glb"), np.float64) / 65535.0
+    srgb = np.where(linear <= 0.0031308, linear * 12.92, 1.055 * linear ** (1 / 2.4) - 0.055)
+    assert np.abs(np.rint(srgb[:, :3] * 255) - mesh.colors).max() <= 1
     # the node turns z-up into glTF's y-up: the world's z becomes y
     assert np.allclose(g.vertices[:, 1], mesh.vertices[:, 2], atol=1e-5)
     info = json.loads((tmp_path / "mesh.json").read_text())
     assert info["n_triangles"] == len(mesh.triangles) and (tmp_path / "preview.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _glb_color0(path):
+    """The raw COLOR_0 accessor of a GLB (uint16 RGBA), read with the glTF layout alone."""
+    import struct
+
+    data = path.read_bytes()
+    js_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + js_len])
+    acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"]]
+    assert acc["componentType"] == 5123 and acc["normalized"] and acc["type"] == "VEC4"
+    view = doc["bufferViews"][acc["bufferView"]]
+    start = 20 + js_len + 8 + view.get("byteOffset", 0)
+    return np.frombuffer(data[start:start + view["byteLength"]], "<u2").reshape(-1, 4)
 
 
 def test_occupancy_map_is_a_map_server_map(tmp_path, small_source):

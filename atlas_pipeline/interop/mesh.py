@@ -11,7 +11,9 @@ Kinect-class sensor at a few metres stays inside it, narrow enough that thin obj
 sides. Fragments of fewer than :data:`MIN_COMPONENT_TRIANGLES` triangles (flying pixels at depth
 edges fused once) are dropped.
 
-GLB: glTF 2.0 binary, one mesh of ``POSITION`` (float32), ``COLOR_0`` (normalised uint8 RGBA) and
+GLB: glTF 2.0 binary, one mesh of ``POSITION`` (float32), ``COLOR_0`` (normalised uint16 RGBA, linear
+as glTF defines vertex colours: the frames' sRGB colours linearised, 16 bits so the darks keep their
+steps) and
 uint32 triangle indices, written by this module (byte-for-byte deterministic). glTF's up axis is +y;
 the node carries a rotation of -90 degrees about x so a z-up world stands upright in glTF viewers,
 while the vertex data stay in the world frame (metres).
@@ -35,8 +37,8 @@ from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["MESH_VOXEL_M", "TriangleMesh", "tsdf_mesh", "write_mesh_ply", "write_mesh_glb", "WorldMesh",
-           "mesh_preview_png", "check_voxel"]
+__all__ = ["MESH_VOXEL_M", "TriangleMesh", "tsdf_mesh", "write_mesh_ply", "write_mesh_glb", "srgb_to_linear_rgba16",
+           "WorldMesh", "mesh_preview_png", "check_voxel"]
 
 MESH_VOXEL_M = 0.02
 SDF_TRUNC_VOXELS = 4.0
@@ -49,7 +51,7 @@ BLOCK_VOXELS = 64
 BLOCK_PROBE_STRIDE_PX = 8  # which blocks a frame touches, from every 8th pixel's point
 MERGE_EPS_VOXELS = 1e-3  # vertices of two blocks on their shared plane coincide to float precision
 # glTF 2.0 constants
-_GLTF_FLOAT, _GLTF_UBYTE, _GLTF_UINT = 5126, 5121, 5125
+_GLTF_FLOAT, _GLTF_USHORT, _GLTF_UINT = 5126, 5123, 5125
 _GLTF_ARRAY_BUFFER, _GLTF_ELEMENT_ARRAY_BUFFER = 34962, 34963
 _GLTF_TRIANGLES = 4
 _GLB_MAGIC, _GLB_VERSION, _CHUNK_JSON, _CHUNK_BIN = 0x46546C67, 2, 0x4E4F534A, 0x004E4942
@@ -176,10 +178,19 @@ def _pad4(b: bytes, fill: bytes = b"\0") -> bytes:
     return b + fill * (-len(b) % 4)
 
 
+def srgb_to_linear_rgba16(colors: np.ndarray) -> np.ndarray:
+    """``[N, 3]`` uint8 sRGB colours as ``[N, 4]`` little-endian uint16 linear RGBA (alpha 1), as
+    glTF's normalised ``COLOR_0`` holds them."""
+    c = np.asarray(colors, np.float64) / 255.0
+    rgba = np.ones((len(c), 4))
+    rgba[:, :3] = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.ascontiguousarray(np.round(rgba * 65535.0), "<u2")
+
+
 def write_mesh_glb(mesh: TriangleMesh, path: str | Path) -> Path:
     """glTF 2.0 binary (see the module docstring)."""
     pos = np.ascontiguousarray(mesh.vertices, "<f4")
-    rgba = np.concatenate([mesh.colors, np.full((len(mesh.colors), 1), 255, np.uint8)], axis=1)
+    rgba = srgb_to_linear_rgba16(mesh.colors)
     idx = np.ascontiguousarray(mesh.triangles, "<u4")
     blobs = [pos.tobytes(), np.ascontiguousarray(rgba).tobytes(), idx.tobytes()]
     offsets = np.cumsum([0] + [len(_pad4(b)) for b in blobs])[:-1].tolist()
@@ -193,7 +204,7 @@ def write_mesh_glb(mesh: TriangleMesh, path: str | Path) -> Path:
                                     "mode": _GLTF_TRIANGLES}]}],
         "accessors": [
             {"bufferView": 0, "componentType": _GLTF_FLOAT, "count": len(pos), "type": "VEC3", "min": lo, "max": hi},
-            {"bufferView": 1, "componentType": _GLTF_UBYTE, "normalized": True, "count": len(rgba), "type": "VEC4"},
+            {"bufferView": 1, "componentType": _GLTF_USHORT, "normalized": True, "count": len(rgba), "type": "VEC4"},
             {"bufferView": 2, "componentType": _GLTF_UINT, "count": int(idx.size), "type": "SCALAR"},
         ],
         "bufferViews": [

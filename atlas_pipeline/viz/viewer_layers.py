@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from atlas_pipeline.errors import AtlasError
+from atlas_pipeline.interop.mesh import srgb_to_linear_rgba16
 
 logger = logging.getLogger(__name__)
 
@@ -124,11 +125,7 @@ def mesh_glb(layer: MeshLayer) -> bytes:
     glTF's vertex colours are linear, so the sRGB colours are linearised (16 bits, no banding in
     the darks) and the browser shows the frames' own colours."""
     pos = np.ascontiguousarray(layer.vertices, "<f4")
-    c = layer.colors.astype(np.float64) / 255.0
-    linear = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    rgba = np.ones((len(pos), 4))
-    rgba[:, :3] = linear
-    rgba = np.ascontiguousarray(np.round(rgba * 65535.0), "<u2")
+    rgba = srgb_to_linear_rgba16(layer.colors)
     idx = np.ascontiguousarray(layer.triangles, "<u4")
     blobs = [pos.tobytes(), rgba.tobytes(), idx.tobytes()]
     pad = [(-len(b)) % 4 for b in blobs]
