@@ -149,6 +149,16 @@ class FitConfig(Section):
     lr_rotation_rad: float = Field(1e-2, ge=0, description="Adam step size of the rotations (rad); 0 = frozen")
     lr_opacity_logit: float = Field(5e-2, ge=0, description="Adam step size of the opacity logits; 0 = frozen")
     lr_color: float = Field(1e-2, ge=0, description="Adam step size of the colours ([0, 1]); 0 = frozen")
+    sh_degree: int = Field(0, ge=0, le=3, description=(
+        "spherical-harmonics degree of the colour the fit learns (view-dependent colour, 3DGS's order); "
+        "0 = one colour per Gaussian (the default chosen by measurement, docs/benchmarks.md)"))
+    sh_degree_interval: int = Field(25, ge=0, le=MAX_FIT_STEPS, description=(
+        "the fit renders degree 0 first and one degree more every this many steps, up to sh_degree "
+        "(3DGS: every 1000 of 30,000 steps; grows with the keyframes like the densification steps); "
+        "0 = sh_degree from the first step"))
+    lr_sh_rest: float = Field(1.8e-3, ge=0, description=(
+        "Adam step size of the SH coefficients beyond degree 0; 3DGS's ratio: the degree-0 "
+        "coefficient's (lr_color / 0.282) / 20; 0 = frozen"))
     lr_final_ratio: float = Field(1.0, gt=0, le=1, description=(
         "every step size decays exponentially to this fraction over the step cap; 1 = constant (with a "
         "few hundred steps the fit still improves at the end)"))

@@ -10,8 +10,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize
-from atlas_pipeline.gaussian_world.fit_kernels import N_PARAM, P_COL, P_LOG_SCALE, P_LOGIT, P_POS, P_ROT
+from atlas_pipeline.gaussian_world.field import GaussianField, canonicalize, sh_rest_count
+from atlas_pipeline.gaussian_world.fit_kernels import N_PARAM, P_COL, P_LOG_SCALE, P_LOGIT, P_POS, P_ROT, P_SH
 from atlas_pipeline.gaussian_world.raster import GaussianArrays
 from atlas_pipeline.geometry import quat_xyzw_to_rotmat
 
@@ -28,7 +28,7 @@ CHILD_ID_BIT = np.uint64(1 << 63)
 class AdamHyper(NamedTuple):
     """One step's Adam settings."""
 
-    lr: np.ndarray  # [N_PARAM] float64 step size per gradient row (P_* rows)
+    lr: np.ndarray  # [R] float64 step size per gradient row (P_* rows; R = N_PARAM + 3 K with SH)
     beta1: float
     beta2: float
     eps: float
@@ -37,6 +37,9 @@ class AdamHyper(NamedTuple):
     t_all: int  # the fit's step (dense Adam's bias correction)
     log_scale_min: float  # clamp of the log scales (log metres)
     log_scale_max: float
+
+
+_NO_SH = np.zeros((0, 0, 3), np.float32)
 
 
 class FitParams(NamedTuple):
@@ -49,6 +52,7 @@ class FitParams(NamedTuple):
     colors01: np.ndarray  # [N, 3] in [0, 1]
     scales: np.ndarray  # [N, 3] exp(log_scales)
     opacities: np.ndarray  # [N] sigmoid(logits)
+    sh_rest: np.ndarray = _NO_SH  # [N, K', 3] SH coefficients; the first (R - N_PARAM) / 3 are stepped
 
 
 ADAM_BLOCK = 2048  # Gaussians per block of the fused Adam pass
@@ -56,7 +60,7 @@ ADAM_BLOCK = 2048  # Gaussians per block of the fused Adam pass
 
 @njit(cache=True, parallel=True)
 def adam_step(gparam, m1, m2, hyper, params, seen, n_steps):
-    """One Adam step (moments per element) with the step sizes ``hyper.lr [N_PARAM]`` (per gradient
+    """One Adam step (moments per element) with the step sizes ``hyper.lr [R]`` (per gradient
     row, :class:`AdamHyper`); then the clamps (log scales to ``[log_scale_min, log_scale_max]``,
     logits to +-``LOGIT_CLAMP``, colours to [0, 1]), the rotation update ``q <- q exp(w)`` and the
     derived ``scales = exp(log_scales)``, ``opacities = sigmoid(logits)``, all in ``params``
@@ -69,12 +73,15 @@ def adam_step(gparam, m1, m2, hyper, params, seen, n_steps):
     parameters and moments. Dense (3DGS): every Gaussian steps, with the bias correction of the
     fit's step ``t_all``, and unseen Gaussians keep moving on their momentum.
 
-    ``gparam``, ``m1``, ``m2`` are ``[N_PARAM, N]`` float32 (one row per scalar parameter), so the
+    ``gparam``, ``m1``, ``m2`` are ``[R, N]`` float32 (one row per scalar parameter: ``N_PARAM``,
+    then ``3 K`` SH coefficients ``P_SH + 3 k + c``, stepped without a clamp), so the
     moment update runs along contiguous float32 rows; blocks of ``ADAM_BLOCK`` Gaussians
     run in parallel, each then applies its steps Gaussian by Gaussian."""
     lr, b1, b2, eps, ibc1_t, ibc2_t, t_all, lo, hi = hyper
-    pos, log_s, quat, logit, col, scl, opa = params
+    pos, log_s, quat, logit, col, scl, opa, sh = params
     n = pos.shape[0]
+    n_rows = gparam.shape[0]
+    n_sh = (n_rows - N_PARAM) // 3
     selective = seen.shape[0] == n
     n_blocks = (n + ADAM_BLOCK - 1) // ADAM_BLOCK
     fb1 = np.float32(b1)
@@ -85,7 +92,7 @@ def adam_step(gparam, m1, m2, hyper, params, seen, n_steps):
     for blk in prange(n_blocks):
         i0 = blk * ADAM_BLOCK
         i1 = min(n, i0 + ADAM_BLOCK)
-        d = np.empty((N_PARAM, i1 - i0), dtype=np.float32)
+        d = np.empty((n_rows, i1 - i0), dtype=np.float32)
         on = np.ones(i1 - i0, dtype=np.bool_)
         ibc1 = np.empty(i1 - i0, dtype=np.float32)  # 1 / the bias corrections, per Gaussian
         ibc2 = np.empty(i1 - i0, dtype=np.float32)
@@ -98,7 +105,7 @@ def adam_step(gparam, m1, m2, hyper, params, seen, n_steps):
                 t = n_steps[i0 + j]
             ibc1[j] = ibc1_t[t]
             ibc2[j] = ibc2_t[t]
-        for c in range(N_PARAM):
+        for c in range(n_rows):
             step = np.float32(-lr[c])
             g = gparam[c, i0:i1]
             mm = m1[c, i0:i1]
@@ -123,6 +130,9 @@ def adam_step(gparam, m1, m2, hyper, params, seen, n_steps):
                 log_s[i, c] = ls
                 scl[i, c] = math.exp(np.float64(log_s[i, c]))
                 col[i, c] = min(1.0, max(0.0, np.float64(col[i, c]) + d[P_COL + c, j]))
+            for k in range(n_sh):
+                for c in range(3):
+                    sh[i, k, c] += d[P_SH + 3 * k + c, j]
             w0 = np.float64(d[P_ROT + 0, j])
             w1 = np.float64(d[P_ROT + 1, j])
             w2 = np.float64(d[P_ROT + 2, j])
@@ -162,10 +172,12 @@ class FitState:
     densification statistics. Rows may be added (densification) and removed (pruning).
 
     ``min_scale_m``, ``max_scale_m``: the clamp of the starting scales; ``normal_offset_max_scales``:
-    how far a centre may leave its starting surface, in its largest starting scale (0: free)."""
+    how far a centre may leave its starting surface, in its largest starting scale (0: free);
+    ``sh_degree``: the SH degree the fit learns (its coefficients get Adam rows; a field of a
+    lower degree gets zeros for the coefficients it lacks)."""
 
     def __init__(self, field: GaussianField, min_scale_m: float, max_scale_m: float,
-                 normal_offset_max_scales: float = 0.0) -> None:
+                 normal_offset_max_scales: float = 0.0, sh_degree: int = 0) -> None:
         self.pos = np.array(field.positions, np.float32)  # a copy: the fit moves it in place
         self.log_s = np.log(np.clip(field.scales.astype(np.float64), min_scale_m, max_scale_m)).astype(np.float32)
         q = field.rotations_xyzw.astype(np.float64)
@@ -174,13 +186,20 @@ class FitState:
         self.logit = np.log(op / (1 - op)).astype(np.float32)
         self.col = (field.colors.astype(np.float64) / 255.0).astype(np.float32)
         self.ids = field.ids.copy()
-        # The fit is degree 0: it renders and fits the base colour only. SH coefficients ride along
-        # unchanged (split and cloned Gaussians copy their parent's), so none are dropped.
-        self.sh_rest = field.sh_rest  # [N, K, 3]; [N, 0, 3] at degree 0
-        if field.sh_degree:
-            logger.warning("the keyframe fit renders and fits degree-0 colour only: the SH coefficients of "
-                           "degree %d (view-dependent colour) of the %d Gaussians are kept unchanged",
-                           field.sh_degree, len(field))
+        # The fit learns the first k_fit coefficients. Those of a higher degree than it learns ride
+        # along unchanged (split and cloned Gaussians copy their parent's), so none are dropped.
+        self.k_fit = sh_rest_count(sh_degree)
+        n_rest = max(self.k_fit, field.sh_rest.shape[1])
+        if n_rest == field.sh_rest.shape[1] and not self.k_fit:
+            self.sh_rest = field.sh_rest  # [N, K, 3]; not stepped, so not copied
+        else:
+            self.sh_rest = np.zeros((len(field), n_rest, 3), np.float32)
+            self.sh_rest[:, :field.sh_rest.shape[1]] = field.sh_rest
+        if field.sh_degree > sh_degree:
+            what = "degree-0 colour only" if not sh_degree else f"SH up to degree {sh_degree}"
+            logger.warning("the keyframe fit renders and fits %s: the SH coefficients of degree %d "
+                           "(view-dependent colour) of the %d Gaussians are kept unchanged beyond it",
+                           what, field.sh_degree, len(field))
         # Where each Gaussian started ([N, 3]), its surface normal there ([N, 3], the axis of its
         # smallest scale) and how far along it the fit may move it ([N, 1], normal_offset_max_scales
         # times its largest scale). Without a bound they are [N, 0] and never read: no memory.
@@ -194,8 +213,9 @@ class FitState:
             sc = field.scales.astype(np.float64)
             self.anchor_n = np.ascontiguousarray(R[np.arange(n), :, np.argmin(sc, axis=1)], np.float32)
             self.anchor_b = (normal_offset_max_scales * sc.max(axis=1, keepdims=True)).astype(np.float32)
-        self.m1 = np.zeros((N_PARAM, n), np.float32)  # Adam moments, one row per scalar parameter
-        self.m2 = np.zeros((N_PARAM, n), np.float32)
+        rows = P_SH + 3 * self.k_fit
+        self.m1 = np.zeros((rows, n), np.float32)  # Adam moments, one row per scalar parameter
+        self.m2 = np.zeros((rows, n), np.float32)
         self.n_steps = np.zeros(n, np.int32)  # Adam steps each Gaussian has taken (selective Adam)
         self.refresh()
         self.reset_stats()
@@ -210,7 +230,8 @@ class FitState:
         return GaussianArrays(self.pos, self.scl, self.quat, self.col, self.opa)
 
     def params(self) -> FitParams:
-        return FitParams(self.pos, self.log_s, self.quat, self.logit, self.col, self.scl, self.opa)
+        return FitParams(self.pos, self.log_s, self.quat, self.logit, self.col, self.scl, self.opa,
+                         self.sh_rest if self.k_fit else _NO_SH)
 
     def refresh(self) -> None:
         self.scl = np.exp(self.log_s)
@@ -221,7 +242,7 @@ class FitState:
         self.vs_cnt = np.zeros(len(self), np.int32)
 
     _ROWS = ("pos", "log_s", "quat", "logit", "col", "ids", "sh_rest", "anchor", "anchor_n", "anchor_b", "n_steps")
-    _MOMENTS = ("m1", "m2")  # [N_PARAM, N]: Gaussians along axis 1
+    _MOMENTS = ("m1", "m2")  # [N_PARAM + 3 k_fit, N]: Gaussians along axis 1
 
     def take(self, rows: np.ndarray) -> None:
         for name in self._ROWS:

@@ -37,7 +37,7 @@ from atlas_pipeline.gaussian_world.raster import (
 )
 
 __all__ = [
-    "N_PARAM", "P_POS", "P_LOG_SCALE", "P_ROT", "P_LOGIT", "P_COL", "FIT_STAGES", "StageClock",
+    "N_PARAM", "P_POS", "P_LOG_SCALE", "P_ROT", "P_LOGIT", "P_COL", "P_SH", "FIT_STAGES", "StageClock",
     "LossWeights", "FitTarget", "ViewGradients", "ForwardRows",
     "forward_tiles", "backward_tiles", "view_gradients", "render_loss_and_gradients",
 ]
@@ -49,6 +49,9 @@ _N_GRAD = 10
 _P_POS, _P_LOG_SCALE, _P_ROT, _P_LOGIT, _P_COL = 0, 3, 6, 9, 10
 _N_PARAM = 13
 N_PARAM, P_POS, P_LOG_SCALE, P_ROT, P_LOGIT, P_COL = _N_PARAM, _P_POS, _P_LOG_SCALE, _P_ROT, _P_LOGIT, _P_COL
+# A fit that learns view-dependent colour has 3 K more rows after these: coefficient k of channel c
+# at row P_SH + 3 k + c (fit_sh).
+P_SH = _N_PARAM
 # Per-pixel rows handed from the forward to the backward pass: d loss / d colour (3), d loss / d
 # depth sum (already divided by the accumulated alpha), the gradient-weighted total S (below), the
 # coverage term's weighted transmittance through the measured surface and that surface's far limit.

@@ -27,7 +27,8 @@ MIN_COARSE_WIDTH_PX = 32
 
 def stretch_schedule(s: FitConfig, n_views: int) -> FitConfig:
     """``s`` with its step counts grown for ``n_views`` keyframes (``min_steps_per_keyframe``): the
-    cap, the coarse level's cap and the densification interval and end, all by the same factor
+    cap, the coarse level's cap, the densification interval and end and the SH degree interval, all
+    by the same factor
     ``min_steps_per_keyframe * n_views / max_steps`` when that exceeds 1; else ``s`` unchanged."""
     if s.max_steps is None or s.min_steps_per_keyframe <= 0 or s.min_steps_per_keyframe * n_views <= s.max_steps:
         return s
@@ -35,7 +36,8 @@ def stretch_schedule(s: FitConfig, n_views: int) -> FitConfig:
     return s.model_copy(update=dict(max_steps=s.min_steps_per_keyframe * n_views,
                                     coarse_max_steps=int(round(s.coarse_max_steps * k)),
                                     densify_interval=int(round(s.densify_interval * k)),
-                                    densify_until_step=int(round(s.densify_until_step * k))))
+                                    densify_until_step=int(round(s.densify_until_step * k)),
+                                    sh_degree_interval=int(round(s.sh_degree_interval * k))))
 
 
 def coarse_passes(s: FitConfig, n_views: int, n_cap: int, coarse_width_px: float) -> int:

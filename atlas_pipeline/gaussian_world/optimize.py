@@ -29,7 +29,11 @@ float32 (the projection and the chain rule float64):
 1. *projection*: ``raster.prepare_splats(keep_aux=True)`` projects, sorts and bins the Gaussians
    once and keeps each one's projection intermediates for the chain rule.
 2. *forward* and 3. *backward*: ``fit_kernels.view_gradients``, on the renderer's compositing core
-   (``composite``).
+   (``composite``). With ``sh_degree`` > 0 each Gaussian's colour in the view is its spherical
+   harmonics along the ray from the camera centre (``fit_sh.view_colors01``, before the projection),
+   and ``fit_sh.sh_backward`` turns the colour gradient into the coefficients' (after the backward
+   pass). The degree starts at 0 and grows by one every ``sh_degree_interval`` steps (3DGS's
+   schedule, on fewer steps); a field of a lower degree starts its missing coefficients at 0.
 4. *Adam*: ``fit_adam.adam_step``, one fused pass over every Gaussian.
 
 **The schedule** (``optimize_gaussians``; ``fit_schedule``), 3DGS's with fewer steps:
@@ -64,11 +68,11 @@ from typing import Callable
 import numpy as np
 
 from atlas_pipeline.config import FitConfig
-from atlas_pipeline.gaussian_world import fit_kernels, fit_levels, raster
-from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.gaussian_world import fit_kernels, fit_levels, fit_sh, raster
+from atlas_pipeline.gaussian_world.field import GaussianField, sh_rest_count
 from atlas_pipeline.gaussian_world.fit_adam import CHILD_ID_BIT, AdamHyper, FitState, adam_step, bias_corrections
 from atlas_pipeline.gaussian_world.fit_kernels import (
-    FIT_STAGES, N_PARAM, LossWeights, StageClock, ViewGradients, fit_target, render_loss_and_gradients,
+    FIT_STAGES, LossWeights, StageClock, ViewGradients, fit_target, render_loss_and_gradients,
 )
 from atlas_pipeline.gaussian_world.fit_levels import OnDemandViews, FitLevel, reciprocal_factor
 from atlas_pipeline.gaussian_world.fit_schedule import coarse_passes, densify_and_prune, stretch_schedule
@@ -168,11 +172,11 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
     levels = ([FitLevel("coarse", fc, images, depths_m, K, depth_weights, coverage_bands_m)] if n_coarse else []) + [
         FitLevel("fine", f, images, depths_m, K, depth_weights, coverage_bands_m)]
 
-    st = FitState(field, s.min_scale_m, s.max_scale_m, s.normal_offset_max_scales)
+    st = FitState(field, s.min_scale_m, s.max_scale_m, s.normal_offset_max_scales, s.sh_degree)
     n_start = len(st)
     lo, hi = math.log(s.min_scale_m), math.log(s.max_scale_m)
-    lr0 = np.repeat([s.lr_position_m, s.lr_log_scale, s.lr_rotation_rad, s.lr_opacity_logit, s.lr_color],
-                    [3, 3, 3, 1, 3])  # per gradient row (fit_kernels.P_*)
+    lr0 = np.repeat([s.lr_position_m, s.lr_log_scale, s.lr_rotation_rad, s.lr_opacity_logit, s.lr_color, s.lr_sh_rest],
+                    [3, 3, 3, 1, 3, 3 * st.k_fit])  # per gradient row (fit_kernels.P_*, fit_sh)
     ibc1_t, ibc2_t = bias_corrections(ADAM_BETA1, n_cap), bias_corrections(ADAM_BETA2, n_cap)  # no count passes the cap
     weights = LossWeights(1.0, s.depth_weight, s.coverage_weight)
     rng = np.random.default_rng(s.seed)  # keyframe order
@@ -196,11 +200,19 @@ def optimize_gaussians(field: GaussianField, images: Sequence[np.ndarray], depth
                 decay *= s.coarse_lr_scale
             clock.start()
             view = raster.view_from_pose(poses[v], lv.K, lv.width, lv.height)
-            gparam = np.zeros((N_PARAM, len(st)), np.float32)
+            gparam = np.zeros((fit_sh.sh_grad_rows(st.k_fit), len(st)), np.float32)
             seen = np.zeros(len(st) if s.selective_adam else 0, np.uint8)
             target = fit_target(lv.images[v], lv.depths[v], lv.depth_w[v], None if lv.bands is None else lv.bands[v])
             grads = ViewGradients(gparam, st.vs_sum, st.vs_cnt, seen if s.selective_adam else None)
-            loss = fit_kernels.view_gradients(st.gaussians(), view, target, weights, grads, clock)
+            k_active = sh_rest_count(fit_sh.active_degree(step, s.sh_degree, s.sh_degree_interval))
+            gs = st.gaussians()
+            if k_active:  # the colour each Gaussian shows this view (part of the projection's time)
+                centre = np.asarray(poses[v], np.float64)[:3, 3]
+                gs = gs._replace(colors=fit_sh.view_colors01(st.pos, st.col, st.sh_rest, k_active, centre))
+            loss = fit_kernels.view_gradients(gs, view, target, weights, grads, clock)
+            if k_active:
+                fit_sh.sh_backward(st.pos, st.col, st.sh_rest, k_active, centre, gparam)
+                clock.lap("backward")
             t = step + 1
             hyper = AdamHyper(lr0 * decay, ADAM_BETA1, ADAM_BETA2, ADAM_EPS, ibc1_t, ibc2_t, t, lo, hi)
             adam_step(gparam, st.m1, st.m2, hyper, st.params(), seen, st.n_steps)
