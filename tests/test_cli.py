@@ -97,7 +97,7 @@ def test_import_ply_makes_a_world_to_relocalize_in(isolated, capsys):
     imported = isolated / "imported"
     assert main(["import-ply", str(world / "gaussians.ply"), "--output", str(imported)]) == 0
     out = _json_out(capsys)
-    assert out["n_gaussians"] > 0 and out["anisotropic"]
+    assert out["n_gaussians"] > 0 and out["anisotropic"] and out["sh_degree"] == 0
     from atlas_pipeline.scene_memory.bundle import load_world_bundle
 
     assert load_world_bundle(imported, "bin").field.equals(load_world_bundle(world, "bin").field)

@@ -67,7 +67,7 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
 
     imported = import_gaussian_ply(args.ply, args.output, args.voxel, args.force)
     out(json.dumps({"world": str(imported.bundle.resolve()), "n_gaussians": imported.n_gaussians,
-                    "anisotropic": imported.anisotropic}, indent=2))
+                    "anisotropic": imported.anisotropic, "sh_degree": imported.sh_degree}, indent=2))
     return 0
 
 
