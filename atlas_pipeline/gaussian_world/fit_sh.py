@@ -34,7 +34,7 @@ from numba import njit, prange
 from atlas_pipeline.gaussian_world.field import sh_degree_of_rest_count, sh_rest_count
 from atlas_pipeline.gaussian_world.fit_kernels import P_COL, P_SH, render_loss_and_gradients
 from atlas_pipeline.gaussian_world.raster import GaussianArrays
-from atlas_pipeline.gaussian_world.sh import _basis, _unit_directions, sh_basis_reference
+from atlas_pipeline.gaussian_world.sh import sh_basis_into, sh_basis_reference, unit_directions
 
 __all__ = ["active_degree", "sh_grad_rows", "view_colors01", "view_colors01_reference", "sh_backward",
            "sh_backward_reference", "render_loss_and_sh_gradients"]
@@ -62,7 +62,7 @@ def sh_grad_rows(k_rest: int) -> int:
 def _rest_sum_reference(positions, sh_rest, k_active, centre):
     """``[N, 3]`` float64 ``sum_{k < k_active} Y_{k+1}(d) sh_rest[:, k]`` and the basis ``[N, 16]``."""
     degree = sh_degree_of_rest_count(k_active)
-    basis = sh_basis_reference(_unit_directions(positions, centre), degree)  # [N, k_active + 1]
+    basis = sh_basis_reference(unit_directions(positions, centre), degree)  # [N, k_active + 1]
     acc = np.zeros((len(positions), 3))
     for k in range(k_active):  # one term at a time, in the kernel's order
         acc = acc + basis[:, k + 1, None] * sh_rest[:, k, :].astype(np.float64)
@@ -111,7 +111,7 @@ def _view_colors01_kernel(positions, col01, sh_rest, k_active, centre, out):
         basis = np.empty(15)
         if k_active > 0:
             x, y, z = _direction(positions, i, centre)
-            _basis(x, y, z, k_active, basis)
+            sh_basis_into(x, y, z, k_active, basis)
         for c in range(3):
             acc = 0.0
             for k in range(k_active):
@@ -125,7 +125,7 @@ def _sh_backward_kernel(positions, col01, sh_rest, k_active, centre, gparam):
         basis = np.empty(15)
         if k_active > 0:
             x, y, z = _direction(positions, i, centre)
-            _basis(x, y, z, k_active, basis)
+            sh_basis_into(x, y, z, k_active, basis)
         for c in range(3):
             acc = 0.0
             for k in range(k_active):

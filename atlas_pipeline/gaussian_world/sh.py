@@ -32,7 +32,7 @@ from numba import njit, prange
 from atlas_pipeline.gaussian_world.field import SH_MAX_DEGREE, sh_degree_of_rest_count, sh_rest_count
 
 __all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "SH_MAX_DEGREE", "COLOR_LEVELS", "sh_rest_count",
-           "sh_basis_reference", "view_colors_reference", "view_colors", "check_sh_rest",
+           "sh_basis_reference", "sh_basis_into", "unit_directions", "view_colors_reference", "view_colors", "check_sh_rest",
            "rest_to_channel_major", "rest_from_channel_major"]
 
 COLOR_LEVELS = 255.0  # uint8 colour levels (raster.COLOR_LEVELS; not imported: raster imports are heavy)
@@ -70,7 +70,7 @@ def rest_from_channel_major(cols: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(cols.reshape(len(cols), 3, -1).transpose(0, 2, 1))
 
 
-def _unit_directions(positions: np.ndarray, centre: np.ndarray) -> np.ndarray:
+def unit_directions(positions: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """``[N, 3]`` float64 unit vectors from ``centre`` ``[3]`` to ``positions`` ``[N, 3]`` (zero
     where they coincide: only the degree-0 colour is left)."""
     d = positions.astype(np.float64) - np.asarray(centre, np.float64)
@@ -105,7 +105,7 @@ def view_colors_reference(
     """``[N, 3]`` float64 colour levels seen from ``centre``: ``max(0, colors + 255 sum_k Y_k sh_rest[:, k - 1])``."""
     k_rest = sh_rest.shape[1]
     degree = sh_degree_of_rest_count(k_rest)
-    basis = sh_basis_reference(_unit_directions(positions, centre), degree)  # [N, K + 1]
+    basis = sh_basis_reference(unit_directions(positions, centre), degree)  # [N, K + 1]
     acc = np.zeros((len(positions), 3))
     for k in range(k_rest):  # one term at a time, in the kernel's order
         acc = acc + basis[:, k + 1, None] * sh_rest[:, k, :].astype(np.float64)
@@ -113,7 +113,7 @@ def view_colors_reference(
 
 
 @njit(cache=True, inline="always")
-def _basis(x, y, z, k_rest, out):
+def sh_basis_into(x, y, z, k_rest, out):
     """Fill ``out[0 .. k_rest - 1]`` with ``Y_1 .. Y_K`` at the unit direction ``(x, y, z)``."""
     out[0] = -SH_C1 * y
     out[1] = SH_C1 * z
@@ -156,7 +156,7 @@ def _view_colors_kernel(positions, colors, sh_rest, centre, out):
             dz /= norm
         else:
             dx = dy = dz = 0.0
-        _basis(dx, dy, dz, k_rest, basis)
+        sh_basis_into(dx, dy, dz, k_rest, basis)
         for c in range(3):
             acc = 0.0
             for k in range(k_rest):
