@@ -36,7 +36,7 @@ def _plane_model_view(T_world_model: np.ndarray) -> kn.ModelView:
     nrm = np.broadcast_to(n, pts.shape).copy()
     pts[12, 13] = nrm[12, 13] = np.nan
     pts[20, 27] = nrm[20, 27] = np.nan
-    return kn.ModelView(pts, nrm, np.ascontiguousarray(T_world_model), MODEL_F, MODEL_F, cx, cy)
+    return kn.ModelView.single_layer(pts, nrm, np.ascontiguousarray(T_world_model), MODEL_F, MODEL_F, cx, cy)
 
 
 def _reference(T_world_ref: np.ndarray, distortion) -> kn.ReferenceImage:
@@ -332,7 +332,7 @@ def _splat(centres, normals, radius_m, blend_sigmas: float, blend_floor_m: float
     params = kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos, blend_sigmas,
                             blend_floor_m, C.depth_noise_a_m, C.depth_noise_b_per_m, C.depth_noise_z0_m)
     view = kn.PinholeView(np.eye(4), SPLAT_F, SPLAT_F, (SPLAT_W - 1) / 2.0, (SPLAT_H - 1) / 2.0, SPLAT_W, SPLAT_H)
-    return kn.splat_surfels(np.ascontiguousarray(centres), np.ascontiguousarray(normals), radius_m, view, params)
+    return kn.splat_surfels(np.ascontiguousarray(centres), np.ascontiguousarray(normals), radius_m, view, params)[:2]
 
 
 def test_splatting_averages_a_noisy_layer_instead_of_taking_its_front():
@@ -428,3 +428,44 @@ def test_splatting_matches_a_numpy_reference():
     np.testing.assert_array_equal(np.isfinite(got_p[..., 2]), hit)
     np.testing.assert_allclose(got_p[hit], ref_p[hit], atol=1e-9)
     np.testing.assert_allclose(got_n[hit], ref_n[hit], atol=1e-9)
+
+
+def test_the_view_keeps_the_surface_behind_the_first():
+    """Two copies of a wall 6 cm apart (drift between passes): the view's first layer is the front
+    copy, its layer behind the back copy, both with their normals."""
+    front, n1 = _noisy_layer(1.0, 0.0, spacing_m=0.01, seed=0)
+    back, n2 = _noisy_layer(1.06, 0.0, spacing_m=0.01, seed=0)
+    C = TRACKER_CONSTANTS
+    params = kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos, C.splat_blend_sigmas,
+                            0.02, C.depth_noise_a_m, C.depth_noise_b_per_m, C.depth_noise_z0_m)
+    view = kn.PinholeView(np.eye(4), SPLAT_F, SPLAT_F, (SPLAT_W - 1) / 2.0, (SPLAT_H - 1) / 2.0, SPLAT_W, SPLAT_H)
+    pts, nrm, behind, behind_nrm = kn.splat_surfels(np.concatenate([back, front]), np.concatenate([n2, n1]), 0.016,
+                                                    view, params)
+    hit = np.isfinite(pts[..., 2]) & np.isfinite(behind[..., 2])
+    assert hit.mean() > 0.9
+    np.testing.assert_allclose(pts[hit, 2], 1.0, atol=1e-12)
+    np.testing.assert_allclose(behind[hit, 2], 1.06, atol=1e-12)
+    np.testing.assert_allclose(behind_nrm[hit], np.broadcast_to([0.0, 0.0, -1.0], behind_nrm[hit].shape), atol=1e-12)
+    alone, _, none_behind, _ = kn.splat_surfels(np.ascontiguousarray(front), np.ascontiguousarray(n1), 0.016, view,
+                                                params)
+    assert np.isnan(none_behind).all() and np.isfinite(alone[..., 2]).mean() > 0.9
+
+
+def test_a_point_on_the_surface_behind_is_a_correspondence(scene):
+    """A frame that lies on the copy behind the first surface agrees with the map: its points match
+    the layer behind (MATCH_BEHIND) and pull towards it; with one layer they are gated out."""
+    frame, T, model, ref = scene
+    params = _params(photometric_weight=0.0)
+    shift = np.array([0.0, 0.0, 0.06])  # the whole map surface 6 cm farther, as a second copy
+    behind = model.points_cam + shift
+    two = model._replace(points_behind_cam=behind, normals_behind_cam=model.normals_cam.copy())
+    T_back = T.copy()
+    T_back[:3, 3] += model.T_world_cam[:3, :3] @ shift  # the frame aligned to the copy behind
+    one = kn.associate(0, len(frame.points_cam), frame, T_back, model, ref, params)
+    both = kn.associate(0, len(frame.points_cam), frame, T_back, two, ref, params)
+    aligned = kn.associate(0, len(frame.points_cam), frame, T, model, ref, params)  # the frame on the first surface
+    n_aligned = int((aligned.geometric == kn.MATCH_OK).sum())
+    assert (one.geometric == kn.MATCH_OK).sum() == 0 and (both.geometric == kn.MATCH_BEHIND).sum() >= n_aligned // 2
+    _, _, stats_one = kn.build_linear_system(one, model, ref, params)
+    _, _, stats_two = kn.build_linear_system(both, two, ref, params)
+    assert stats_one.agreement == 0.0 and stats_two.agreement > 0.5 and stats_two.rmse_m < 0.02

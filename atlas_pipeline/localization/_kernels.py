@@ -38,9 +38,11 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from atlas_pipeline.localization._pyramid_kernels import downsample_depth, downsample_mean, image_gradients
+
 __all__ = [
     "PinholeView", "SplatParams", "FramePoints", "ModelView", "ReferenceImage", "Params", "Correspondences", "Stats",
-    "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "MATCH_IN_FRONT", "N_CHUNKS",
+    "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "MATCH_IN_FRONT", "MATCH_BEHIND", "N_CHUNKS",
     "downsample_depth", "downsample_mean", "image_gradients", "splat_surfels",
     "associate", "build_linear_system", "normal_equations",
 ]
@@ -63,6 +65,7 @@ MATCH_OK = 2  # a correspondence
 # not have (the far side of an object mapped from one side only, an object moved in): it neither
 # agrees nor disagrees with the map, so it counts as unmapped, not as on the model.
 MATCH_IN_FRONT = 3
+MATCH_BEHIND = 4  # behind the view's first surface, within the gate of the surface behind it: a correspondence
 
 
 # ---- named inputs and outputs --------------------------------------------------------------------
@@ -113,6 +116,17 @@ class ModelView(NamedTuple):
     fy: float
     cx: float
     cy: float
+    # The next surface behind the first along each pixel's ray (NaN: none): where the map holds
+    # two copies of a surface a few cm apart (drift between passes), or an occluder's edge is a
+    # pixel off, a frame point behind the first surface is matched to the one it lies on.
+    points_behind_cam: np.ndarray  # [h, w, 3] float64
+    normals_behind_cam: np.ndarray  # [h, w, 3] float64
+
+    @classmethod
+    def single_layer(cls, points_cam, normals_cam, T_world_cam, fx, fy, cx, cy) -> "ModelView":
+        """A view with no surface behind the first (tests, synthetic references)."""
+        empty = np.full_like(points_cam, np.nan)
+        return cls(points_cam, normals_cam, T_world_cam, fx, fy, cx, cy, empty, empty.copy())
 
 
 class ReferenceImage(NamedTuple):
@@ -151,7 +165,7 @@ class Correspondences(NamedTuple):
     points_world: np.ndarray  # [n, 3] float64 the points at the current pose estimate
     depth_cam_m: np.ndarray  # [n] float64 their depth in their own camera (for the noise model)
     intensity: np.ndarray  # [n] float64 their grey value
-    geometric: np.ndarray  # [n] int8 MATCH_NONE / MATCH_GATED / MATCH_OK
+    geometric: np.ndarray  # [n] int8 MATCH_NONE / MATCH_GATED / MATCH_OK / MATCH_IN_FRONT / MATCH_BEHIND
     model_pixel: np.ndarray  # [n, 2] int64 (u, v) of the model view pixel the point projects to
     points_model: np.ndarray  # [n, 3] float64 the points in the model view's camera frame
     photometric: np.ndarray  # [n] bool: the reference sees the point (photometric correspondence)
@@ -187,60 +201,6 @@ class Stats(NamedTuple):
         return math.sqrt(self.geometric_sq_m2 / self.n_geometric) if self.n_geometric else float("nan")
 
 
-# ---- image pyramid ------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def downsample_depth(depth_m, max_jump_m, max_jump_fraction):
-    """2x2 mean of valid depths ``[h, w]`` -> ``[h/2, w/2]``; a block whose readings spread more
-    than ``max_jump_m`` + ``max_jump_fraction`` of its depth straddles an edge and is left invalid
-    (0) so no flying point is made between foreground and background. At least 2 of the 4 readings
-    must be valid."""
-    h, w = depth_m.shape[0] // 2, depth_m.shape[1] // 2
-    out = np.zeros((h, w), np.float32)
-    for i in range(h):
-        for j in range(w):
-            s = 0.0
-            n = 0
-            lo = math.inf
-            hi = 0.0
-            for di in range(2):
-                for dj in range(2):
-                    d = depth_m[2 * i + di, 2 * j + dj]
-                    if d > 0.0:
-                        s += d
-                        n += 1
-                        lo = min(lo, d)
-                        hi = max(hi, d)
-            if n >= 2 and hi - lo < max_jump_m + max_jump_fraction * lo:
-                out[i, j] = s / n
-    return out
-
-
-@njit(cache=True)
-def downsample_mean(img):
-    """2x2 block mean of a float image ``[h, w]`` -> ``[h/2, w/2]``."""
-    h, w = img.shape[0] // 2, img.shape[1] // 2
-    out = np.empty((h, w), np.float32)
-    for i in range(h):
-        for j in range(w):
-            out[i, j] = 0.25 * (img[2 * i, 2 * j] + img[2 * i + 1, 2 * j] + img[2 * i, 2 * j + 1] + img[2 * i + 1, 2 * j + 1])
-    return out
-
-
-@njit(cache=True)
-def image_gradients(img):
-    """Central-difference gradients ``(gx, gy)`` of ``[h, w]`` (zero on the border)."""
-    h, w = img.shape
-    gx = np.zeros((h, w), np.float32)
-    gy = np.zeros((h, w), np.float32)
-    for i in range(1, h - 1):
-        for j in range(1, w - 1):
-            gx[i, j] = 0.5 * (img[i, j + 1] - img[i, j - 1])
-            gy[i, j] = 0.5 * (img[i + 1, j] - img[i - 1, j])
-    return gx, gy
-
-
 # ---- model view ---------------------------------------------------------------------------------
 
 
@@ -254,10 +214,11 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
         view: :class:`PinholeView` to render into.
         params: :class:`SplatParams`.
     Returns:
-        ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` float64, NaN where nothing was hit;
-        each pixel holds the mean ray / disk-plane intersection of the disks in its visibility
-        band (see :class:`SplatParams` and :func:`_splat_band`), so the model surface is smooth
-        and point-to-plane residuals against it are sub-voxel.
+        ``(points_cam, normals_cam, points_behind_cam, normals_behind_cam)``, each ``[h, w, 3]``
+        float64, NaN where nothing was hit; each pixel holds the mean ray / disk-plane
+        intersection of the disks in its visibility band (see :class:`SplatParams` and
+        :func:`_splat_band`), so the model surface is smooth and point-to-plane residuals against
+        it are sub-voxel; the ``behind`` pair, the same of the next band of hits behind it.
     """
     R = view.T_world_cam[:3, :3]
     pose = _pose(view.T_world_cam)
@@ -267,6 +228,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
     zbuf = np.full((h, w), np.inf)
     pts = np.full((h, w, 3), np.nan)
     nrm = np.full((h, w, 3), np.nan)
+    pts2 = np.full((h, w, 3), np.nan)
+    nrm2 = np.full((h, w, 3), np.nan)
     r2 = radius_m * radius_m
     n = centres_w.shape[0]
     # Pass 1 (parallel over surfels): camera-frame centre, camera-facing normal, pixel box. Only
@@ -314,8 +277,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
     for band in prange(N_SPLAT_BANDS):
         _splat_band(min(h, band * band_h), min(h, (band + 1) * band_h), VisibleSurfels(cam, box, order, r2),
-                    (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm))
-    return pts, nrm
+                    (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm, pts2, nrm2))
+    return pts, nrm, pts2, nrm2
 
 
 class VisibleSurfels(NamedTuple):
@@ -333,6 +296,8 @@ class SplatBuffers(NamedTuple):
     zbuf: np.ndarray  # [h, w] float64 blended depth (inf: empty)
     points_cam: np.ndarray  # [h, w, 3] float64
     normals_cam: np.ndarray  # [h, w, 3] float64
+    points_behind_cam: np.ndarray  # [h, w, 3] float64: the next surface behind (NaN: none)
+    normals_behind_cam: np.ndarray  # [h, w, 3] float64
 
 
 @njit(cache=True, inline="always")
@@ -366,7 +331,7 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out):
     about a sigma in front of it, and a frame aligned to it is pulled towards its camera."""
     cam, box, order, r2 = surfels
     fx, fy, cx, cy = intrinsics
-    zbuf, pts, nrm = out
+    zbuf, pts, nrm, pts2, nrm2 = out
     mic = params.min_incidence_cos
     rows = row_hi - row_lo
     w = zbuf.shape[1]
@@ -394,35 +359,51 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out):
         v = row_lo + r
         ry = (v - cy) / fy
         for u in range(w):
-            z0 = hit_z[r, u, 0]
-            if not np.isfinite(z0):
+            z, nx, ny, nz, nxt = _blend_band(hit_z[r, u], hit_k[r, u], 0, cam, params)
+            if not np.isfinite(z):
                 continue
-            dz = z0 - params.noise_z0_m if z0 > params.noise_z0_m else 0.0
-            band = max(params.blend_floor_m, params.blend_sigmas * (params.noise_a_m + params.noise_b_per_m * dz * dz))
-            zsum = 0.0
-            nx = ny = nz = 0.0
-            count = 0
-            for j in range(kbuf):
-                z = hit_z[r, u, j]
-                if z > z0 + band:  # sorted: the rest are farther (or inf)
-                    break
-                k = hit_k[r, u, j]
-                zsum += z
-                nx += cam[k, 3]
-                ny += cam[k, 4]
-                nz += cam[k, 5]
-                count += 1
-            nn = math.sqrt(nx * nx + ny * ny + nz * nz)
-            if nn <= 0.0:  # opposed normals cancelled: no surface orientation to offer
-                continue
-            z = zsum / count
             zbuf[v, u] = z
-            pts[v, u, 0] = (u - cx) / fx * z
-            pts[v, u, 1] = ry * z
-            pts[v, u, 2] = z
-            nrm[v, u, 0] = nx / nn
-            nrm[v, u, 1] = ny / nn
-            nrm[v, u, 2] = nz / nn
+            rx = (u - cx) / fx
+            pts[v, u, 0], pts[v, u, 1], pts[v, u, 2] = rx * z, ry * z, z
+            nrm[v, u, 0], nrm[v, u, 1], nrm[v, u, 2] = nx, ny, nz
+            if nxt < kbuf:
+                z, nx, ny, nz, _ = _blend_band(hit_z[r, u], hit_k[r, u], nxt, cam, params)
+                if np.isfinite(z):
+                    pts2[v, u, 0], pts2[v, u, 1], pts2[v, u, 2] = rx * z, ry * z, z
+                    nrm2[v, u, 0], nrm2[v, u, 1], nrm2[v, u, 2] = nx, ny, nz
+
+
+@njit(cache=True, inline="always")
+def _blend_band(hit_z, hit_k, j0, cam, params):
+    """Mean depth and unit normal of the sorted hits ``j0..`` of one pixel within the visibility band
+    behind hit ``j0`` (``inf`` depth: none, or opposed normals cancelled), and the index of the
+    first hit beyond the band."""
+    kbuf = hit_z.shape[0]
+    z0 = hit_z[j0]
+    if not np.isfinite(z0):
+        return np.inf, 0.0, 0.0, 0.0, kbuf
+    dz = z0 - params.noise_z0_m if z0 > params.noise_z0_m else 0.0
+    band = max(params.blend_floor_m, params.blend_sigmas * (params.noise_a_m + params.noise_b_per_m * dz * dz))
+    zsum = 0.0
+    nx = ny = nz = 0.0
+    count = 0
+    j = j0
+    while j < kbuf:
+        z = hit_z[j]
+        if z > z0 + band:  # sorted: the rest are farther (or inf)
+            break
+        k = hit_k[j]
+        zsum += z
+        nx += cam[k, 3]
+        ny += cam[k, 4]
+        nz += cam[k, 5]
+        count += 1
+        j += 1
+    nxt = j if j < kbuf and np.isfinite(hit_z[j]) else kbuf
+    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn <= 0.0:  # opposed normals cancelled: no surface orientation to offer
+        return np.inf, 0.0, 0.0, 0.0, nxt
+    return zsum / count, nx / nn, ny / nn, nz / nn, nxt
 
 
 # ---- small helpers --------------------------------------------------------------------------------
@@ -545,6 +526,7 @@ def associate(lo, hi, frame, T_world_cam, model, ref, params):
     ref_pose = _pose(ref.T_world_cam)
     pts = frame.points_cam
     model_pts = model.points_cam
+    behind_pts = model.points_behind_cam
     mh, mw = model_pts.shape[0], model_pts.shape[1]
     mfx, mfy, mcx, mcy = model.fx, model.fy, model.cx, model.cy
     gate2 = params.max_distance_m * params.max_distance_m
@@ -575,8 +557,17 @@ def associate(lo, hi, frame, T_world_cam, model, ref, params):
                 ez = zm - model_pts[v, u, 2]
                 if ex * ex + ey * ey + ez * ez < gate2:
                     geometric[i] = MATCH_OK
+                elif ez < 0.0:
+                    geometric[i] = MATCH_IN_FRONT
                 else:
-                    geometric[i] = MATCH_IN_FRONT if ez < 0.0 else MATCH_GATED
+                    geometric[i] = MATCH_GATED
+                    bz = behind_pts[v, u, 2]
+                    if bz == bz:
+                        ex = xm - behind_pts[v, u, 0]
+                        ey = ym - behind_pts[v, u, 1]
+                        ez = zm - bz
+                        if ex * ex + ey * ey + ez * ez < gate2:
+                            geometric[i] = MATCH_BEHIND
         if not use_photometric:
             continue
         # --- photometric: where the reference image sees the point
@@ -638,6 +629,7 @@ def build_linear_system(corr, model, ref, params):
     model_pose = _pose(model.T_world_cam)
     ref_pose = _pose(ref.T_world_cam)
     model_pts, model_nrm = model.points_cam, model.normals_cam
+    behind_pts, behind_nrm = model.points_behind_cam, model.normals_behind_cam
     pfx, pfy = ref.fx, ref.fy
     huber_depth_m = params.huber_depth_m
     n_on_model = 0
@@ -652,16 +644,17 @@ def build_linear_system(corr, model, ref, params):
     for i in range(n):
         px, py, pz = pw[i, 0], pw[i, 1], pw[i, 2]
         outcome = corr.geometric[i]
-        if outcome == MATCH_GATED or outcome == MATCH_OK:
+        if outcome == MATCH_GATED or outcome == MATCH_OK or outcome == MATCH_BEHIND:
             n_on_model += 1
         elif outcome == MATCH_IN_FRONT:
             n_in_front += 1
-        if outcome == MATCH_OK:
+        if outcome == MATCH_OK or outcome == MATCH_BEHIND:
             u, v = corr.model_pixel[i, 0], corr.model_pixel[i, 1]
-            ex = corr.points_model[i, 0] - model_pts[v, u, 0]
-            ey = corr.points_model[i, 1] - model_pts[v, u, 1]
-            ez = corr.points_model[i, 2] - model_pts[v, u, 2]
-            nrx, nry, nrz = model_nrm[v, u, 0], model_nrm[v, u, 1], model_nrm[v, u, 2]
+            surf, surf_nrm = (model_pts, model_nrm) if outcome == MATCH_OK else (behind_pts, behind_nrm)
+            ex = corr.points_model[i, 0] - surf[v, u, 0]
+            ey = corr.points_model[i, 1] - surf[v, u, 1]
+            ez = corr.points_model[i, 2] - surf[v, u, 2]
+            nrx, nry, nrz = surf_nrm[v, u, 0], surf_nrm[v, u, 1], surf_nrm[v, u, 2]
             r = nrx * ex + nry * ey + nrz * ez
             nwx, nwy, nwz = _rotate(model_pose, nrx, nry, nrz)  # d r / d p: the normal in the world
             ratio = _depth_noise_ratio(corr.depth_cam_m[i], params)

@@ -410,14 +410,18 @@ class SurfelModel:
 
     def render(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Model view ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` at pyramid ``level`` (NaN = empty)."""
+        return self._splat(T_world_cam, camera, level)[:2]
+
+    def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, ...]:
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, _level_view(T_world_cam, camera, level),
                                 _splat_params(self.radius_m))
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> kn.ModelView:
-        """:meth:`render` as the tracker's geometric reference (the view and its pinhole)."""
+        """The map splatted at ``T_world_cam`` as the tracker's geometric reference: the first surface
+        along each ray, the next one behind it, and the view's pinhole."""
         T = np.ascontiguousarray(T_world_cam, np.float64)
-        pts, nrm = self.render(T, camera, level)
-        return kn.ModelView(pts, nrm, T, *_level_K(camera, level))
+        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level)
+        return kn.ModelView(pts, nrm, T, *_level_K(camera, level), pts_behind, nrm_behind)
 
 
 @dataclass
