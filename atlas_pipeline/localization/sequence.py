@@ -323,10 +323,13 @@ class SequenceTracker:
         else:
             guess = self._predict(index, timestamp_s)
             use_photo = self.cfg.photometric_weight > 0 and self._ref is not None
-            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None)
+            # Along a fixed world (no map being built) a frame may match a surface behind the
+            # first: a world can hold two copies of a wall that drift left a few cm apart.
+            behind = self.builder is None
+            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, behind)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the hybrid solve).
-                res2 = self.tracker.align(fp, self.model, self._last[1], None)
+                res2 = self.tracker.align(fp, self.model, self._last[1], None, behind)
                 if _better(res2, res):
                     res = res2
             f2f = None

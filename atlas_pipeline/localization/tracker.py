@@ -416,11 +416,14 @@ class SurfelModel:
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, _level_view(T_world_cam, camera, level),
                                 _splat_params(self.radius_m))
 
-    def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> kn.ModelView:
+    def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
+                   surface_behind: bool = False) -> kn.ModelView:
         """The map splatted at ``T_world_cam`` as the tracker's geometric reference: the first surface
-        along each ray, the next one behind it, and the view's pinhole."""
+        along each ray, with ``surface_behind`` the next one behind it too, and the view's pinhole."""
         T = np.ascontiguousarray(T_world_cam, np.float64)
         pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level)
+        if not surface_behind:
+            return kn.ModelView.single_layer(pts, nrm, T, *_level_K(camera, level))
         return kn.ModelView(pts, nrm, T, *_level_K(camera, level), pts_behind, nrm_behind)
 
 
@@ -501,15 +504,18 @@ class RGBDTracker:
         return max(max_dist, cfg.min_correspondence_m)
 
     def align(self, frame: FramePyramid, model: SurfelModel, T_init: np.ndarray,
-              reference: tuple[FramePyramid, np.ndarray] | None = None) -> TrackResult:
+              reference: tuple[FramePyramid, np.ndarray] | None = None, surface_behind: bool = False) -> TrackResult:
         """Coarse-to-fine Gauss-Newton from ``T_init``; ``reference`` = (frame, its pose) for the
-        photometric term (None: geometry only)."""
+        photometric term (None: geometry only). ``surface_behind``: points behind the map's first
+        surface may match the one behind it (:class:`kn.ModelView`): for tracking along a fixed
+        world, never for mapping, loop or relocalization checks, which must see a doubled surface
+        as a disagreement."""
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
         kernel_threads()  # this process's share of the cores now (a pool of runs may change it)
         # One model view per frame, at the initial pose; every level projects into it.
-        view = model.model_view(T, self.camera, self.model_level)
+        view = model.model_view(T, self.camera, self.model_level, surface_behind)
         w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
         n_levels = len(cfg.iterations)
         total_it = 0
@@ -537,7 +543,7 @@ class RGBDTracker:
         # the pose travelled far from the one the model view was made at (relocalization).
         moved_m, turned_deg = pose_change(view.T_world_cam, T)
         if moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg:
-            view = model.model_view(T, self.camera, self.model_level)
+            view = model.model_view(T, self.camera, self.model_level, surface_behind)
         H_final, stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
         overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0
