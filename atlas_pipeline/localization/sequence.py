@@ -326,10 +326,10 @@ class SequenceTracker:
             # Along a fixed world (no map being built) a frame may match a surface behind the
             # first: a world can hold two copies of a wall that drift left a few cm apart.
             behind = self.builder is None
-            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, behind)
+            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the hybrid solve).
-                res2 = self.tracker.align(fp, self.model, self._last[1], None, behind)
+                res2 = self.tracker.align(fp, self.model, self._last[1], None, surface_behind=behind)
                 if _better(res2, res):
                     res = res2
             f2f = None
