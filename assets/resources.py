@@ -17,11 +17,11 @@ import os
 from functools import lru_cache
 from typing import Annotated, Any, Literal, get_args, get_origin
 
-from annotated_types import Ge, Gt, Le, Lt
 from dagster import Config, ConfigurableResource, Failure
 from pydantic import BaseModel, Field, create_model
 
 from atlas_pipeline.config import PipelineConfig, load_profile
+from atlas_pipeline.config_reference import allowed_range
 from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.sensors.registry import DatasetEntry, load_registry
 
@@ -29,7 +29,6 @@ from atlas_pipeline.sensors.registry import DatasetEntry, load_registry
 SECTIONS = tuple(k for k, f in PipelineConfig.model_fields.items() if isinstance(f.annotation, type)
                  and issubclass(f.annotation, BaseModel))
 PROFILE_ENV = "ATLAS_PROFILE"  # the profile when none is named (the code location's default)
-_BOUNDS = ((Gt, "gt", ">"), (Ge, "ge", ">="), (Lt, "lt", "<"), (Le, "le", "<="))
 
 
 class RunConfigError(Failure, ConfigError):
@@ -109,7 +108,7 @@ def _mirror(model: type[BaseModel], values: dict[str, Any], name: str, base: typ
 
 def _description(info: Any) -> str:
     """The model field's description, its choices and its allowed range, for the launchpad."""
-    bounds = [f"{word} {getattr(m, attr)}" for m in info.metadata for cls, attr, word in _BOUNDS if isinstance(m, cls)]
+    bounds = allowed_range(info)
     choices = get_args(info.annotation) if get_origin(info.annotation) is Literal else ()
     return "; ".join([info.description or ""] + ([f"one of {', '.join(choices)}"] if choices else [])
-                     + ([f"allowed: {', '.join(bounds)}"] if bounds else [])).strip("; ")
+                     + ([f"allowed: {bounds}"] if bounds else [])).strip("; ")

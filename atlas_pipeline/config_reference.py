@@ -15,7 +15,7 @@ from pydantic import BaseModel
 
 from atlas_pipeline.config import PipelineConfig
 
-__all__ = ["BEGIN_MARK", "END_MARK", "markdown_tables"]
+__all__ = ["BEGIN_MARK", "END_MARK", "markdown_tables", "allowed_range"]
 
 BEGIN_MARK = "<!-- fields: python -m atlas_pipeline.config_reference -->"
 END_MARK = "<!-- end of fields -->"
@@ -28,7 +28,8 @@ def _value(v: Any) -> str:
     return repr(v)
 
 
-def _allowed(info: Any) -> str:
+def allowed_range(info: Any) -> str:
+    """A model field's bounds in words (``> 0, <= 1``; empty when unbounded), for the docs and the launchpad."""
     return ", ".join(f"{word} {getattr(m, attr)}" for m in info.metadata for cls, attr, word in _BOUNDS
                      if isinstance(m, cls))
 
@@ -40,7 +41,7 @@ def _rows(model: type[BaseModel], values: BaseModel, prefix: str = "") -> list[s
         if isinstance(tp, type) and issubclass(tp, BaseModel):
             out += _rows(tp, getattr(values, name), f"{prefix}{name}.")
         else:
-            out.append(f"| `{prefix}{name}` | {_value(getattr(values, name))} | {_allowed(info)} | {info.description} |")
+            out.append(f"| `{prefix}{name}` | {_value(getattr(values, name))} | {allowed_range(info)} | {info.description} |")
     return out
 
 
