@@ -105,32 +105,39 @@ def _direction(positions, i, centre):
     return 0.0, 0.0, 0.0
 
 
+@njit(cache=True, inline="always")
+def _basis_of(positions, i, centre, k_active, basis):
+    """``basis[:k_active]`` = the SH basis along Gaussian ``i``'s view direction (none at degree 0)."""
+    if k_active > 0:
+        x, y, z = _direction(positions, i, centre)
+        sh_basis_into(x, y, z, k_active, basis)
+
+
+@njit(cache=True, inline="always")
+def _unclamped(col01, sh_rest, basis, k_active, i, c):
+    """Gaussian ``i``'s colour channel ``c`` before the clamp at 0: DC plus the active SH terms."""
+    acc = 0.0
+    for k in range(k_active):
+        acc = acc + basis[k] * np.float64(sh_rest[i, k, c])
+    return np.float64(col01[i, c]) + acc
+
+
 @njit(cache=True, parallel=True)
 def _view_colors01_kernel(positions, col01, sh_rest, k_active, centre, out):
     for i in prange(positions.shape[0]):
         basis = np.empty(15)
-        if k_active > 0:
-            x, y, z = _direction(positions, i, centre)
-            sh_basis_into(x, y, z, k_active, basis)
+        _basis_of(positions, i, centre, k_active, basis)
         for c in range(3):
-            acc = 0.0
-            for k in range(k_active):
-                acc = acc + basis[k] * np.float64(sh_rest[i, k, c])
-            out[i, c] = max(0.0, np.float64(col01[i, c]) + acc)
+            out[i, c] = max(0.0, _unclamped(col01, sh_rest, basis, k_active, i, c))
 
 
 @njit(cache=True, parallel=True)
 def _sh_backward_kernel(positions, col01, sh_rest, k_active, centre, gparam):
     for i in prange(positions.shape[0]):
         basis = np.empty(15)
-        if k_active > 0:
-            x, y, z = _direction(positions, i, centre)
-            sh_basis_into(x, y, z, k_active, basis)
+        _basis_of(positions, i, centre, k_active, basis)
         for c in range(3):
-            acc = 0.0
-            for k in range(k_active):
-                acc = acc + basis[k] * np.float64(sh_rest[i, k, c])
-            g = np.float64(gparam[P_COL + c, i]) if np.float64(col01[i, c]) + acc >= 0.0 else 0.0
+            g = np.float64(gparam[P_COL + c, i]) if _unclamped(col01, sh_rest, basis, k_active, i, c) >= 0.0 else 0.0
             gparam[P_COL + c, i] = g
             for k in range(k_active):
                 gparam[P_SH + 3 * k + c, i] = basis[k] * g
