@@ -186,10 +186,10 @@ def _fmt_row(label: str, r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     import numba
-    import yaml
     from bench_tracking import _load
 
-    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.config import load_profile, parse_set_overrides
+    from atlas_pipeline.errors import ConfigError
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--datasets", nargs="+", default=["synthetic", "teddy"], choices=["synthetic", "teddy"])
@@ -202,12 +202,10 @@ def main(argv: list[str] | None = None) -> int:
                          "through the same room: more keyframes, more Gaussians per step)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    overrides = {"mapping.pose_source": "ground_truth"}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key] = yaml.safe_load(value)
+    try:
+        overrides = {"mapping.pose_source": "ground_truth", **parse_set_overrides(args.set)}
+    except ConfigError as exc:
+        ap.error(str(exc))
     cfg = load_profile("default").with_overrides(overrides)
     old_mod = None
     if "old" in args.variants:

@@ -73,10 +73,10 @@ def fit_at(inputs: dict, fit_cfg, degree: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     import numba
-    import yaml
     from bench_fit import build_inputs, held_out_psnr
 
-    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.config import load_profile, parse_set_overrides
+    from atlas_pipeline.errors import ConfigError
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--datasets", nargs="+", default=["teddy", "fr1"], choices=["synthetic", "teddy", "fr1"])
@@ -88,12 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     degrees = [int(d) for d in args.sh_degrees.split(",")]
-    overrides = {"mapping.pose_source": "ground_truth"}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key] = yaml.safe_load(value)
+    try:
+        overrides = {"mapping.pose_source": "ground_truth", **parse_set_overrides(args.set)}
+    except ConfigError as exc:
+        ap.error(str(exc))
     cfg = load_profile("default").with_overrides(overrides)
     print(f"numba {numba.__version__}: {numba.get_num_threads()} threads; CPU seconds = process time of the fit, "
           f"all threads; sh_degree_interval {cfg.mapping.fit.sh_degree_interval}, lr_sh_rest "
