@@ -205,7 +205,7 @@ class Stats(NamedTuple):
 
 
 @njit(cache=True, parallel=True)
-def splat_surfels(centres_w, normals_w, radius_m, view, params):
+def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind=True):
     """Render oriented disks (surfels) into a pinhole view with a z-buffer.
 
     Args:
@@ -213,6 +213,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
         radius_m: disk radius.
         view: :class:`PinholeView` to render into.
         params: :class:`SplatParams`.
+        surface_behind: also blend the next band of hits behind the first (False: the ``behind``
+            pair stays NaN, and costs no blending).
     Returns:
         ``(points_cam, normals_cam, points_behind_cam, normals_behind_cam)``, each ``[h, w, 3]``
         float64, NaN where nothing was hit; each pixel holds the mean ray / disk-plane
@@ -277,7 +279,7 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params):
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
     for band in prange(N_SPLAT_BANDS):
         _splat_band(min(h, band * band_h), min(h, (band + 1) * band_h), VisibleSurfels(cam, box, order, r2),
-                    (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm, pts2, nrm2))
+                    (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm, pts2, nrm2), surface_behind)
     return pts, nrm, pts2, nrm2
 
 
@@ -320,7 +322,7 @@ def _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, min_incidence_cos):
 
 
 @njit(cache=True)
-def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out):
+def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind):
     """Surfels ``order`` (visible ones, ascending) into rows ``row_lo:row_hi`` of the buffers (see
     :func:`splat_surfels`).
 
@@ -366,7 +368,7 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out):
             rx = (u - cx) / fx
             pts[v, u, 0], pts[v, u, 1], pts[v, u, 2] = rx * z, ry * z, z
             nrm[v, u, 0], nrm[v, u, 1], nrm[v, u, 2] = nx, ny, nz
-            if nxt < kbuf:
+            if surface_behind and nxt < kbuf:
                 z, nx, ny, nz, _ = _blend_band(hit_z[r, u], hit_k[r, u], nxt, cam, params)
                 if np.isfinite(z):
                     pts2[v, u, 0], pts2[v, u, 1], pts2[v, u, 2] = rx * z, ry * z, z

@@ -410,20 +410,19 @@ class SurfelModel:
 
     def render(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, np.ndarray]:
         """Model view ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` at pyramid ``level`` (NaN = empty)."""
-        return self._splat(T_world_cam, camera, level)[:2]
+        return self._splat(T_world_cam, camera, level, False)[:2]
 
-    def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -> tuple[np.ndarray, ...]:
+    def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
+               surface_behind: bool) -> tuple[np.ndarray, ...]:
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, _level_view(T_world_cam, camera, level),
-                                _splat_params(self.radius_m))
+                                _splat_params(self.radius_m), surface_behind)
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
                    surface_behind: bool = False) -> kn.ModelView:
         """The map splatted at ``T_world_cam`` as the tracker's geometric reference: the first surface
-        along each ray, with ``surface_behind`` the next one behind it too, and the view's pinhole."""
+        along each ray, with ``surface_behind`` the next one behind it too (else NaN), and the view's pinhole."""
         T = np.ascontiguousarray(T_world_cam, np.float64)
-        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level)
-        if not surface_behind:
-            return kn.ModelView.single_layer(pts, nrm, T, *_level_K(camera, level))
+        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level, surface_behind)
         return kn.ModelView(pts, nrm, T, *_level_K(camera, level), pts_behind, nrm_behind)
 
 
