@@ -176,12 +176,50 @@ def end_interrupted(say: bool = True) -> None:
     goes on), turns into a SystemError, or crashes the process. Every output is written under a
     temporary name and renamed whole, and a folder swap under way is repaired by the next open, so
     ending here leaves no half-written file; a Dagster run left in progress is marked failed when
-    atlas-gs next opens the instance (:func:`reap_dead_runs`)."""
+    atlas-gs next opens the instance (:func:`reap_dead_runs`). Children in process groups of their
+    own, which the Ctrl-C did not reach, are stopped first (:func:`stop_detached_children`)."""
+    stop_detached_children()
     discard_own_staging()
     if say:
         with contextlib.suppress(OSError):
             os.write(2, (INTERRUPTED_MESSAGE + "\n").encode())
     os._exit(INTERRUPTED_EXIT)
+
+
+def detached_children(pid: int | None = None) -> list[int]:
+    """Process ids of the children of ``pid`` (this process) that run in a process group other than
+    its own, from ``/proc`` (empty where there is none)."""
+    pid = os.getpid() if pid is None else pid
+    group = os.getpgid(pid)
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return []
+    found = []
+    for entry in entries:
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path("/proc", entry, "stat").read_text()
+        except OSError:  # gone meanwhile, or not ours to read
+            continue
+        fields = stat.rsplit(")", 1)[-1].split()  # after "pid (comm)": state ppid pgrp ...
+        if len(fields) >= 3 and int(fields[1]) == pid and int(fields[2]) != group:
+            found.append(int(entry))
+    return found
+
+
+def stop_detached_children() -> None:
+    """SIGKILL this process's children in process groups of their own (ffmpeg: imageio-ffmpeg starts
+    it so) but Dagster's log mirrors (:data:`_LOG_MIRRORS`, which end with the process). A terminal's
+    Ctrl-C does not reach them, and they would outlive the command: ffmpeg finishing a video into
+    staging just removed, printing its errors (or leaving the file) after the command's last line."""
+    for child in detached_children():
+        if child in _LOG_MIRRORS:
+            continue
+        with contextlib.suppress(OSError):
+            os.kill(child, signal.SIGKILL)
+            os.waitpid(child, 0)
 
 
 @contextmanager
@@ -219,7 +257,15 @@ class _DetachedSubprocess:
     @staticmethod
     def Popen(*args, **kwargs):  # noqa: N802 - subprocess's name
         kwargs.setdefault("process_group", 0)
-        return subprocess.Popen(*args, **kwargs)
+        process = subprocess.Popen(*args, **kwargs)
+        _LOG_MIRRORS.add(process.pid)
+        return process
+
+
+# Dagster's compute-log mirrors started by this process: during a step the process's stdout and
+# stderr are files these mirror to the terminal, so they carry the command's last line and are not
+# stopped with the other detached children.
+_LOG_MIRRORS: set[int] = set()
 
 
 @contextmanager

@@ -395,6 +395,57 @@ def test_ctrl_c_ends_with_one_line_and_status_130(interrupt_env, argv, ready):
         "a file that was there changed"
 
 
+@pytest.mark.slow
+def test_ctrl_c_while_a_video_is_encoded_leaves_no_temporary_file_and_no_ffmpeg_lines(interrupt_env):
+    """Interrupted once ffmpeg (in a process group of its own, which the Ctrl-C does not reach) is
+    writing the video: it is stopped with the command, its temporary MP4 removed, no line of its own."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, env = interrupt_env
+    out = root / "encoded" / "orbit.mp4"
+    out.parent.mkdir()
+    p = subprocess.Popen([sys.executable, "-c", CLI, "demo-video", "--world", str(root / "world"), "--output",
+                          str(out), "--set", "video.orbit_frames=2000"], env=env, cwd=root, start_new_session=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 180
+    while not [f for f in out.parent.iterdir() if f.name.endswith(".tmp.mp4") and f.stat().st_size > 0]:
+        assert p.poll() is None and time.monotonic() < deadline, p.communicate()
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    time.sleep(1)  # an ffmpeg left running would finish its file (or complain) now
+    assert p.returncode == 130, err
+    assert err.rstrip().splitlines() == ["interrupted; nothing half-written is left"], err
+    assert list(out.parent.iterdir()) == [], sorted(out.parent.iterdir())
+
+
+def test_interrupt_stops_detached_children_but_the_log_mirrors():
+    """What Ctrl-C stops: this process's children in process groups of their own (ffmpeg), not
+    Dagster's log mirrors, which carry the command's last line to the terminal."""
+    import subprocess
+
+    from assets import runs
+
+    ffmpeg_like = subprocess.Popen(["sleep", "60"], process_group=0)
+    mirror = runs._DetachedSubprocess.Popen(["sleep", "60"])
+    same_group = subprocess.Popen(["sleep", "60"])  # gets the terminal's SIGINT itself
+    try:
+        assert {ffmpeg_like.pid, mirror.pid} <= set(runs.detached_children())
+        assert same_group.pid not in runs.detached_children()
+        runs.stop_detached_children()
+        assert ffmpeg_like.poll() is not None or ffmpeg_like.wait(5) is not None
+        assert mirror.poll() is None and same_group.poll() is None
+    finally:
+        for child in (ffmpeg_like, mirror, same_group):
+            child.kill()
+            child.wait()
+        runs._LOG_MIRRORS.discard(mirror.pid)
+
+
 def _snapshot(folder: Path) -> dict[str, int]:
     return {str(p.relative_to(folder)): p.stat().st_size for p in folder.rglob("*") if p.is_file()}
 

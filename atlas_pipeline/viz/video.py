@@ -7,15 +7,13 @@ combination every browser plays, and one that can start playing before it is ful
 from __future__ import annotations
 
 import logging
-import os
-import uuid
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
 from atlas_pipeline.geometry import look_at
-from atlas_pipeline.io_utils import sweep_stale_files
+from atlas_pipeline.io_utils import atomic_path
 
 __all__ = ["orbit_poses", "write_mp4", "side_by_side"]
 
@@ -151,45 +149,42 @@ def write_mp4(
     if shape[0] % 2 or shape[1] % 2:
         logger.info("padding %dx%d frames to even size for yuv420p", shape[1], shape[0])
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    sweep_stale_files(path)  # temporaries of a killed earlier writer
-    # same folder (atomic rename), hidden, and ending in .mp4 so ffmpeg picks the container
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp.mp4")
-    writer = imageio.get_writer(
-        tmp,
-        format="FFMPEG",
-        mode="I",
-        fps=float(fps),
-        codec="libx264",
-        pixelformat="yuv420p",
-        macro_block_size=1,  # we pad to even ourselves; imageio would otherwise resize to x16
-        quality=None,  # rate control given explicitly below
-        ffmpeg_params=["-movflags", "+faststart", "-crf", str(int(crf)), "-preset", "medium",
-                       "-metadata", f"comment={VIDEO_MARKER}"],
-        ffmpeg_log_level="error",
-    )
-    n = 0
-    try:
-        frame = first
-        while True:
-            writer.append_data(_pad_even(frame))
-            n += 1
-            if progress is not None:
-                progress(n)
-            try:
-                frame = next(it)
-            except StopIteration:
-                break
-            frame = _check_frame(frame, n, shape, dtype)
-        writer.close()
-        os.replace(tmp, path)
-    except BaseException:
+    # Same folder (atomic rename), hidden, ending in .mp4 so ffmpeg picks the container, and among
+    # this process's staging (atomic_path): a command Ctrl-C ends removes it (ffmpeg stopped first).
+    with atomic_path(path) as tmp:
+        writer = imageio.get_writer(
+            tmp,
+            format="FFMPEG",
+            mode="I",
+            fps=float(fps),
+            codec="libx264",
+            pixelformat="yuv420p",
+            macro_block_size=1,  # we pad to even ourselves; imageio would otherwise resize to x16
+            quality=None,  # rate control given explicitly below
+            ffmpeg_params=["-movflags", "+faststart", "-crf", str(int(crf)), "-preset", "medium",
+                           "-metadata", f"comment={VIDEO_MARKER}"],
+            ffmpeg_log_level="error",
+        )
+        n = 0
         try:
+            frame = first
+            while True:
+                writer.append_data(_pad_even(frame))
+                n += 1
+                if progress is not None:
+                    progress(n)
+                try:
+                    frame = next(it)
+                except StopIteration:
+                    break
+                frame = _check_frame(frame, n, shape, dtype)
             writer.close()
-        except Exception:  # the original error matters more than a failed cleanup
-            logger.debug("closing the ffmpeg writer after an error failed", exc_info=True)
-        tmp.unlink(missing_ok=True)
-        raise
+        except BaseException:
+            try:
+                writer.close()
+            except Exception:  # the original error matters more than a failed cleanup
+                logger.debug("closing the ffmpeg writer after an error failed", exc_info=True)
+            raise
     # the file's name only: its folder may be a staging folder the caller moves into place
     logger.info("wrote %s: %d frames (%dx%d, %.3g fps)", path.name, n, shape[1], shape[0], fps)
     return n
