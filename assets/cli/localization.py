@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from assets.cli import options
-from assets.cli.output import EXIT_INCOMPLETE, out
+from assets.cli.output import EXIT_INCOMPLETE, json_document, out
 from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.geometry import tq_from_pose
 from atlas_pipeline.io_utils import check_writable
@@ -75,7 +75,7 @@ def cmd_evaluate_trajectory(args: argparse.Namespace) -> int:
     if res["n_matched"] < MIN_MATCHED_POSES:
         raise ConfigError(f"only {res['n_matched']} poses of {args.estimated} have a ground-truth pose within "
                           f"{args.max_dt} s in {args.groundtruth}: nothing to evaluate")
-    out(json.dumps(res, indent=2))
+    out(json_document(res))  # figures that cannot be computed (RPE of a short path) are null
     return 0
 
 

@@ -8,6 +8,7 @@ check. ``-v`` adds the library's and Dagster's lines, every run event and Python
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -45,6 +46,23 @@ def out(text: str) -> None:
     if term is not None:
         term.clear()
     print(text, flush=True)
+
+
+def json_document(obj: Any) -> str:
+    """``obj`` as one standard JSON document (indented): NaN and infinities, which ``json.dumps``
+    writes as the non-JSON ``NaN`` / ``Infinity`` that jq and most parsers refuse, become null."""
+    import math
+
+    def finite(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [finite(x) for x in v]
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        return v
+
+    return json.dumps(finite(obj), indent=2, allow_nan=False)
 
 
 def took(seconds: float) -> str:

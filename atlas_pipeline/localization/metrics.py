@@ -64,13 +64,19 @@ def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``timestamp tx ty tz qx qy qz qw`` lines: ``(timestamps_s [N], poses_se3 [N, 4, 4])``.
 
     Comment lines (``#``) and blank lines are skipped; commas are accepted as separators (TUM's
-    tools do the same). A malformed line raises :class:`DatasetError` naming the file and line.
+    tools do the same). A path that is no regular file (a directory, a FIFO: never opened), a line
+    that is malformed, not UTF-8 or endless, and timestamps that cannot be seconds (nanoseconds,
+    microseconds, milliseconds: ``tum.check_timestamps_are_seconds``) raise :class:`DatasetError`
+    naming the file (and line).
     """
+    from atlas_pipeline.sensors.tum import _iter_lines, check_timestamps_are_seconds, file_problem
+
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError(path, "trajectory file not found")
-    ts, tq = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    problem = file_problem(path)
+    if problem is not None:
+        raise DatasetError(path, f"trajectory file {problem}")
+    rows, tq = [], []
+    for lineno, line in _iter_lines(path):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -83,13 +89,14 @@ def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise DatasetError(path, "non-numeric value", lineno) from None
         if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[4:]) < 1e-9:
             raise DatasetError(path, "non-finite value or zero quaternion", lineno)
-        ts.append(vals[0])
-        tq.append(vals[1:])
-    if not ts:
+        rows.append((lineno, parts))
+        tq.append(vals)
+    if not rows:
         return np.zeros(0), np.zeros((0, 4, 4))
-    ts_a, tq_a = np.asarray(ts), np.asarray(tq)
-    order = np.argsort(ts_a, kind="stable")
-    return ts_a[order], pose_from_tq(tq_a[order, :3], tq_a[order, 3:])
+    tq_a = np.asarray(tq)
+    order = np.argsort(tq_a[:, 0], kind="stable")
+    check_timestamps_are_seconds(path, [rows[i] for i in order], tq_a[order, 0])
+    return tq_a[order, 0], pose_from_tq(tq_a[order, 1:4], tq_a[order, 4:])
 
 
 def match_trajectories(ts_est: np.ndarray, poses_est: np.ndarray, ts_gt: np.ndarray, poses_gt: np.ndarray,
@@ -156,9 +163,11 @@ def ate(poses_est: np.ndarray, poses_gt: np.ndarray, align: bool = True) -> dict
     uncertainty = alignment_rot_uncertainty_deg(gt[:, :3, 3], st["rmse"]) if aligning else 0.0
     note = None
     if uncertainty > ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG:
+        by = (f"about {uncertainty:.3g} degrees" if uncertainty < 180 else  # no angle is more uncertain than 180
+              "any angle (the positions do not fix it)")
         note = (f"not reported: the path is near straight, so the alignment's rotation about it is uncertain by "
-                f"about {uncertainty:.3g} degrees (more than {ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG:g}); the "
-                "unaligned rotation error is meaningful when the world shares the ground truth's frame")
+                f"{by} (more than {ALIGNMENT_MAX_ROT_UNCERTAINTY_DEG:g} degrees); the unaligned rotation error "
+                "(rmse_rot_unaligned_deg) is meaningful when the world shares the ground truth's frame")
         e_r = np.full_like(e_r, np.nan)
     return {"rmse_m": st["rmse"], "mean_m": st["mean"], "median_m": st["median"], "max_m": st["max"],
             "rot_rmse_deg": float("nan") if note else error_stats(e_r)["rmse"], "rot_note": note,
@@ -222,6 +231,7 @@ def evaluate_trajectories(ts_est: np.ndarray, poses_est: np.ndarray, ts_gt: np.n
                     "ate_max_m": a["max_m"], "ate_rot_rmse_deg": a["rot_rmse_deg"]})
         if a["rot_note"]:
             out["ate_rot_note"] = a["rot_note"]
+        out["rmse_rot_unaligned_deg"] = error_stats(pose_errors(est, gt)[1])["rmse"]  # the note's fallback
         r = rpe(t, est, gt, rpe_delta_s, "s")
         out.update({"rpe_trans_rmse_m": r["trans_rmse_m"], "rpe_rot_rmse_deg": r["rot_rmse_deg"],
                     "rpe_n_pairs": r["n_pairs"], "rpe_delta_s": rpe_delta_s})

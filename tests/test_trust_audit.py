@@ -1,0 +1,81 @@
+"""Trust under hostile input, found by auditing the first two rounds as a new user: each bad input
+is an error (or a warning) naming the file, line, field or option, never a traceback, a result
+that is not JSON, or a silent loss."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+from assets.cli import main
+
+# ---- evaluate-trajectory: the files it reads, and what it prints --------------------------------
+
+GT_LINES = [f"{1305031102.0 + i / 30:.6f} {0.01 * i:.4f} 0 0 0 0 0 1\n" for i in range(12)]
+
+
+def _write(path, lines):
+    path.write_text("".join(lines))
+    return path
+
+
+@pytest.mark.parametrize("make, says", [
+    (lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(40)), ["est.tum:1: line is not UTF-8 text (byte 0"]),
+    (lambda p: p.mkdir(), ["est.tum: trajectory file is a directory"]),
+    (lambda p: os.mkfifo(p), ["est.tum: trajectory file is not a regular file (a FIFO)"]),
+    (lambda p: _write(p, [f"{float(ln.split()[0]) * 1e3!r} {ln.split(' ', 1)[1]}" for ln in GT_LINES]),
+     ["est.tum: timestamps are a median 33.3", "they look like milliseconds", "multiply by 0.001"]),
+    (lambda p: _write(p, [f"{float(ln.split()[0]) * 1e9:.0f} {ln.split(' ', 1)[1]}" for ln in GT_LINES]),
+     ["est.tum: timestamps are a median", "they look like nanoseconds", "multiply by 1e-09"]),
+    (lambda p: _write(p, ["1305031102175303936 0 0 0 0 0 0 1\n"]),
+     ["est.tum:1: timestamp 1305031102175303936 is too large for seconds", "nanoseconds since the epoch"]),
+])
+def test_evaluate_trajectory_names_a_file_it_cannot_read(tmp_path, caplog, make, says):
+    est = tmp_path / "est.tum"
+    make(est)
+    gt = _write(tmp_path / "gt.txt", GT_LINES)
+    assert main(["evaluate-trajectory", str(est), str(gt)]) == 2
+    for words in says:
+        assert words in caplog.text, caplog.text
+    assert "Traceback" not in caplog.text
+
+
+def test_evaluate_trajectory_prints_standard_json_and_the_figure_its_note_points_to(tmp_path, capsys):
+    """A 12-pose straight path: RPE over 1 s has no pair and the alignment's rotation is ill-posed;
+    the output is still one JSON document (null, never NaN) and holds the unaligned rotation error
+    the note points to."""
+    gt = _write(tmp_path / "gt.txt", GT_LINES)
+    assert main(["evaluate-trajectory", str(gt), str(gt)]) == 0
+    text = capsys.readouterr().out
+
+    def refuse(constant):
+        raise AssertionError(f"not JSON: {constant}")
+
+    doc = json.loads(text, parse_constant=refuse)
+    assert doc["rpe_trans_rmse_m"] is None and doc["ate_rot_rmse_deg"] is None
+    assert "rmse_rot_unaligned_deg" in doc["ate_rot_note"]
+    assert doc["rmse_rot_unaligned_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("across_m, says", [
+    (1e-3, "uncertain by about"),
+    (0.0, "uncertain by any angle (the positions do not fix it)"),
+])
+def test_the_alignment_uncertainty_is_never_more_than_any_angle(across_m, says):
+    from atlas_pipeline.geometry import pose_from_tq
+    from atlas_pipeline.localization.metrics import ate
+
+    n = 12
+    t = np.stack([np.linspace(0, 0.1, n), across_m * np.sin(np.arange(n)), np.zeros(n)], axis=1)
+    gt = pose_from_tq(t, np.tile([0, 0, 0, 1.0], (n, 1)))
+    est = gt.copy()
+    est[:, :3, 3] += np.random.default_rng(0).normal(0, 0.001, (n, 3))
+    a = ate(est, gt)
+    assert math.isnan(a["rot_rmse_deg"]) and says in a["rot_note"], a["rot_note"]
+    if "about" in says:
+        degrees = float(a["rot_note"].split("by about ")[1].split(" degrees")[0])
+        assert 3 < degrees < 180, a["rot_note"]
