@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_origin
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, ValidationError, ValidationInfo,
+                      field_validator, model_validator)
 
 from atlas_pipeline.errors import ConfigError
 
@@ -74,28 +76,13 @@ _RECIPROCAL_TOL = 1e-9  # how close a scale must be to 1/n (the fit downsamples 
 
 class Section(BaseModel):
     """A config section: frozen, every key known, types strict (YAML ``true`` is not 1, ``"2"`` not
-    2), numbers finite. YAML lists become the tuples the fields declare."""
+    2), numbers finite. A rule between two fields is a validator of the later one (it sees the
+    earlier in ``info.data``), so pydantic's error names the field."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False)
 
-    @model_validator(mode="before")
-    @classmethod
-    def _lists_to_tuples(cls, data: Any) -> Any:
-        if not isinstance(data, dict):
-            return data
-        tuples = {k for k, f in cls.model_fields.items() if get_origin(f.annotation) is tuple}
-        return {k: tuple(v) if k in tuples and isinstance(v, list) else v for k, v in data.items()}
-
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump()
-
-
-class RuleError(ValueError):
-    """A rule that ties fields of a section together failed; ``field`` is the one to change."""
-
-    def __init__(self, field: str, message: str):
-        super().__init__(message)
-        self.field = field
 
 
 class DatasetConfig(Section):
@@ -110,17 +97,18 @@ class FusionConfig(Section):
         "tracking against 8 m of noisy depth broke"))
     stride: int = Field(2, ge=1, le=MAX_PIXEL_STRIDE, description="back-project every stride-th pixel in u and v")
 
-    @model_validator(mode="after")
-    def _depth_interval_not_empty(self) -> "FusionConfig":
-        if self.min_depth_m >= self.max_depth_m:  # depths outside [min, max] are dropped
-            raise RuleError("min_depth_m", f"must be < max_depth_m ({self.max_depth_m!r}), got {self.min_depth_m!r}")
-        return self
+    @field_validator("max_depth_m")
+    @classmethod
+    def _depth_interval_not_empty(cls, v: float, info: ValidationInfo) -> float:
+        if v <= info.data.get("min_depth_m", -math.inf):  # depths outside [min, max] are dropped
+            raise ValueError(f"must be > min_depth_m ({info.data['min_depth_m']!r})")
+        return v
 
 
 def _reciprocal(value: float) -> float:
     n = round(1.0 / value)
     if n < 1 or abs(1.0 / n - value) > _RECIPROCAL_TOL:
-        raise ValueError(f"must be 1/n for a whole n (1, 0.5, 0.25, ...), got {value!r}")
+        raise ValueError("must be 1/n for a whole n (1, 0.5, 0.25, ...)")
     return value
 
 
@@ -143,7 +131,8 @@ class FitConfig(Section):
         "with max_steps, at least this many steps per keyframe: the cap, coarse_max_steps and the "
         "densification steps grow with the keyframes, so the cost is linear in them and each gets the "
         "same share; 0 = a fixed cap"))
-    scale: float = Field(0.5, gt=0, le=1, description="image scale of the fit (1/n: the keyframes are block-averaged)")
+    scale: Annotated[float, AfterValidator(_reciprocal)] = Field(
+        0.5, gt=0, le=1, description="image scale of the fit (1/n: the keyframes are block-averaged)")
     lr_position_m: float = Field(5e-4, ge=0, description="Adam step size of the centres (m); 0 = frozen")
     lr_log_scale: float = Field(2e-2, ge=0, description="Adam step size of the log scales; 0 = frozen")
     lr_rotation_rad: float = Field(1e-2, ge=0, description="Adam step size of the rotations (rad); 0 = frozen")
@@ -195,11 +184,6 @@ class FitConfig(Section):
         "false: every Gaussian every step (3DGS), which moves unseen ones on their momentum, more the "
         "longer the path"))
 
-    @field_validator("scale")
-    @classmethod
-    def _scale_is_reciprocal(cls, v: float) -> float:
-        return _reciprocal(v)
-
 
 class MappingConfig(Section):
     pose_source: PoseSource = Field("auto", description=(
@@ -229,8 +213,9 @@ class MappingConfig(Section):
 
 
 class LocalizationConfig(Section):
-    iterations: tuple[Annotated[int, Field(ge=0, le=MAX_GN_ITERATIONS)], ...] = Field(
-        (12, 8, 5), description="Gauss-Newton iterations per pyramid level, coarse to fine")
+    # not strict: a YAML list is the tuple (its counts are)
+    iterations: tuple[Annotated[int, Field(ge=0, le=MAX_GN_ITERATIONS, strict=True)], ...] = Field(
+        (12, 8, 5), strict=False, description="Gauss-Newton iterations per pyramid level, coarse to fine")
     finest_level: int = Field(1, ge=0, le=MAX_FINEST_LEVEL, description="finest pyramid level: 0 = full resolution, 1 = half")
     max_correspondence_m: float = Field(0.1, gt=0, description="association gate at the coarsest level (halves per level, m)")
     min_correspondence_m: float = Field(0.02, gt=0, description="its floor: the finest level, and grading (m)")
@@ -252,18 +237,23 @@ class LocalizationConfig(Section):
     @classmethod
     def _iterations_in_range(cls, v: tuple[int, ...]) -> tuple[int, ...]:
         if not v or max(v) < 1:  # all zero would never move the pose
-            raise ValueError(f"must list one count per pyramid level, at least one of them > 0, got {list(v)}")
+            raise ValueError("must list one count per pyramid level, at least one of them > 0")
         return v
 
-    @model_validator(mode="after")
-    def _pyramid_and_gates(self) -> "LocalizationConfig":
-        if self.finest_level + len(self.iterations) > MAX_PYRAMID_LEVELS:  # each level halves the image
-            raise RuleError("iterations", f"with finest_level ({self.finest_level}) must span at most "
-                                          f"{MAX_PYRAMID_LEVELS} pyramid levels, got {len(self.iterations)} levels")
-        if self.min_correspondence_m > self.max_correspondence_m:  # the gate shrinks from max to min
-            raise RuleError("min_correspondence_m", f"must be <= max_correspondence_m ({self.max_correspondence_m!r}), "
-                                                    f"got {self.min_correspondence_m!r}")
-        return self
+    @field_validator("finest_level")
+    @classmethod
+    def _pyramid_fits(cls, v: int, info: ValidationInfo) -> int:
+        levels = len(info.data.get("iterations", ()))
+        if v + levels > MAX_PYRAMID_LEVELS:  # each level halves the image
+            raise ValueError(f"must be at most {MAX_PYRAMID_LEVELS - levels} with {levels} levels of iterations")
+        return v
+
+    @field_validator("min_correspondence_m")
+    @classmethod
+    def _gate_shrinks(cls, v: float, info: ValidationInfo) -> float:
+        if v > info.data.get("max_correspondence_m", v):  # the gate shrinks from max to min
+            raise ValueError(f"must be <= max_correspondence_m ({info.data['max_correspondence_m']!r})")
+        return v
 
 
 class TransitionsConfig(Section):
@@ -302,12 +292,9 @@ class PipelineConfig(Section):
     @model_validator(mode="after")
     def _map_covers_tracking_range(self) -> "PipelineConfig":
         if self.mapping.max_depth_m < self.fusion.max_depth_m:  # the map holds at least what the tracker sees
-            raise RuleError("mapping.max_depth_m", f"must be >= fusion.max_depth_m ({self.fusion.max_depth_m!r}), "
-                                                   f"got {self.mapping.max_depth_m!r}")
+            raise ValueError(f"mapping.max_depth_m must be >= fusion.max_depth_m ({self.fusion.max_depth_m!r}), "
+                             f"got {self.mapping.max_depth_m!r}")
         return self
-
-    def to_yaml(self) -> str:
-        return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "<dict>") -> "PipelineConfig":
@@ -346,21 +333,15 @@ def _show(value: Any) -> str:
     return text if len(text) <= _SHOW_MAX_CHARS else text[: _SHOW_MAX_CHARS - 3] + "..."
 
 
+_MESSAGES = {"extra_forbidden": "is not a known key", "model_type": "must be a mapping of keys"}
+
+
 def _describe(error: dict[str, Any]) -> str:
-    """One pydantic error as ``dotted.field must be ..., got VALUE``."""
-    path = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in error["loc"]
-                   if not str(p).startswith("function-")).lstrip(".")
-    rule = error.get("ctx", {}).get("error")
-    if isinstance(rule, RuleError):  # a section's rule: name the field it is about
-        return f"{path + '.' if path else ''}{rule.field} {rule}"
-    if error["type"] == "extra_forbidden":
-        return f"unknown key {path}"
-    if error["type"] == "model_type":
-        return f"{path} must be a mapping of keys, got {_show(error['input'])}"
-    if error["type"] == "value_error":
-        return f"{path} {rule}"
-    msg = error["msg"].replace("Input should be", "must be", 1)
-    return f"{path} {msg}, got {_show(error['input'])}"
+    """One pydantic error as ``dotted.field must be ..., got VALUE`` (the whole profile's rule, at
+    no field, words its own message)."""
+    path = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in error["loc"]).lstrip(".")
+    msg = _MESSAGES.get(error["type"]) or error["msg"].replace("Input should be", "must be", 1).removeprefix("Value error, ")
+    return f"{path} {msg}, got {_show(error['input'])}" if path else msg
 
 
 # ---- where things live -------------------------------------------------------------------------
@@ -463,6 +444,12 @@ class UniqueKeyLoader(yaml.SafeLoader):
                         key_node.start_mark)
                 first_line[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep=deep)
+
+
+# YAML 1.2's floats without a dot (1e-3, 2E5): PyYAML follows YAML 1.1, whose floats need one, and
+# read them as text, which a number field then refused ("must be a valid number, got '1e-3'").
+UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789"))
 
 
 def parse_yaml(text: str) -> Any:

@@ -191,9 +191,9 @@ def test_range_edges_are_accepted_and_ints_widen_to_floats():
 
 CROSS_FIELD = [
     ({"fusion.min_depth_m": 5.0, "fusion.max_depth_m": 4.0},
-     "fusion.min_depth_m must be < max_depth_m (4.0), got 5.0"),
+     "fusion.max_depth_m must be > min_depth_m (5.0), got 4.0"),
     ({"fusion.min_depth_m": 4.0},
-     "fusion.min_depth_m must be < max_depth_m (4.0), got 4.0"),
+     "fusion.max_depth_m must be > min_depth_m (4.0), got 4.0"),
     ({"localization.min_correspondence_m": 0.2},
      "localization.min_correspondence_m must be <= max_correspondence_m (0.1), got 0.2"),
     ({"mapping.max_depth_m": 3.0},
@@ -207,7 +207,7 @@ CROSS_FIELD = [
     ({"localization.iterations": [12, -1]},
      "localization.iterations[1] must be greater than or equal to 0, got -1"),
     ({"localization.finest_level": 3, "localization.iterations": [4, 3, 2, 1]},
-     "localization.iterations with finest_level (3) must span at most 6 pyramid levels, got 4 levels"),
+     "localization.finest_level must be at most 2 with 4 levels of iterations, got 3"),
 ]
 
 
