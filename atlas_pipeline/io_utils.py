@@ -333,44 +333,18 @@ def _read_marker(folder: Path) -> dict[str, Any] | None:
     return marker
 
 
-def _legacy_files(folder: Path) -> tuple[str, list[str]] | None:
-    """Kind and files of folders written before the marker existed (bundles, artifacts)."""
-    for record, kind in (("metadata.json", "world_bundle"), (ARTIFACT_RECORD, ARTIFACT_KIND)):
-        try:
-            data = json.loads((folder / record).read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            continue
-        if not isinstance(data, dict) or not isinstance(data.get("files"), dict):
-            continue
-        if kind == "world_bundle" and data.get("format") != "atlas-gs-world-bundle":
-            continue
-        return kind, [record, *[str(n) for n in data["files"]]]
-    # Synthetic datasets written before the marker: their spec-hash file says they are ours.
-    if (folder / ".complete").is_file() and (folder / "rgb.txt").is_file():
-        with contextlib.suppress(OSError):
-            return "synthetic_dataset", [p.name for p in folder.iterdir()]
-    return None
-
-
 def folder_kind(folder: str | Path) -> str | None:
     """The kind of Atlas-GS folder at ``folder`` (``world_bundle``, ``artifact`` ...), None if not one."""
     folder = Path(folder)
     marker = _read_marker(folder)
-    if marker is not None:
-        return marker["kind"]
-    legacy = _legacy_files(folder)
-    return legacy[0] if legacy else None
+    return marker["kind"] if marker is not None else None
 
 
 def foreign_entries(folder: str | Path) -> list[str]:
     """Entries of ``folder`` the project did not write (all of them when it has no marker)."""
     folder = Path(folder)
     marker = _read_marker(folder)
-    if marker is not None:
-        ours = {MARKER_NAME, *map(str, marker.get("files") or [])}
-    else:
-        legacy = _legacy_files(folder)
-        ours = set(legacy[1]) if legacy else set()
+    ours = {MARKER_NAME, *map(str, marker.get("files") or [])} if marker is not None else set()
     return sorted(p.name for p in folder.iterdir() if p.name not in ours)
 
 
