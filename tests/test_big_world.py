@@ -22,7 +22,8 @@ import pytest
 
 from atlas_pipeline.errors import ArtifactError, BundleFormatError
 from atlas_pipeline.gaussian_world import _raster_reference as ref
-from atlas_pipeline.gaussian_world import raster
+from atlas_pipeline.gaussian_world import raster, raster_bounded
+from atlas_pipeline.gaussian_world.composite import composite_tiles
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.field import FIELD_BYTES_PER_GAUSSIAN, GaussianField, ids_unique
 from atlas_pipeline.gaussian_world.render import render_gaussians, render_peak_bytes
@@ -62,7 +63,7 @@ def _one_pass(fld: GaussianField, width: int, height: int, T=None, background=(0
     inp = raster.validate_inputs(*_render_args(fld, width, height, T), background, raster.NEAR_M)
     view = raster.view_from_pose(inp.T_world_cam, inp.K, width, height)
     sp = raster.prepare_splats(inp.positions, inp.scales, inp.rotations_xyzw, inp.colors, inp.opacities, view)
-    return raster.composite_tiles(sp, inp.background), sp
+    return composite_tiles(sp, inp.background), sp
 
 
 def _same(images, res) -> bool:
@@ -166,24 +167,24 @@ def test_stages_equal_references(mid_world):
     view = raster.view_from_pose(B.camera_pose(), B.camera(w, h), w, h)
     proj = raster.project_gaussians(fld.positions, fld.scales, fld.rotations_xyzw, fld.colors.astype(np.float32),
                                     fld.opacities, view)
-    vis = raster.project_visible(fld.positions, fld.scales, fld.rotations_xyzw, fld.colors, fld.opacities, view,
+    vis = raster_bounded.project_visible(fld.positions, fld.scales, fld.rotations_xyzw, fld.colors, fld.opacities, view,
                                  chunk=4_096)
     valid = np.flatnonzero(proj.valid)
     assert np.array_equal(vis.feat, proj.feat[valid]) and np.array_equal(vis.box, proj.box[valid])
     assert np.array_equal(vis.depth, proj.depth[valid])
-    order = raster.sort_visible(vis)
+    order = raster_bounded.sort_visible(vis)
     feat_r, box_r, depth_r = ref.visible_reference(proj.valid, proj.depth, proj.feat, proj.box)
     assert np.array_equal(vis.feat, feat_r) and np.array_equal(vis.box, box_r) and np.array_equal(vis.depth, depth_r)
     assert np.array_equal(valid[order], raster.sort_by_depth(proj.valid, proj.depth))
-    counts = raster.tile_pair_counts(vis.box, w, h)
+    counts = raster_bounded.tile_pair_counts(vis.box, w, h)
     assert np.array_equal(counts, ref.tile_pair_counts_reference(vis.box, w, h))
     bins = raster.bin_tiles(vis.box, w, h)
-    batches = raster.tile_batches(counts, 3_000)
+    batches = raster_bounded.tile_batches(counts, 3_000)
     assert batches[0][0] == 0 and batches[-1][1] == len(counts)
     assert all(a[1] == b[0] for a, b in zip(batches, batches[1:]))
     assert all(counts[t0:t1].sum() <= 3_000 or t1 == t0 + 1 for t0, t1 in batches)
     for t0, t1 in batches:
-        tile_start, tile_ids = raster.bin_tile_batch(vis.box, counts, w, t0, t1)
+        tile_start, tile_ids = raster_bounded.bin_tile_batch(vis.box, counts, w, t0, t1)
         ts_r, ti_r = ref.bin_tile_batch_reference(vis.box, w, h, t0, t1)
         assert np.array_equal(tile_start, ts_r) and np.array_equal(tile_ids, ti_r)
         assert np.array_equal(tile_ids, bins.tile_ids[bins.tile_start[t0]:bins.tile_start[t1]])

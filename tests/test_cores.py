@@ -13,6 +13,7 @@ import pytest
 from assets.launch import CoreShare, init_worker
 from atlas_pipeline.cores import kernel_threads, use_core_share
 from atlas_pipeline.gaussian_world import raster as rc
+from atlas_pipeline.gaussian_world.composite import composite_tiles
 from tests.test_raster import BACKGROUND, _scene, _view
 
 
@@ -48,7 +49,7 @@ def test_a_render_does_not_depend_on_the_share(restore_threads):
     images = []
     for threads in (1, numba.config.NUMBA_NUM_THREADS):
         use_core_share(lambda t=threads: t)
-        images.append(rc.composite_tiles(sp, BACKGROUND))
+        images.append(composite_tiles(sp, BACKGROUND))
     for a, b in zip(*images):
         np.testing.assert_array_equal(a, b)
 

@@ -11,6 +11,7 @@ import pytest
 
 from atlas_pipeline.geometry import look_at
 from atlas_pipeline.gaussian_world import raster as rc
+from atlas_pipeline.gaussian_world.composite import composite_tiles
 from atlas_pipeline.gaussian_world._raster_reference import (
     bin_tiles_reference,
     composite_reference,
@@ -141,7 +142,7 @@ def test_compositing_matches_reference(seed):
     these inputs have none.
     """
     sp = rc.prepare_splats(*_scene(800, seed), _view())
-    rgb, depth_m, alpha, median = rc.composite_tiles(sp, BACKGROUND)
+    rgb, depth_m, alpha, median = composite_tiles(sp, BACKGROUND)
     rgb_r, depth_r, alpha_r, median_r = composite_reference(sp.feat.astype(np.float64), sp.box, W, H, BACKGROUND)
     assert (alpha_r > 1 - rc.T_MIN).any() and (alpha_r < 0.5).any()  # some pixels terminate, some see through
     np.testing.assert_allclose(alpha, alpha_r, rtol=0, atol=1e-5)

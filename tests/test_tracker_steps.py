@@ -36,7 +36,8 @@ def _plane_model_view(T_world_model: np.ndarray) -> kn.ModelView:
     nrm = np.broadcast_to(n, pts.shape).copy()
     pts[12, 13] = nrm[12, 13] = np.nan
     pts[20, 27] = nrm[20, 27] = np.nan
-    return kn.ModelView.single_layer(pts, nrm, np.ascontiguousarray(T_world_model), MODEL_F, MODEL_F, cx, cy)
+    behind = np.full_like(pts, np.nan)  # no surface behind the plane
+    return kn.ModelView(pts, nrm, np.ascontiguousarray(T_world_model), MODEL_F, MODEL_F, cx, cy, behind, behind.copy())
 
 
 def _reference(T_world_ref: np.ndarray, distortion) -> kn.ReferenceImage:

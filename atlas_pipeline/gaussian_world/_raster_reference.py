@@ -311,7 +311,7 @@ def visible_reference(
     feat: np.ndarray,  # [N, N_FEAT]
     box: np.ndarray,  # [N, 4]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reference of ``raster.project_visible`` + ``raster.sort_visible`` from a whole-view
+    """Reference of ``raster_bounded.project_visible`` + ``raster_bounded.sort_visible`` from a whole-view
     projection: ``(feat [M, N_FEAT], box [M, 4], depth [M])`` of the valid rows, front to back."""
     order = sort_reference(valid, depth)
     return feat[order], box[order], depth[order]
@@ -322,7 +322,7 @@ def tile_pair_counts_reference(
     width: int,
     height: int,
 ) -> np.ndarray:
-    """Reference of ``raster.tile_pair_counts``: ``[n_tiles]`` boxes overlapping each tile (row major),
+    """Reference of ``raster_bounded.tile_pair_counts``: ``[n_tiles]`` boxes overlapping each tile (row major),
     tile by tile."""
     tile_start, _ = bin_tiles_reference(box, width, height)
     return np.diff(tile_start)
@@ -335,7 +335,7 @@ def bin_tile_batch_reference(
     t0: int,
     t1: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of ``raster.bin_tile_batch``: ``(tile_start [t1 - t0 + 1], tile_ids [P])`` of tiles
+    """Reference of ``raster_bounded.bin_tile_batch``: ``(tile_start [t1 - t0 + 1], tile_ids [P])`` of tiles
     ``t0 .. t1 - 1``, cut out of the whole view's ``bin_tiles_reference``."""
     tile_start, tile_ids = bin_tiles_reference(box, width, height)
     return tile_start[t0:t1 + 1] - tile_start[t0], tile_ids[tile_start[t0]:tile_start[t1]]
@@ -348,7 +348,7 @@ def composite_reference(
     height: int,
     background: np.ndarray,  # [3] in [0, 255]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Reference of ``raster.composite_tiles``: one step per Gaussian, front to back, over the pixels
+    """Reference of ``composite.composite_tiles``: one step per Gaussian, front to back, over the pixels
     of its box, in float64 with ``np.exp``. Returns ``(rgb [H, W, 3] uint8, depth_m, alpha,
     depth_median_m [H, W] float32)``."""
     bg = np.asarray(background, np.float64)

@@ -759,20 +759,3 @@ def prepare_splats(
     return SplatTiles(order, feat, box, bins.tile_start, bins.tile_ids, bins.tiles_x, bins.n_tiles,
                       view.width, view.height, proj.aux)
 
-
-# Stage 6 and the bounded-memory stages live in their own modules; their names stay readable here
-# (``raster.composite_tiles``), loaded on first use since those modules import this one.
-_MOVED = {
-    "composite": ("composite_tiles", "composite_tile_batch", "exp_neg_fast"),
-    "raster_bounded": ("VisibleSplats", "project_visible", "sort_visible", "tile_pair_counts", "tile_batches",
-                       "bin_tile_batch"),
-}
-
-
-def __getattr__(name: str):
-    for module, names in _MOVED.items():
-        if name in names:
-            import importlib
-
-            return getattr(importlib.import_module(f"atlas_pipeline.gaussian_world.{module}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -33,7 +33,7 @@ from atlas_pipeline.gaussian_world.field import SH_MAX_DEGREE, sh_degree_of_rest
 
 __all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "SH_MAX_DEGREE", "COLOR_LEVELS", "sh_rest_count",
            "sh_basis_reference", "sh_basis_into", "unit_directions", "view_colors_reference", "view_colors", "check_sh_rest",
-           "rest_to_channel_major", "rest_from_channel_major"]
+           "rest_to_channel_major"]
 
 COLOR_LEVELS = 255.0  # uint8 colour levels (raster.COLOR_LEVELS; not imported: raster imports are heavy)
 SH_C0 = 0.28209479177387814
@@ -63,11 +63,6 @@ def check_sh_rest(sh_rest, n: int) -> np.ndarray:
 def rest_to_channel_major(sh_rest: np.ndarray) -> np.ndarray:
     """``[N, 3 K]`` columns ``f_rest_0 .. f_rest_{3K-1}`` of ``sh_rest`` ``[N, K, 3]`` (all R, then G, then B)."""
     return sh_rest.transpose(0, 2, 1).reshape(len(sh_rest), -1)
-
-
-def rest_from_channel_major(cols: np.ndarray) -> np.ndarray:
-    """``[N, K, 3]`` of the ``[N, 3 K]`` channel-major ``f_rest_*`` columns (inverse of ``rest_to_channel_major``)."""
-    return np.ascontiguousarray(cols.reshape(len(cols), 3, -1).transpose(0, 2, 1))
 
 
 def unit_directions(positions: np.ndarray, centre: np.ndarray) -> np.ndarray:

@@ -122,12 +122,6 @@ class ModelView(NamedTuple):
     points_behind_cam: np.ndarray  # [h, w, 3] float64
     normals_behind_cam: np.ndarray  # [h, w, 3] float64
 
-    @classmethod
-    def single_layer(cls, points_cam, normals_cam, T_world_cam, fx, fy, cx, cy) -> "ModelView":
-        """A view with no surface behind the first (tests, synthetic references)."""
-        empty = np.full_like(points_cam, np.nan)
-        return cls(points_cam, normals_cam, T_world_cam, fx, fy, cx, cy, empty, empty.copy())
-
 
 class ReferenceImage(NamedTuple):
     """The photometric reference (a keyframe) at one pyramid level; raw (distorted) sensor pixels."""
