@@ -45,7 +45,7 @@ from atlas_pipeline.errors import AtlasError, BundleFormatError, DatasetError  #
 
 MEMORY_FLOOR_BYTES = 64 << 20  # any reader may use this much whatever its input
 MEMORY_PER_INPUT_BYTE = 64  # ... and up to this many times the bytes it was given
-QUICK_EXAMPLES = 200  # per reader, default run
+QUICK_EXAMPLES = 50  # per reader, quick tier: a smoke test; the thorough tier (CI) looks further
 SLOW_EXAMPLES = 800  # per reader with -m slow: 18 readers -> 14,400 cases
 MAX_RANDOM_BYTES = 4096  # random (non-mutated) inputs
 MAX_OPS = 4  # mutations applied to one valid file
