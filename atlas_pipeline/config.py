@@ -447,10 +447,12 @@ class UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
-# YAML 1.2's floats without a dot (1e-3, 2E5): PyYAML follows YAML 1.1, whose floats need one, and
-# read them as text, which a number field then refused ("must be a valid number, got '1e-3'").
+# YAML 1.2's exponent floats (1e-3, 2E5, 1.5e3): PyYAML follows YAML 1.1, whose floats need a dot
+# and a signed exponent, and read them as text, which a number field then refused ("must be a valid
+# number, got '1e-3'").
 UniqueKeyLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789"))
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+.0123456789"))
 
 
 def parse_yaml(text: str) -> Any:

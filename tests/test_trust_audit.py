@@ -79,3 +79,29 @@ def test_the_alignment_uncertainty_is_never_more_than_any_angle(across_m, says):
     if "about" in says:
         degrees = float(a["rot_note"].split("by about ")[1].split(" degrees")[0])
         assert 3 < degrees < 180, a["rot_note"]
+
+
+# ---- numbers in YAML 1.2's exponent form ----------------------------------------------------------
+
+@pytest.mark.parametrize("text, value", [
+    ("1e-2", 0.01), ("1.5e-2", 0.015), ("2E-2", 0.02), ("+3e-2", 0.03), (".5e-1", 0.05), ("1_0e-3", 0.01),
+])
+def test_an_exponent_without_a_dot_is_a_number(tmp_path, text, value):
+    """PyYAML (YAML 1.1) read ``1e-2`` as text, and the field refused it: "must be a valid number,
+    got '1e-2'". In a --set value and in a profile it is the number."""
+    from atlas_pipeline.config import load_profile, parse_set_overrides
+
+    cfg = load_profile("default").with_overrides(parse_set_overrides([f"mapping.voxel_size_m={text}"]))
+    assert cfg.mapping.voxel_size_m == pytest.approx(value)
+    profile = tmp_path / "p.yaml"
+    profile.write_text(f"mapping:\n  voxel_size_m: {text}\n")
+    assert load_profile(profile).mapping.voxel_size_m == pytest.approx(value)
+
+
+@pytest.mark.parametrize("text", ["1e", "e5", "1e3x", "1e-2m"])
+def test_text_that_only_looks_like_an_exponent_is_still_refused_naming_the_field(text):
+    from atlas_pipeline.config import load_profile, parse_set_overrides
+    from atlas_pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=rf"mapping\.voxel_size_m must be a valid number, got '{text}'"):
+        load_profile("default").with_overrides(parse_set_overrides([f"mapping.voxel_size_m={text}"]), "--set")
