@@ -105,3 +105,40 @@ def test_text_that_only_looks_like_an_exponent_is_still_refused_naming_the_field
 
     with pytest.raises(ConfigError, match=rf"mapping\.voxel_size_m must be a valid number, got '{text}'"):
         load_profile("default").with_overrides(parse_set_overrides([f"mapping.voxel_size_m={text}"]), "--set")
+
+
+# ---- import-ply: what the 8-bit base colour cannot keep -------------------------------------------
+
+def _splat_ply(path, degree: int, dc: np.ndarray):
+    from plyfile import PlyData, PlyElement
+
+    n = len(dc)
+    k = {0: 0, 1: 3, 2: 8, 3: 15}[degree]
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", *[f"f_rest_{i}" for i in range(3 * k)], "opacity",
+             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    v = np.zeros(n, dtype=[(name, "f4") for name in names])
+    v["x"] = np.arange(n) * 0.01
+    for c in range(3):
+        v[f"f_dc_{c}"] = dc[:, c]
+        v[f"scale_{c}"] = np.log(0.01)
+    for i in range(3 * k):
+        v[f"f_rest_{i}"] = 0.05
+    v["rot_0"] = 1.0
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(path))
+    return path
+
+
+@pytest.mark.parametrize("degree, dc_values, warned", [
+    (3, [0.0, 2.5, -2.5, 1.0], "2 of 4 Gaussians have a base colour (f_dc_*) outside [0, 1] (by up to 0.205)"),
+    (1, [0.0, 1.77, -1.77, 1.0], None),  # within [0, 1] (up to the 8-bit rounding)
+    (0, [0.0, 2.5, -2.5, 1.0], None),  # no view-dependent colour: the render clamps the base anyway
+])
+def test_import_ply_says_when_base_colours_of_sh_gaussians_are_clamped(tmp_path, caplog, degree, dc_values, warned):
+    dc = np.repeat(np.array(dc_values, np.float32)[:, None], 3, axis=1)
+    ply = _splat_ply(tmp_path / "scene.ply", degree, dc)
+    assert main(["import-ply", str(ply), "--output", str(tmp_path / "w")]) == 0
+    lines = [r.getMessage() for r in caplog.records if "base colour" in r.getMessage()]
+    if warned is None:
+        assert lines == [], lines
+    else:
+        assert len(lines) == 1 and lines[0].startswith(f"{ply}: {warned}"), lines

@@ -384,6 +384,7 @@ def _decode_vertices(path: Path, data: np.ndarray, rest_names: list[str]) -> Gau
     opacities = np.empty(count, np.float32)
     ids = np.empty(count, np.uint64) if has_ids and ids_ok else np.arange(count, dtype=np.uint64)
     sh_rest = np.empty((count, len(rest_names) // 3, 3), np.float32)
+    clamped, furthest = 0, 0.0  # base colours outside [0, 1] (f_dc_*), kept only clamped to 8 bits
     for i in range(0, count, _CHUNK):
         m = min(_CHUNK, count - i)
         v = data[i:i + m]
@@ -394,7 +395,12 @@ def _decode_vertices(path: Path, data: np.ndarray, rest_names: list[str]) -> Gau
             colors[c, 0], colors[c, 1], colors[c, 2] = v["red"], v["green"], v["blue"]
         else:
             dc = vals[:, [col["f_dc_0"], col["f_dc_1"], col["f_dc_2"]]].astype(np.float64)
-            colors[c] = np.clip(np.rint((dc * SH_C0 + 0.5) * 255.0), 0, 255)
+            base = dc * SH_C0 + 0.5
+            outside = np.abs(base - 0.5).max(axis=1) - 0.5  # > 0: beyond [0, 1] by this much
+            beyond = outside > 0.5 / 255.0  # more than the 8-bit rounding
+            clamped += int(beyond.sum())
+            furthest = max(furthest, float(outside.max(initial=0.0)))
+            colors[c] = np.clip(np.rint(base * 255.0), 0, 255)
         with np.errstate(over="ignore"):
             s = _decode_scale(vals[:, [col["scale_0"], col["scale_1"], col["scale_2"]]])
         if not np.isfinite(s).all():
@@ -412,6 +418,10 @@ def _decode_vertices(path: Path, data: np.ndarray, rest_names: list[str]) -> Gau
             sh_rest[c] = _finite_float32(path, v, rest_names).reshape(m, 3, -1).transpose(0, 2, 1)
     if not ids_ok:
         raise BundleFormatError(path, "properties id_hi and id_lo must be unsigned integers of at most 32 bits")
+    if clamped and rest_names:  # with degree 0 the render clamps the colour to [0, 1] anyway
+        logger.warning("%s: %d of %d Gaussians have a base colour (f_dc_*) outside [0, 1] (by up to %.3g); colours "
+                       "are kept as 8-bit values, so it is clamped and their view-dependent colour (base plus f_rest_*) "
+                       "differs from the file's", path, clamped, count, furthest)
     if has_ids and not ids_unique(ids):
         raise BundleFormatError(path, "Gaussian ids are not unique")
     return GaussianField(pos, scales, rot, colors, opacities, ids, sh_rest)
