@@ -35,21 +35,25 @@ def _signal_handlers_restored():
             signal.signal(s, handler)
 
 
-@pytest.fixture
-def isolated(tmp_path, monkeypatch):
-    """Data, artifacts and the local registry in a temporary folder, with a small synthetic dataset
-    registered as ``synth-small``."""
+def isolate_project(root: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Point data, artifacts, the local registry and ``DAGSTER_HOME`` into ``root``, with a small
+    synthetic dataset registered as ``synth-small``."""
     import yaml
 
-    data = tmp_path / "data"
-    reg = tmp_path / "datasets.local.yaml"
+    reg = root / "datasets.local.yaml"
     reg.write_text(yaml.safe_dump({"datasets": {"synth-small": {"kind": "synthetic", **SMALL_SYNTH}}}))
-    monkeypatch.setenv("ATLAS_DATA_DIR", str(data))
-    monkeypatch.setenv("ATLAS_ARTIFACTS_DIR", str(tmp_path / "artifacts"))
+    monkeypatch.setenv("ATLAS_DATA_DIR", str(root / "data"))
+    monkeypatch.setenv("ATLAS_ARTIFACTS_DIR", str(root / "artifacts"))
     monkeypatch.setenv("ATLAS_LOCAL_REGISTRY", str(reg))
-    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "dagster_home"))
-    (tmp_path / "dagster_home").mkdir()
-    return tmp_path
+    monkeypatch.setenv("DAGSTER_HOME", str(root / "dagster_home"))
+    (root / "dagster_home").mkdir()
+    return root
+
+
+@pytest.fixture
+def isolated(tmp_path, monkeypatch):
+    """Data, artifacts and the local registry in a temporary folder (:func:`isolate_project`)."""
+    return isolate_project(tmp_path, monkeypatch)
 
 
 @pytest.fixture(scope="session")

@@ -122,28 +122,37 @@ def test_parts_that_disagree_are_never_written_together(world, small_manifest):
 # ---- a copy of the Dagster artifact is the user's bundle -------------------------------------------
 
 
+@pytest.fixture(scope="module")
+def dagster_project(tmp_path_factory):
+    """A project whose ``synth-small`` went through ``atlas-gs run`` once, shared by the tests
+    below (a Dagster run is most of their time): they localize into copies of its bundle, or
+    change a file and leave the partition current again by rerunning it."""
+    from conftest import isolate_project
+
+    with pytest.MonkeyPatch.context() as mp:
+        root = isolate_project(tmp_path_factory.mktemp("dagster-project"), mp)
+        _register_other(root)
+        assert main(["run", "synth-small", *FAST]) == 0
+        yield root
+
+
 @pytest.fixture
-def dagster_bundle(isolated, capsys):
-    _register_other(isolated)
-    assert main(["run", "synth-small", *FAST]) == 0
-    capsys.readouterr()
-    return isolated / "artifacts" / "world_bundle" / "synth-small"
+def dagster_bundle(dagster_project):
+    return dagster_project / "artifacts" / "world_bundle" / "synth-small"
 
 
 @pytest.mark.parametrize("how, code, says", [
-    # one case in the quick tier (each runs the pipeline first); CI runs them all
-    pytest.param("artifact", 2, ["world_bundle artifact of the Dagster IO manager", "cp -a", "--world"],
-                 marks=pytest.mark.slow),
-    pytest.param("cp -a", 0, [], marks=pytest.mark.slow),
-    pytest.param("cp -a, marker removed", 0, [], marks=pytest.mark.slow),
+    ("artifact", 2, ["world_bundle artifact of the Dagster IO manager", "cp -a", "--world"]),
+    ("cp -a", 0, []),
+    ("cp -a, marker removed", 0, []),
     ("cp -a, a file of yours added", 2, ["notes.txt", "move them out"]),
 ])
-def test_localizing_into_a_copy_of_the_dagster_bundle(dagster_bundle, isolated, capsys, monkeypatch, how, code, says):
+def test_localizing_into_a_copy_of_the_dagster_bundle(dagster_bundle, tmp_path, capsys, monkeypatch, how, code, says):
     from atlas_pipeline.localization import localizer
 
     target = dagster_bundle
     if how != "artifact":
-        target = isolated / "my-world"
+        target = tmp_path / "my-world"
         shutil.copytree(dagster_bundle, target, symlinks=True, copy_function=shutil.copy2)
         if "marker" in how:
             (target / MARKER_NAME).unlink()
@@ -262,13 +271,12 @@ def _status(capsys, partition: str = "synth-small") -> tuple[int, str]:
     pytest.param("surfels.npz of the bundle, mtime restored", "artifacts/world_bundle/synth-small/surfels.npz",
                  "world_bundle", "artifact files changed", marks=pytest.mark.slow),
 ])
-def test_a_changed_byte_behind_a_restored_mtime_is_stale_and_recomputed(dagster_bundle, isolated, capsys,
-                                                                         what, path, stale, says):
+def test_a_changed_byte_behind_a_restored_mtime_is_stale_and_recomputed(dagster_project, capsys, what, path, stale, says):
     from atlas_pipeline.versioning import verify_files
 
     code, text = _status(capsys)
     assert code == 0 and "current" in text, text
-    target = isolated / path
+    target = dagster_project / path
     if target.suffix == ".txt":  # the last digit of the last quaternion: 1e-7 off, the file still reads
         text = target.read_text()
         i = len(text.rstrip("\n")) - 1
