@@ -142,3 +142,15 @@ def test_import_ply_says_when_base_colours_of_sh_gaussians_are_clamped(tmp_path,
         assert lines == [], lines
     else:
         assert len(lines) == 1 and lines[0].startswith(f"{ply}: {warned}"), lines
+
+
+# ---- a hand-edited registry -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["../../evil", "a/b", "..", "Mine", "x y", "ünï"])
+def test_a_bad_name_in_a_hand_edited_registry_names_the_registry_file(isolated, caplog, name):
+    import yaml
+
+    reg = isolated / "datasets.local.yaml"
+    reg.write_text(yaml.safe_dump({"datasets": {name: {"kind": "tum", "path": str(isolated)}}}, allow_unicode=True))
+    assert main(["dataset", "list"]) == 2
+    assert f"{reg}: datasets: invalid dataset name {name!r}" in caplog.text, caplog.text

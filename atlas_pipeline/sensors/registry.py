@@ -258,7 +258,7 @@ def _layout_params(kind: str, raw: dict, where: str) -> dict[str, Any]:
 
 def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
     where = f"{source}: datasets.{name}"
-    validate_dataset_name(name)
+    validate_dataset_name(name, f"{source}: datasets")  # a hand-edited registry: which file holds it
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: must be a mapping")
     if "extends" in raw:
