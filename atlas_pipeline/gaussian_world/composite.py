@@ -114,11 +114,14 @@ def exp_neg_fast(x):
 
 
 @njit(cache=True, inline="always")
-def lane_alpha(lj, s, qy, by, Tl):
-    """Lane ``lj`` (float32 column in the tile) of a row through Splat ``s`` (``qy``, ``by``: the
-    row's ``-0.5 c dy^2`` and ``b dy``) at transmittance ``Tl``: ``(dx, gauss, e, alpha, ok, a)``
-    with ``gauss = exp(power)``, ``e = opacity gauss``, ``alpha = min(e, ALPHA_MAX)``, ``ok`` the
-    alpha tests (visible, not terminated, inside the box) and ``a`` the alpha applied (0 unless ok)."""
+def lane_alpha(j, s, qy, by, Tv):
+    """Lane ``j`` (column in the tile) of a row through Splat ``s`` (``qy``, ``by``: the row's
+    ``-0.5 c dy^2`` and ``b dy``) whose transmittances are ``Tv``: ``(Tl, dx, gauss, e, alpha, ok,
+    a, wgt)`` with ``Tl = Tv[j]``, ``gauss = exp(power)``, ``e = opacity gauss``, ``alpha = min(e,
+    ALPHA_MAX)``, ``ok`` the alpha tests (visible, not terminated, inside the box), ``a`` the alpha
+    applied (0 unless ok) and ``wgt = a Tl`` the lane's blend weight."""
+    lj = np.float32(j)
+    Tl = Tv[j]
     dx = lj - s.ux
     power = s.nha * dx * dx + qy - by * dx
     p_min = np.float32(POWER_MIN)  # lanes clamped here are rejected by the alpha test
@@ -129,7 +132,7 @@ def lane_alpha(lj, s, qy, by, Tl):
     alpha = e if e < a_max else a_max
     ok = (alpha >= np.float32(ALPHA_MIN)) & (Tl >= np.float32(T_MIN)) & (lj >= s.lx0) & (lj <= s.lx1)
     a = alpha if ok else np.float32(0.0)
-    return dx, gauss, e, alpha, ok, a
+    return Tl, dx, gauss, e, alpha, ok, a, a * Tl
 
 
 def _compositor(plane_depths: bool):
@@ -181,10 +184,7 @@ def _compositor(plane_depths: bool):
         done = np.uint64(0)
         lanes = np.uint64(TILE_SIZE)  # unsigned: no negative-index code, so the loop vectorises
         for j in range(lanes):
-            lj = np.float32(j)
-            Tl = Tv[j]
-            dx, _, _, _, ok, a = lane_alpha(lj, s, qy, by, Tl)
-            wgt = a * Tl
+            Tl, dx, _, _, _, ok, a, wgt = lane_alpha(j, s, qy, by, Tv)
             Crv[j] += wgt * s.red
             Cgv[j] += wgt * s.green
             Cbv[j] += wgt * s.blue

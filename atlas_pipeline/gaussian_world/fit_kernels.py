@@ -33,7 +33,7 @@ from atlas_pipeline.gaussian_world.composite import (
 )
 from atlas_pipeline.gaussian_world.raster import (
     ALPHA_MAX, AUX_A, AUX_B, AUX_CXX, AUX_CXY, AUX_CYY, AUX_P, AUX_TXZ, AUX_TYZ, AUX_X, AUX_Y, AUX_Z, DEPTH_MIN_ALPHA,
-    TILE_SIZE, GaussianArrays, RasterView, jacobian_clamp_limits, rotmat_from_quat, tile_pixel_bounds,
+    TILE_SIZE, GaussianArrays, RasterView, jacobian_clamp_limits, rotmat_from_quat, rows_times, tile_pixel_bounds,
 )
 
 __all__ = [
@@ -252,10 +252,7 @@ def _backward_row(Tv, Qv, G, r, acc, s, dy):
     a_z = acc[9]
     lanes = np.uint64(TILE_SIZE)  # unsigned: no negative-index code, so the loop vectorises
     for j in range(lanes):
-        lj = np.float32(j)
-        Tl = Tv[j]
-        dx, gauss, e, alpha, ok, a = lane_alpha(lj, s, qy, by, Tl)
-        wgt = a * Tl
+        Tl, dx, gauss, e, alpha, ok, a, wgt = lane_alpha(j, s, qy, by, Tv)
         zp = zy + s.slope_u * dx
         gdj = GD[j]
         h = G0[j] * s.red + G1[j] * s.green + G2[j] * s.blue + gdj * zp
@@ -428,12 +425,8 @@ def _param_grads(rank, gauss_start, pair_grad, aux, scl, quat, opa, view, gparam
         gb2 = 2.0 * gcyy * b2 + gcxy * a2
         # a = p0 R S: with u0 = R^T p0, u1 = R^T p1 (the projection rows in the Gaussian's frame),
         # H = R^T dL/dR S-weighted: H[r, c] = s_c (ga_c u0_r + gb_c u1_r)
-        u00 = r00 * p00 + r10 * p01 + r20 * p02
-        u01 = r01 * p00 + r11 * p01 + r21 * p02
-        u02 = r02 * p00 + r12 * p01 + r22 * p02
-        u10 = r00 * p10 + r10 * p11 + r20 * p12
-        u11 = r01 * p10 + r11 * p11 + r21 * p12
-        u12 = r02 * p10 + r12 * p11 + r22 * p12
+        u00, u01, u02, u10, u11, u12 = rows_times((p00, p01, p02, p10, p11, p12),
+                                                  (r00, r01, r02, r10, r11, r12, r20, r21, r22))
         # log scales: d L / d log s_c = s_c (ga_c u0_c + gb_c u1_c) = H[c, c]
         gparam[_P_LOG_SCALE + 0, i] = s0 * (ga0 * u00 + gb0 * u10)
         gparam[_P_LOG_SCALE + 1, i] = s1 * (ga1 * u01 + gb1 * u11)
@@ -448,19 +441,9 @@ def _param_grads(rank, gauss_start, pair_grad, aux, scl, quat, opa, view, gparam
         gparam[_P_ROT + 0, i] = h21 - h12
         gparam[_P_ROT + 1, i] = h02 - h20
         gparam[_P_ROT + 2, i] = h10 - h01
-        # d L / d P: row 0 is R S ga, row 1 is R S gb
-        sa0 = s0 * ga0
-        sa1 = s1 * ga1
-        sa2 = s2 * ga2
-        sb0 = s0 * gb0
-        sb1 = s1 * gb1
-        sb2 = s2 * gb2
-        gp00 = r00 * sa0 + r01 * sa1 + r02 * sa2
-        gp01 = r10 * sa0 + r11 * sa1 + r12 * sa2
-        gp02 = r20 * sa0 + r21 * sa1 + r22 * sa2
-        gp10 = r00 * sb0 + r01 * sb1 + r02 * sb2
-        gp11 = r10 * sb0 + r11 * sb1 + r12 * sb2
-        gp12 = r20 * sb0 + r21 * sb1 + r22 * sb2
+        # d L / d P: row 0 is R S ga, row 1 is R S gb (the rows S ga, S gb times R^T)
+        gp00, gp01, gp02, gp10, gp11, gp12 = rows_times((s0 * ga0, s1 * ga1, s2 * ga2, s0 * gb0, s1 * gb1, s2 * gb2),
+                                                        (r00, r10, r20, r01, r11, r21, r02, r12, r22))
         # Jacobian entries -> camera-frame mean (P = J W, W = Rcw)
         gj00 = gp00 * Rcw[0, 0] + gp01 * Rcw[0, 1] + gp02 * Rcw[0, 2]
         gj02 = gp00 * Rcw[2, 0] + gp01 * Rcw[2, 1] + gp02 * Rcw[2, 2]

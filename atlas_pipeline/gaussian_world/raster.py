@@ -327,19 +327,22 @@ def projection_rows(Rcw, fx, fy, x, y, z, lim_x_pos, lim_x_neg, lim_y_pos, lim_y
 
 
 @njit(cache=True, inline="always")
+def rows_times(P, M):
+    """``(a0, a1, a2, b0, b1, b2)``: the two rows ``(p00, p01, p02, p10, p11, p12)`` of ``P`` times
+    the 3 x 3 ``M`` ``(m00 .. m22)``, row major (each entry summed over k = 0, 1, 2 in order)."""
+    p00, p01, p02, p10, p11, p12 = P
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = M
+    return (p00 * m00 + p01 * m10 + p02 * m20, p00 * m01 + p01 * m11 + p02 * m21, p00 * m02 + p01 * m12 + p02 * m22,
+            p10 * m00 + p11 * m10 + p12 * m20, p10 * m01 + p11 * m11 + p12 * m21, p10 * m02 + p11 * m12 + p12 * m22)
+
+
+@njit(cache=True, inline="always")
 def pixel_covariance(P, M):
     """``(a0, a1, a2, b0, b1, b2, cxx, cxy, cyy)``: rows ``a``, ``b`` of ``P M`` and the pixel
     covariance ``cov2d = (P M)(P M)^T + LOW_PASS_PX2 I`` (``[[cxx, cxy], [cxy, cyy]]``), with ``P``
     ``(p00, p01, p02, p10, p11, p12)`` from ``projection_rows`` and ``M`` ``(m00 .. m22)`` row major,
     the Gaussian's rotation times its scales ``R S``."""
-    p00, p01, p02, p10, p11, p12 = P
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = M
-    a0 = p00 * m00 + p01 * m10 + p02 * m20
-    a1 = p00 * m01 + p01 * m11 + p02 * m21
-    a2 = p00 * m02 + p01 * m12 + p02 * m22
-    b0 = p10 * m00 + p11 * m10 + p12 * m20
-    b1 = p10 * m01 + p11 * m11 + p12 * m21
-    b2 = p10 * m02 + p11 * m12 + p12 * m22
+    a0, a1, a2, b0, b1, b2 = rows_times(P, M)
     cxx = a0 * a0 + a1 * a1 + a2 * a2 + LOW_PASS_PX2
     cxy = a0 * b0 + a1 * b1 + a2 * b2
     cyy = b0 * b0 + b1 * b1 + b2 * b2 + LOW_PASS_PX2
