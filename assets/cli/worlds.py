@@ -7,15 +7,10 @@ import json
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from assets.artifacts import world_bundle_folder
 from assets.cli import options
 from assets.cli.output import out
-from atlas_pipeline.errors import ConfigError
-from atlas_pipeline.io_utils import check_output_file, check_writable, prepare_output_dir
-from atlas_pipeline.sensors.camera import TUM_CAMERAS
-from atlas_pipeline.sensors.registry import load_dataset
+from atlas_pipeline.io_utils import prepare_output_dir
 
 logger = logging.getLogger("atlas_gs.cli")
 
@@ -26,37 +21,14 @@ EXPORT_SUMMARY_KEYS = ("format", "pose_source", "n_images", "n_points3D", "n_ver
 
 def cmd_build(args: argparse.Namespace) -> int:
     """Build a world bundle from a recording, or keep mapping into an earlier bundle (``--extend``)."""
-    from atlas_pipeline.localization.localizer import tracking_map
-    from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, select_keyframes_stage
-    from atlas_pipeline.perception.rgbd import fuse
-    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
-    from atlas_pipeline.scene_memory.metadata import bundle_lineage, bundle_metadata
+    from atlas_pipeline.scene_memory.build import build_world_bundle
 
     cfg = options.config(args)
-    entry = options.dataset(args)
-    inputs = [entry.path, args.extend]
-    output = prepare_output_dir(args.output, BUNDLE_KIND, inputs, args.force)
-    if args.extend:
-        load_world_bundle(args.extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
-    manifest = load_dataset(entry, cfg)
-    fused = fuse(manifest, cfg)
-
-    parent = None
-    if args.extend:
-        parent = parent_reference(args.extend)  # checks it is a bundle
-        world, n_new_keyframes = extend_saved_world(args.extend, manifest, fused, cfg)
-    else:
-        keyframes = select_keyframes_stage(manifest, fused, cfg)
-        world = build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
-        n_new_keyframes = len(keyframes.indices)
-    lineage = bundle_lineage("atlas-gs build", partition=entry.name, run_id=None, profile=cfg.profile,
-                             config_overrides=options.overrides(args), parent=parent)
-    meta = bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage)
-    write_world_bundle(output, world.field, meta, extras=(world,), surfels=tracking_map(world), inputs=inputs)
-    logger.info("wrote world with %d Gaussians to %s", len(world.field), output)
-    out(json.dumps({"world": str(output.resolve()), "n_gaussians": len(world.field),
-                    "n_keyframes": int(n_new_keyframes), "map_id": world.map_id,
-                    "parent": parent}, indent=2, default=str))
+    built = build_world_bundle(options.dataset(args), cfg, args.output, args.extend, args.force, options.overrides(args))
+    logger.info("wrote world with %d Gaussians to %s", built.n_gaussians, built.path)
+    out(json.dumps({"world": str(built.path.resolve()), "n_gaussians": built.n_gaussians,
+                    "n_keyframes": built.n_keyframes, "map_id": built.map_id, "parent": built.parent},
+                   indent=2, default=str))
     return 0
 
 
@@ -74,32 +46,9 @@ def cmd_import_ply(args: argparse.Namespace) -> int:
 def cmd_demo_video(args: argparse.Namespace) -> int:
     """An MP4 of a world bundle: an orbit framed from where the recording camera stood, or the
     localized trajectory."""
-    from atlas_pipeline.localization.localizer import LocalizationReport
-    from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
-    from atlas_pipeline.sensors.camera import CameraIntrinsics
-    from atlas_pipeline.viz.demo import orbit_trajectory, render_video
-    from atlas_pipeline.viz.video import is_atlas_video
+    from atlas_pipeline.viz.demo import write_bundle_video
 
-    cfg = options.config(args)
-    video = Path(args.output).expanduser()
-    if video.suffix.lower() != ".mp4":
-        raise ConfigError(f"--output {args.output}: demo videos are MP4 files; give a name ending in .mp4")
-    check_output_file(video, [args.world], args.force, is_ours=is_atlas_video)
-    check_writable(video.parent)
-    bundle = load_world_bundle(args.world)
-    dataset = bundle.metadata.get("dataset") or {}
-    cam = CameraIntrinsics.from_dict(dataset["camera"]) if "camera" in dataset else TUM_CAMERAS["default"]
-    if args.mode == "trajectory":
-        if not (Path(args.world) / "localization.json").is_file():
-            raise ConfigError(f"{args.world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
-        poses = LocalizationReport.load(Path(args.world)).T_world_cam
-        poses = poses[np.isfinite(poses).all(axis=(1, 2))]  # frames never placed have no pose to render from
-        if len(poses) == 0:
-            raise ConfigError(f"{args.world}/localization.json: no frame was placed in this world; nothing to render")
-    else:
-        poses = orbit_trajectory(bundle.field, cfg, bundle_keyframe_poses(bundle.metadata), camera_K=cam.K,
-                                 image_size=(cam.width, cam.height))
-    render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, video, args.mode)
+    video = write_bundle_video(args.world, options.config(args), args.output, args.mode, args.force)
     out(json.dumps({"video": str(video.resolve()), "mode": args.mode}, indent=2))
     return 0
 

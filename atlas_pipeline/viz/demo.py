@@ -26,7 +26,8 @@ logger = logging.getLogger(__name__)
 
 LogFn = Callable[[str], None]
 
-__all__ = ["DemoVideos", "render_demo_videos", "render_video", "render_side_by_side_video", "orbit_trajectory"]
+__all__ = ["DemoVideos", "render_demo_videos", "render_video", "render_side_by_side_video", "orbit_trajectory",
+           "write_bundle_video"]
 
 
 @dataclass
@@ -172,3 +173,38 @@ def render_demo_videos(field: GaussianField, trajectory_se3: np.ndarray, camera_
         sbs_path = out_dir / f"{name}_side_by_side.mp4"
         render_side_by_side_video(field, manifest, trajectory_se3, cfg, sbs_path, log)
     return DemoVideos(orbit_path, traj_path, n_orbit, n_traj, size, sbs_path)
+
+
+def write_bundle_video(world: str | Path, cfg: PipelineConfig, video: str | Path, mode: str = "orbit",
+                       force: bool = False) -> Path:
+    """An MP4 at ``video`` of the world bundle at ``world`` (``atlas-gs demo-video``): ``orbit``, a
+    path framed from where the recording camera stood, or ``trajectory``, the poses of its
+    ``localization.json``. The output policy (an MP4 name, never a file the project did not write
+    unless ``force``, a writable folder) is checked before the bundle is read."""
+    from atlas_pipeline.errors import ConfigError
+    from atlas_pipeline.io_utils import check_output_file, check_writable
+    from atlas_pipeline.localization.localizer import LocalizationReport
+    from atlas_pipeline.scene_memory.bundle import bundle_keyframe_poses, load_world_bundle
+    from atlas_pipeline.sensors.camera import TUM_CAMERAS, CameraIntrinsics
+    from atlas_pipeline.viz.video import is_atlas_video
+
+    world, video = Path(world), Path(video).expanduser()
+    if video.suffix.lower() != ".mp4":
+        raise ConfigError(f"--output {video}: demo videos are MP4 files; give a name ending in .mp4")
+    check_output_file(video, [world], force, is_ours=is_atlas_video)
+    check_writable(video.parent)
+    bundle = load_world_bundle(world)
+    dataset = bundle.metadata.get("dataset") or {}
+    cam = CameraIntrinsics.from_dict(dataset["camera"]) if "camera" in dataset else TUM_CAMERAS["default"]
+    if mode == "trajectory":
+        if not (world / "localization.json").is_file():
+            raise ConfigError(f"{world}: trajectory mode needs localization.json; run `atlas-gs localize` first")
+        poses = LocalizationReport.load(world).T_world_cam
+        poses = poses[np.isfinite(poses).all(axis=(1, 2))]  # frames never placed have no pose to render from
+        if len(poses) == 0:
+            raise ConfigError(f"{world}/localization.json: no frame was placed in this world; nothing to render")
+    else:
+        poses = orbit_trajectory(bundle.field, cfg, bundle_keyframe_poses(bundle.metadata), camera_K=cam.K,
+                                 image_size=(cam.width, cam.height))
+    render_video(bundle.field, poses, cam.K, cam.width, cam.height, cfg, video, mode)
+    return video

@@ -1,0 +1,61 @@
+"""A world bundle from a recording (``atlas-gs build``): fused frames, keyframes, the Gaussian
+world and the tracker's map, written as one bundle; or more of a recording mapped into an earlier
+bundle (``extend``), whose copy records it as its parent."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from atlas_pipeline.config import PipelineConfig
+from atlas_pipeline.sensors.registry import DatasetEntry
+
+__all__ = ["BuiltWorld", "build_world_bundle"]
+
+
+@dataclass(frozen=True)
+class BuiltWorld:
+    """What :func:`build_world_bundle` wrote."""
+
+    path: Path
+    n_gaussians: int
+    n_keyframes: int  # keyframes this recording added
+    map_id: str
+    parent: dict[str, Any] | None  # the extended bundle's reference, None for a new world
+
+
+def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | Path, extend: str | Path | None = None,
+                       force: bool = False, overrides: dict[str, Any] | None = None,
+                       command: str = "atlas-gs build") -> BuiltWorld:
+    """Map the recording ``entry`` into a new bundle at ``output`` (or into a copy of the bundle
+    ``extend``). The output policy (:func:`atlas_pipeline.io_utils.prepare_output_dir`) and every
+    file of ``extend`` are checked before any frame is read; ``overrides`` and ``command`` go into
+    the lineage."""
+    from atlas_pipeline.io_utils import prepare_output_dir
+    from atlas_pipeline.localization.localizer import tracking_map
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
+    from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
+    from atlas_pipeline.scene_memory.metadata import bundle_lineage, bundle_metadata
+    from atlas_pipeline.sensors.registry import load_dataset
+
+    inputs = [entry.path, extend]
+    out = prepare_output_dir(output, BUNDLE_KIND, inputs, force)
+    if extend:
+        load_world_bundle(extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
+    manifest = load_dataset(entry, cfg)
+    fused = fuse(manifest, cfg)
+    parent = None
+    if extend:
+        parent = parent_reference(extend)
+        world, n_keyframes = extend_saved_world(extend, manifest, fused, cfg)
+    else:
+        keyframes = select_keyframes_stage(manifest, fused, cfg)
+        world = build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
+        n_keyframes = len(keyframes.indices)
+    lineage = bundle_lineage(command, partition=entry.name, run_id=None, profile=cfg.profile,
+                             config_overrides=overrides or {}, parent=parent)
+    meta = bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage)
+    write_world_bundle(out, world.field, meta, extras=(world,), surfels=tracking_map(world), inputs=inputs)
+    return BuiltWorld(out, len(world.field), int(n_keyframes), world.map_id, parent)
