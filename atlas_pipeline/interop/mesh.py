@@ -224,6 +224,21 @@ def write_mesh_glb(mesh: TriangleMesh, path: str | Path) -> Path:
     return path
 
 
+def _in_view(mesh: TriangleMesh, T_cam_world: np.ndarray, K: np.ndarray, w: int, h: int) -> np.ndarray:
+    """``[T]`` bool: the triangles that may draw a pixel of the ``w`` x ``h`` preview. A triangle in
+    front of the camera whose three corners lie beyond one side of the image (a pixel's margin)
+    draws none of its points, which lie between the corners; the image is the same without it."""
+    p = mesh.vertices.astype(np.float64) @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    z = p[:, 2]
+    front = z > 1e-3
+    uv = (p @ K.T)[:, :2] / np.where(front, z, 1.0)[:, None]
+    t = mesh.triangles
+    out = np.zeros(len(t), bool)
+    for side in (uv[:, 0] < -1, uv[:, 0] > w + 1, uv[:, 1] < -1, uv[:, 1] > h + 1):
+        out |= (side & front)[t].all(axis=1)
+    return ~out
+
+
 def mesh_preview_png(mesh: TriangleMesh, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int) -> bytes:
     """The mesh seen from ``T_world_cam`` (``[4, 4]``, intrinsics ``K`` ``[3, 3]`` at ``width`` x
     ``height``): points on its triangles drawn nearest last, in their triangle's colour shaded by
@@ -241,25 +256,28 @@ def mesh_preview_png(mesh: TriangleMesh, T_world_cam: np.ndarray, K: np.ndarray,
         a, b = np.meshgrid(np.arange(_PREVIEW_SUBDIV + 1), np.arange(_PREVIEW_SUBDIV + 1), indexing="ij")
         keep = a + b <= _PREVIEW_SUBDIV
         bary = np.stack([a[keep], b[keep], _PREVIEW_SUBDIV - a[keep] - b[keep]], axis=1) / _PREVIEW_SUBDIV  # [S, 3]
-        tri = mesh.vertices[mesh.triangles].astype(np.float64)  # [T, 3, 3]
+        T_cam_world = np.linalg.inv(T_world_cam)
+        triangles = mesh.triangles[_in_view(mesh, T_cam_world, K, w, h)]
+        tri = mesh.vertices[triangles].astype(np.float64)  # [T, 3, 3]
         pts = np.einsum("sk,tkd->tsd", bary, tri).reshape(-1, 3)
         n_s = len(bary)
-        col_t = mesh.colors[mesh.triangles].astype(np.float64).mean(axis=1)  # [T, 3]
+        col_t = mesh.colors[triangles].astype(np.float64).mean(axis=1)  # [T, 3]
         nrm_t = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         nrm_t /= np.maximum(np.linalg.norm(nrm_t, axis=1, keepdims=True), 1e-12)
-        T_cam_world = np.linalg.inv(T_world_cam)
         p = pts @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
         z = p[:, 2]
         ok = z > 1e-3
         uv = (p[ok] @ K.T)[:, :2] / z[ok, None]
         u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         inside = (u >= 0) & (v >= 0) & (u < w) & (v < h)
-        which = np.flatnonzero(ok)[inside] // n_s  # the triangle of each drawn point
+        drawn = np.flatnonzero(ok)[inside]
+        which = drawn // n_s  # the triangle of each drawn point
         n_cam = nrm_t[which] @ T_cam_world[:3, :3].T
-        view = p[ok][inside] / np.linalg.norm(p[ok][inside], axis=1, keepdims=True)
+        pd = p[drawn]
+        view = pd / np.linalg.norm(pd, axis=1, keepdims=True)
         shade = _PREVIEW_AMBIENT + (1 - _PREVIEW_AMBIENT) * np.abs(np.sum(n_cam * view, axis=1))
         col = np.clip(col_t[which] * shade[:, None], 0, 255).astype(np.uint8)
-        order = np.argsort(-z[ok][inside], kind="stable")  # far first: the nearest is written last
+        order = np.argsort(-z[drawn], kind="stable")  # far first: the nearest is written last
         img[v[inside][order], u[inside][order]] = col[order]
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG", optimize=False)
