@@ -116,6 +116,12 @@ class TrackerConstants:
     # throw the pose out of the basin.
     max_step_m: float = 0.02
     max_step_rad: float = 0.02
+    # Motion prior (tracking along a fixed world): the camera centre is held to the motion
+    # model's prediction with this share of the largest translation eigenvalue of the geometric
+    # normal matrix. Directions the surfaces pin (eigenvalues near the largest) barely feel it;
+    # a direction they leave free (a wall and the floor: a few percent) follows the prediction
+    # instead of sliding wherever a doubled surface or the photometric term pulls it.
+    motion_prior_share: float = 0.02
     # Converged when a step moves less than this (m) and turns less than this (rad) at the finest
     # level: 0.1 mm / 6 mdeg, a tenth of the best depth noise; smaller steps only polish within
     # the noise (1e-5 everywhere tracked 1.1-1.6x slower for the same ATE, within 0.04 cm, on

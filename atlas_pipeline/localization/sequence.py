@@ -257,24 +257,30 @@ class SequenceTracker:
         return None
 
     def _predict(self, index: int, timestamp_s: float | None = None) -> np.ndarray:
-        """Constant-velocity guess from the last two frames, carried over the time to this one:
-        a frame after dropped frames is predicted as far as the velocity takes the camera (up to
-        :data:`MAX_VELOCITY_EXTRAPOLATION` frame intervals). The last pose after a longer gap, a
-        restart after a loss, or frames not in sequence."""
+        """Constant-velocity guess from the last two frames (:meth:`_motion_prediction`), or the
+        last pose after a longer gap, a restart after a loss, or frames not in sequence."""
         assert self._last is not None
+        moved = self._motion_prediction(index, timestamp_s)
+        return self._last[1].copy() if moved is None else moved
+
+    def _motion_prediction(self, index: int, timestamp_s: float | None) -> np.ndarray | None:
+        """The last two frames' velocity carried over the time to this one: a frame after dropped
+        frames is predicted as far as the velocity takes the camera (up to
+        :data:`MAX_VELOCITY_EXTRAPOLATION` frame intervals). None when there is no velocity."""
         base = self._velocity_poses(index)
-        if base is not None:
-            lT, pT = base
-            if timestamp_s is None or self._t_last is None or self._t_prev is None:
+        if base is None:
+            return None
+        lT, pT = base
+        if timestamp_s is None or self._t_last is None or self._t_prev is None:
+            return predict_constant_velocity(lT, pT)
+        dt, dt_prev = abs(timestamp_s - self._t_last), abs(self._t_last - self._t_prev)
+        if dt_prev > 0:
+            ratio = dt / dt_prev
+            if 1 / EVEN_SPACING_RATIO <= ratio <= EVEN_SPACING_RATIO:  # timestamp jitter: one step
                 return predict_constant_velocity(lT, pT)
-            dt, dt_prev = abs(timestamp_s - self._t_last), abs(self._t_last - self._t_prev)
-            if dt_prev > 0:
-                ratio = dt / dt_prev
-                if 1 / EVEN_SPACING_RATIO <= ratio <= EVEN_SPACING_RATIO:  # timestamp jitter: one step
-                    return predict_constant_velocity(lT, pT)
-                if ratio <= MAX_VELOCITY_EXTRAPOLATION:
-                    return predict_constant_velocity(lT, pT, ratio)
-        return self._last[1].copy()
+            if ratio <= MAX_VELOCITY_EXTRAPOLATION:
+                return predict_constant_velocity(lT, pT, ratio)
+        return None
 
     # -- one frame -----------------------------------------------------------------------------
     def _colour_motion(self, index: int, timestamp_s: float | None, colour_delay_s: float) -> np.ndarray | None:
@@ -326,7 +332,11 @@ class SequenceTracker:
             # Along a fixed world (no map being built) a frame may match a surface behind the
             # first: a world can hold two copies of a wall that drift left a few cm apart.
             behind = self.builder is None
-            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind)
+            # ... and where its surfaces leave a direction free, the motion model decides it (when
+            # there is one: the last pose after a loss or a gap is no prediction of motion).
+            prior = self._motion_prediction(index, timestamp_s) if behind else None
+            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
+                                     motion_prior=prior)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the hybrid solve).
                 res2 = self.tracker.align(fp, self.model, self._last[1], None, surface_behind=behind)

@@ -503,12 +503,14 @@ class RGBDTracker:
         return max(max_dist, cfg.min_correspondence_m)
 
     def align(self, frame: FramePyramid, model: SurfelModel, T_init: np.ndarray,
-              reference: tuple[FramePyramid, np.ndarray] | None = None, surface_behind: bool = False) -> TrackResult:
+              reference: tuple[FramePyramid, np.ndarray] | None = None, surface_behind: bool = False,
+              motion_prior: np.ndarray | None = None) -> TrackResult:
         """Coarse-to-fine Gauss-Newton from ``T_init``; ``reference`` = (frame, its pose) for the
         photometric term (None: geometry only). ``surface_behind``: points behind the map's first
         surface may match the one behind it (:class:`kn.ModelView`): for tracking along a fixed
         world, never for mapping, loop or relocalization checks, which must see a doubled surface
-        as a disagreement."""
+        as a disagreement. ``motion_prior``: ``[4, 4]`` the motion model's prediction, which holds
+        the camera centre where the surfaces leave it free (:func:`add_motion_prior`)."""
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
@@ -532,6 +534,8 @@ class RGBDTracker:
                 total_it += 1
                 if stats.n_geometric < C.min_geometric_inliers:
                     break
+                if motion_prior is not None:
+                    add_motion_prior(H, g, T, motion_prior[:3, 3], C.motion_prior_share)
                 xi = solve_update(H, g, max_step_m, C.max_step_rad)
                 if xi is None:
                     break
@@ -574,6 +578,28 @@ def translation_constraint(H: np.ndarray) -> float:
     the surfaces let the camera slide (two planes constrain only two directions)."""
     ev = np.linalg.eigvalsh(0.5 * (H[:3, :3] + H[:3, :3].T))
     return float(ev[0] / ev[-1]) if ev[-1] > 0 else 0.0
+
+
+def add_motion_prior(H: np.ndarray, g: np.ndarray, T_world_cam: np.ndarray, centre_pred: np.ndarray,
+                     share: float) -> None:
+    """Add a prior holding the camera centre of ``T_world_cam`` at ``centre_pred [3]`` to the
+    normal equations ``H [6, 6]``, ``g [6]`` (in place, the left update of :func:`apply_update`).
+
+    Its weight is ``share`` times the largest eigenvalue of the translation block: a direction the
+    data constrain much more strongly than that keeps the data's answer; one they leave nearly
+    free (sliding along a wall) stays at the prediction.
+    """
+    ev_max = float(np.linalg.eigvalsh(0.5 * (H[:3, :3] + H[:3, :3].T))[-1])
+    if not ev_max > 0:
+        return
+    c = T_world_cam[:3, 3]
+    # d(centre)/d(xi) of exp(xi) T: [I | -[c]x]
+    J = np.zeros((3, 6))
+    J[:, :3] = np.eye(3)
+    J[:, 3:] = -np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    w = share * ev_max
+    H += w * (J.T @ J)
+    g += w * (J.T @ (c - centre_pred))
 
 
 def solve_update(H: np.ndarray, g: np.ndarray, max_step_m: float, max_step_rad: float) -> np.ndarray | None:

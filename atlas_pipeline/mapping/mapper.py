@@ -27,6 +27,8 @@ import numpy as np
 
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
+from atlas_pipeline.localization.tracker import SurfelCache
+from atlas_pipeline.mapping.consistency import disagreeing_points
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
@@ -200,9 +202,16 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         mapping = world.map_voxels if world.map_voxels is not None else copy.deepcopy(world.tracking_voxels)
     history = [] if world is None else list(world.history)
     progress = Progress("merging keyframes", len(keyframes.indices), log, unit="keyframes")
+    # The tracking map keeps one copy of each surface (mapping.consistency); it needs the camera.
+    surfels = SurfelCache(tracking) if manifest is not None else None
+    n_refused = 0
     for k in keyframes.indices:
         pts, cols = fused.frame(int(k))
         T = keyframes.T_world_cam[k]
+        if surfels is not None:
+            agree = ~disagreeing_points(surfels.model(), pts, T, manifest.camera)
+            n_refused += int(len(pts) - agree.sum())
+            pts, cols = pts[agree], cols[agree]
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         tracking.integrate(pw, cols)
         measured, holes = _mapping_points(fused, int(k), cfg, manifest)
@@ -210,6 +219,9 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         _integrate_mapping(mapping, *holes, T, cfg.voxel_size_m, cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
         history.append(len(mapping))
         progress.update()
+    if n_refused:
+        logger.info("tracking map: %d keyframe points left out where they contradict surfaces already mapped "
+                    "(drift before a loop)", n_refused)
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
     prev_T = np.zeros((0, 4, 4)) if world is None else world.T_world_cam_keyframes
     return GaussianWorld(
