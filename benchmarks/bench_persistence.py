@@ -11,7 +11,8 @@ For every pair of visits of one place, on the frames as read from disk:
    frame relocalized): placed %, placed % of the frames that see mapped surface (judged with
    ground truth: the visit's true pose moved into the world's frame by the rigid alignment of
    visit 1's estimates to its ground truth, and at least half of the frame's points landing on
-   the map there), ATE, frames/s, mean seconds per relocalization attempt.
+   the map there), ATE, frames/s, mean seconds per relocalization attempt, the place index's
+   fast one and the full search apart (every attempt timed, failed ones too).
 4. **extend**: visit 2 tracked and mapped into world 1 (``atlas-gs build --extend``): placed %,
    frames/s; then visit 2 localized in the extended world with no start pose: placed %, ATE.
 
@@ -116,10 +117,41 @@ def _gt_to_world(slam_poses: np.ndarray, valid: np.ndarray, manifest) -> np.ndar
     return np.linalg.inv(align_rigid(slam_poses[ok], manifest.T_world_cam_gt[ok]))
 
 
-def _reloc_time_s(report) -> float:
-    """Mean seconds of the frames that needed a relocalization attempt (relocalized or lost with one)."""
-    t = [report.time_s[i] for i, s in enumerate(report.status) if s == "relocalized"]
-    return float(np.mean(t)) if t else float("nan")
+class _AttemptTimer:
+    """Seconds of every relocalization attempt while active, by path: the place index's fast
+    attempt (``fast``) and the full search (``full``), successful or not. Wraps the two
+    :class:`Relocalizer` methods (timing only; results pass through unchanged)."""
+
+    def __init__(self):
+        self.seconds: dict[str, list[float]] = {"fast": [], "full": []}
+
+    def __enter__(self):
+        from atlas_pipeline.localization.relocalize import Relocalizer
+
+        self._orig = {"fast": Relocalizer.relocalize_fast, "full": Relocalizer.relocalize}
+
+        def timed(kind):
+            orig = self._orig[kind]
+
+            def run(*args, **kwargs):
+                t0 = time.perf_counter()
+                try:
+                    return orig(*args, **kwargs)
+                finally:
+                    self.seconds[kind].append(time.perf_counter() - t0)
+            return run
+
+        Relocalizer.relocalize_fast, Relocalizer.relocalize = timed("fast"), timed("full")
+        return self
+
+    def __exit__(self, *exc):
+        from atlas_pipeline.localization.relocalize import Relocalizer
+
+        Relocalizer.relocalize_fast, Relocalizer.relocalize = self._orig["fast"], self._orig["full"]
+
+    def mean_s(self, kind: str) -> float:
+        t = self.seconds[kind]
+        return float(np.mean(t)) if t else float("nan")
 
 
 def _progress(stage: str, row: dict) -> None:
@@ -161,12 +193,15 @@ def run_pair(label: str, v1, v2, cfg) -> dict:
     # Second visit, no start pose.
     model = tracking_map(world)
     T_align = _gt_to_world(slam.T_world_cam, slam.valid, v1)
-    second = localize_sequence(v2, model, cfg.localization, None, map_id=world.map_id, depth_range_m=depth_range,
-                               prior_poses=world.T_world_cam_keyframes)
+    with _AttemptTimer() as attempts:
+        second = localize_sequence(v2, model, cfg.localization, None, map_id=world.map_id, depth_range_m=depth_range,
+                                   prior_poses=world.T_world_cam_keyframes)
     placed = _placed(second.status)
     row.update({"visit2_placed_pct": 100 * placed.mean(), "visit2_ate_m": second.summary.get("ate_rmse_m"),
                 "visit2_frames_per_s": second.summary.get("frames_per_s"),
-                "visit2_reloc_s": _reloc_time_s(second), "visit2_outcome": second.summary.get("outcome")})
+                "visit2_reloc_fast_s": attempts.mean_s("fast"), "visit2_reloc_fast_n": len(attempts.seconds["fast"]),
+                "visit2_reloc_full_s": attempts.mean_s("full"), "visit2_reloc_full_n": len(attempts.seconds["full"]),
+                "visit2_outcome": second.summary.get("outcome")})
     if T_align is not None:
         sees = _sees_map(v2, model, T_align, cfg)
         row["visit2_seeing_map"] = int(sees.sum())
@@ -213,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nmachine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores; "
           f"profile default, mapping.pose_source=estimated, no fit")
     print("| pair | frames | SLAM ATE cm | SLAM f/s | build s | keyframes | own placed % | own ATE cm | own f/s "
-          "| visit 2 placed % (of seeing map) | visit 2 ATE cm | visit 2 f/s | reloc s | extend placed % | extend f/s "
+          "| visit 2 placed % (of seeing map) | visit 2 ATE cm | visit 2 f/s | reloc s fast (n) / full (n) | extend placed % | extend f/s "
           "| in extended placed % | ATE cm |")
     print("|" + "---|" * 17)
     for r in rows:
@@ -222,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
               f"| {_fmt(r['own_placed_pct'])} | {_fmt(r['own_ate_m'], 100, 2)} | {_fmt(r['own_frames_per_s'])} "
               f"| {_fmt(r['visit2_placed_pct'])} ({_fmt(r.get('visit2_placed_of_seeing_pct'))} of "
               f"{r.get('visit2_seeing_map', '-')}) | {_fmt(r['visit2_ate_m'], 100, 2)} "
-              f"| {_fmt(r['visit2_frames_per_s'])} | {_fmt(r['visit2_reloc_s'], 1, 3)} "
+              f"| {_fmt(r['visit2_frames_per_s'])} | {_fmt(r['visit2_reloc_fast_s'], 1, 3)} ({r['visit2_reloc_fast_n']}) / {_fmt(r['visit2_reloc_full_s'], 1, 2)} ({r['visit2_reloc_full_n']}) "
               f"| {_fmt(r['extend_placed_pct'])} | {_fmt(r['extend_frames_per_s'])} "
               f"| {_fmt(r['extended_placed_pct'])} | {_fmt(r['extended_ate_m'], 100, 2)} |")
     if args.json:
