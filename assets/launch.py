@@ -222,6 +222,9 @@ def run_partition(launch: Launch, partition: str, stale_only: bool = False, exec
                 current["world_bundle"] = outputs["world_bundle"]
             return current
         selection = stale_selection(stale)
+    from atlas_pipeline.memory_estimate import check_entry_memory
+
+    check_entry_memory(launch.atlas.load(), load_registry()[partition])  # before any asset of the run
     try:
         with compute_log_mirrors_detached():  # Ctrl-C reaches the run, which stops them, not them
             result = execute_partition(launch, partition, selection, executor, dask_scheduler)

@@ -67,6 +67,7 @@ from atlas_pipeline.io_utils import discard_dir
 from atlas_pipeline.localization.localizer import LocalizationReport, localize, localize_visit, tracking_map
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_world_with_visit, select_keyframes_stage
+from atlas_pipeline.memory_estimate import check_memory, shape_of_manifest
 from atlas_pipeline.perception.rgbd import FusedFrames, fuse
 from atlas_pipeline.scene_memory.metadata import WorldBundleArtifact, bundle_lineage, bundle_metadata
 from atlas_pipeline.sensors.registry import ensure_dataset_files, load_dataset, load_registry, revisits
@@ -176,6 +177,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         if (out := reuse(context, cfg, dataset=dataset_version(name))) is not None:
             return out
         manifest = load_dataset(dataset_entry(name), cfg, log=context.log.info)
+        check_memory(cfg, shape_of_manifest(manifest), name)  # a run from the UI: before the heavy stages
         return versioned(context, manifest, {
             "n_frames": manifest.n_frames,
             "n_with_ground_truth": int(manifest.has_gt.sum()),

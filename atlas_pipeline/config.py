@@ -10,7 +10,7 @@ Validation happens whole and first, when a profile or an override is parsed
 (:meth:`PipelineConfig.from_dict`, :meth:`PipelineConfig.with_overrides`, :func:`load_profile`),
 so a bad value fails before any stage runs. Every error names the dotted field and the value,
 prefixed by the source (YAML path or ``--set``), one a line:
-``--set: mapping.voxel_size_m must be greater than 0, got -1``.
+``--set: mapping.voxel_size_m must be greater than or equal to 0.001, got -1``.
 """
 
 from __future__ import annotations
@@ -72,6 +72,9 @@ MAX_GN_ITERATIONS = 100  # Gauss-Newton iterations of one pyramid level (default
 MAX_VIDEO_FRAMES = 10_000  # frames of one orbit video: 11 minutes at 15 fps (default 90)
 MAX_VIDEO_FPS = 240.0
 MAX_SEED = 2**32 - 1  # NumPy's seed range
+MIN_VOXEL_SIZE_M = 0.001  # 1 mm: finer than any RGB-D sensor's depth noise; each voxel then holds one point
+MAX_VOXEL_SIZE_M = 1.0  # one Gaussian per metre cube leaves no room's surfaces to track against
+MAX_DENSIFY_GROWTH = 16.0  # the densified field at most 16x its starting count (default 1.3)
 _RECIPROCAL_TOL = 1e-9  # how close a scale must be to 1/n (the fit downsamples by whole factors)
 
 
@@ -178,7 +181,7 @@ class FitConfig(Section):
     densify_grad_threshold: float = Field(2e-4, gt=0, description=(
         "mean view-space (NDC) position gradient above which a Gaussian is cloned or split"))
     densify_scale_m: float = Field(0.02, gt=0, description="a Gaussian with all scales at most this is cloned, a larger one split (m)")
-    densify_max_growth: float = Field(1.3, ge=1, description="the densified field holds at most this times the starting count")
+    densify_max_growth: float = Field(1.3, ge=1, le=MAX_DENSIFY_GROWTH, description="the densified field holds at most this times the starting count")
     prune_opacity: float = Field(0.005, ge=0, le=1, description="Gaussians below this opacity are removed at each round")
     selective_adam: bool = Field(True, description=(
         "Adam steps only the Gaussians each keyframe draws, each on its own step count (Taming 3DGS); "
@@ -189,7 +192,7 @@ class FitConfig(Section):
 class MappingConfig(Section):
     pose_source: PoseSource = Field("auto", description=(
         "poses of the map: ground_truth, estimated (the RGB-D tracker), or auto (ground truth where the dataset has it)"))
-    voxel_size_m: float = Field(0.02, gt=0, description="voxel of the Gaussian map and the tracker's surfel map (m)")
+    voxel_size_m: float = Field(0.02, ge=MIN_VOXEL_SIZE_M, le=MAX_VOXEL_SIZE_M, description="voxel of the Gaussian map and the tracker's surfel map (m)")
     max_depth_m: float = Field(8.0, gt=0, description=(
         "depth range of the map (>= fusion.max_depth_m): walls past the tracking range still get "
         "Gaussians; 8 m is where Kinect-class sensors stop, far points weighted by their depth noise"))

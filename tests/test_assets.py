@@ -157,7 +157,7 @@ def test_run_config_sets_one_field_and_an_invalid_value_names_it(isolated):
     cfg = run.load()
     assert cfg.localization.photometric_weight == 0.5 and cfg.mapping.voxel_size_m == 0.04 and cfg.profile == "demo"
     assert cfg.localization.iterations == (12, 8, 5)
-    with pytest.raises(ConfigError, match=r"run config: mapping.voxel_size_m must be greater than 0, got -1.0"):
+    with pytest.raises(ConfigError, match=r"run config: mapping.voxel_size_m must be greater than or equal to 0.001, got -1.0"):
         type(atlas)(mapping={"voxel_size_m": -1.0}).load()
 
 
@@ -209,5 +209,5 @@ def test_a_bad_run_config_fails_the_run_with_the_field_as_its_first_line(isolate
                                  run_config={"resources": {"atlas": {"config": {"mapping": {"voxel_size_m": -1.0}}}}})
     failure = next(ev for ev in res.all_events if ev.event_type_value == "STEP_FAILURE")
     assert failure.event_specific_data.user_failure_data.description == (
-        "run config: mapping.voxel_size_m must be greater than 0, got -1.0")
+        "run config: mapping.voxel_size_m must be greater than or equal to 0.001, got -1.0")
     assert not (isolated / "artifacts").exists() or not any((isolated / "artifacts").rglob("*.npz"))

@@ -38,8 +38,10 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     from atlas_pipeline.perception.rgbd import fuse
     from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
     from atlas_pipeline.scene_memory.metadata import bundle_lineage, bundle_metadata
+    from atlas_pipeline.memory_estimate import check_entry_memory
     from atlas_pipeline.sensors.registry import load_dataset
 
+    check_entry_memory(cfg, entry)  # before the output folder or any frame
     inputs = [entry.path, extend]
     out = prepare_output_dir(output, BUNDLE_KIND, inputs, force)
     if extend:

@@ -36,6 +36,7 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
     the map ends early, and the report says so (``summary["outcome"]``)."""
     from atlas_pipeline.io_utils import check_writable
     from atlas_pipeline.localization.localizer import localize_sequence
+    from atlas_pipeline.memory_estimate import check_localization_memory
     from atlas_pipeline.scene_memory.bundle import (
         bundle_keyframe_poses,
         check_bundle_update,
@@ -49,6 +50,7 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
     check_bundle_update(world, entry.name, bundle.map_id, drop_transitions=drop_transitions, meta=bundle.metadata)
     check_writable(Path(world).parent)
     manifest = load_dataset(entry, cfg)
+    check_localization_memory(cfg, manifest, len(bundle.field))
     T0, anchor = anchor_pose(bundle.metadata, entry.name, start_pose, relocalize=relocalize)
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
