@@ -41,9 +41,9 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     from atlas_pipeline.memory_estimate import check_entry_memory
     from atlas_pipeline.sensors.registry import load_dataset
 
-    check_entry_memory(cfg, entry)  # before the output folder or any frame
     inputs = [entry.path, extend]
-    out = prepare_output_dir(output, BUNDLE_KIND, inputs, force)
+    out = prepare_output_dir(output, BUNDLE_KIND, inputs, force)  # creates nothing; an input is never an output
+    check_entry_memory(cfg, entry)  # before any frame is read
     if extend:
         load_world_bundle(extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
     manifest = load_dataset(entry, cfg)
