@@ -327,14 +327,15 @@ class SequenceTracker:
         elif self._last is None or len(self.model) == 0:
             est = self._relocalize(index, fp, [])
         else:
-            guess = self._predict(index, timestamp_s)
+            moved = self._motion_prediction(index, timestamp_s)
+            guess = self._last[1].copy() if moved is None else moved  # as _predict
             use_photo = self.cfg.photometric_weight > 0 and self._ref is not None
             # Along a fixed world (no map being built) a frame may match a surface behind the
             # first: a world can hold two copies of a wall that drift left a few cm apart.
             behind = self.builder is None
             # ... and where its surfaces leave a direction free, the motion model decides it (when
             # there is one: the last pose after a loss or a gap is no prediction of motion).
-            prior = self._motion_prediction(index, timestamp_s) if behind else None
+            prior = moved if behind else None
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
                                      motion_prior=prior)
             if not res.ok:
