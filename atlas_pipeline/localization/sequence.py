@@ -64,6 +64,7 @@ from atlas_pipeline.localization.tracker import (
     pose_change,
     predict_constant_velocity,
 )
+from atlas_pipeline.mapping.consistency import disagreeing_points
 from atlas_pipeline.perception.colour_timing import MAX_COLOUR_DELAY_S, colour_at_depth_time
 from atlas_pipeline.perception.rgbd import backproject
 from atlas_pipeline.sensors.camera import CameraIntrinsics
@@ -179,12 +180,15 @@ class SequenceTracker:
         prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (e.g. the map's keyframe poses).
         new_map_after_lost_frames: mapping only; after this many lost frames in a row (with depth)
             a new map is started; 0 = never (a session inside a saved world keeps to that world).
+        one_surface: mapping only; a keyframe's points that contradict a surface already in the
+            map are left out (:func:`~atlas_pipeline.mapping.consistency.disagreeing_points`), as
+            the world build does, so a session extending a saved world does not double it.
     """
 
     def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
                  model: SurfelModel | None = None, builder=None, keyframe_translation_m: float = 0.08,
                  keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None,
-                 new_map_after_lost_frames: int = 0):
+                 new_map_after_lost_frames: int = 0, one_surface: bool = False):
         if model is None and builder is None:
             raise ValueError("SequenceTracker needs a model (localization) or a builder (mapping)")
         self.camera = camera
@@ -194,6 +198,8 @@ class SequenceTracker:
         self.builder = builder
         self.kf_t, self.kf_r = keyframe_translation_m, keyframe_rotation_deg
         self.fusion_stride = fusion_stride
+        self.one_surface = bool(one_surface)
+        self.n_refused_points = 0  # keyframe points left out by the one-surface check
         # Mapping: the surfel map follows the builder incrementally (cost per keyframe, not per map).
         self._surfels = None if builder is None else SurfelCache(builder)
         self.model = model if model is not None else self._surfels.model()
@@ -563,6 +569,10 @@ class SequenceTracker:
         pts, cols = backproject(depth, rgb, self.camera, self.fusion_stride, *self.depth_range_m)
         if rgb is None:
             cols = np.full((len(pts), 3), 128, np.uint8)
+        if self.one_surface:
+            agree = ~disagreeing_points(self.model, pts, T, self.camera)
+            self.n_refused_points += int(len(pts) - agree.sum())
+            pts, cols = pts[agree], cols[agree]
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         self.builder.integrate(pw, cols)
         self._coverage_map().add(pw)

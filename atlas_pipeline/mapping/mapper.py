@@ -267,7 +267,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=tracking,
                          keyframe_translation_m=mapping.keyframe_translation_m,
                          keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
-                         prior_poses=world.T_world_cam_keyframes)
+                         prior_poses=world.T_world_cam_keyframes, one_surface=True)
     n = manifest.n_frames
     poses = np.full((n, 4, 4), np.nan)
     status: list[str] = []
@@ -282,6 +282,9 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     if status.count(STATUS_LOST) == n:
         raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
                                           "everywhere): is it a world of the same place?")
+    if st.n_refused_points:
+        logger.info("tracking map: %d keyframe points left out where they contradict the saved world's surfaces",
+                    st.n_refused_points)
     idx = np.asarray(st.keyframe_indices, np.int64)
     # The tracker merged its keyframes' tracking-range points; the map takes them out to its own range.
     from atlas_pipeline.perception.rgbd import backproject
