@@ -179,11 +179,16 @@ def test_weighted_builder_matches_unweighted_when_weights_are_equal():
 
 
 def test_sensor_model_is_the_synthetic_kinects():
-    """The noise model the mapper weights with is the one the synthetic Kinect v1 writes depth with."""
+    """The noise model the mapper and the tracker weight with is the one the synthetic Kinect v1
+    writes depth with."""
+    from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
+    from atlas_pipeline.sensors import depth_noise
     from atlas_pipeline.sensors.synthetic import KINECT_V1_SENSOR
 
-    assert mapper.DEPTH_NOISE_A_M == KINECT_V1_SENSOR["depth_noise_a_m"]
-    assert mapper.DEPTH_NOISE_B_PER_M == KINECT_V1_SENSOR["depth_noise_b_per_m"]
+    assert depth_noise.DEPTH_NOISE_A_M == KINECT_V1_SENSOR["depth_noise_a_m"]
+    assert depth_noise.DEPTH_NOISE_B_PER_M == KINECT_V1_SENSOR["depth_noise_b_per_m"]
+    assert (C.depth_noise_a_m, C.depth_noise_b_per_m, C.depth_noise_z0_m) == (
+        depth_noise.DEPTH_NOISE_A_M, depth_noise.DEPTH_NOISE_B_PER_M, depth_noise.DEPTH_NOISE_Z0_M)
     np.testing.assert_allclose(mapper.depth_sigma_m(np.array([1.0, 3.0])), [0.001884, 0.0140444], rtol=1e-4)
     w = mapper.depth_loss_weight(np.array([[0.0, 1.0, 8.0]]), 0.02)
     assert w[0, 0] == 0.0 and w[0, 1] > 0.99 and 0.1 < w[0, 2] < 0.25

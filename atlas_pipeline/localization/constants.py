@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from atlas_pipeline.sensors import depth_noise
+
 __all__ = ["TrackerConstants", "TRACKER_CONSTANTS"]
 
 
@@ -90,14 +92,13 @@ class TrackerConstants:
     # A reference pixel's depth must be within this of the point's depth in the reference camera,
     # m, or the reference sees another (occluding) surface there and the intensity is not compared.
     occlusion_gate_m: float = 0.05
-    # Axial depth noise of a structured-light RGB-D camera (Kinect v1 class: TUM, 7-Scenes,
-    # ScanNet): sigma(z) = A + B (z - Z0)^2 for z > Z0 (Nguyen, Izadi and Lovell 2012). The
-    # geometric residual of each point is weighted by (sigma(reference) / sigma(z))^2, so far,
+    # Axial depth noise sigma(z) = A + B (z - Z0)^2 (sensors.depth_noise, the model mapping
+    # uses too). The geometric residual of each point is weighted by (sigma(reference) / sigma(z))^2, so far,
     # noisy depth counts as the sensor says instead of pulling the pose with the weight of near,
     # precise depth.
-    depth_noise_a_m: float = 0.0012
-    depth_noise_b_per_m: float = 0.0019  # m per m^2 of (z - Z0)^2
-    depth_noise_z0_m: float = 0.4
+    depth_noise_a_m: float = depth_noise.DEPTH_NOISE_A_M
+    depth_noise_b_per_m: float = depth_noise.DEPTH_NOISE_B_PER_M
+    depth_noise_z0_m: float = depth_noise.DEPTH_NOISE_Z0_M
     # Points nearer than this keep (about) full weight: sigma(reference) = sigma(this depth).
     depth_noise_reference_m: float = 1.0
 

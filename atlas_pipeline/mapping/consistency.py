@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from atlas_pipeline.sensors.camera import CameraIntrinsics
+from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
 __all__ = ["CONFLICT_LEVEL", "CONFLICT_MIN_M", "CONFLICT_SIGMAS", "conflict_tolerance_m", "disagreeing_points"]
 
@@ -33,8 +34,6 @@ CONFLICT_MIN_M = 0.03
 def conflict_tolerance_m(depth_m: np.ndarray) -> np.ndarray:
     """How far (m) a reading at ``depth_m`` (any shape) may lie from the map's surface and still be
     the same surface: ``max(CONFLICT_MIN_M, CONFLICT_SIGMAS * sigma_z)``."""
-    from atlas_pipeline.mapping.mapper import depth_sigma_m
-
     return np.maximum(CONFLICT_MIN_M, CONFLICT_SIGMAS * depth_sigma_m(depth_m))
 
 

@@ -32,6 +32,7 @@ from atlas_pipeline.mapping.consistency import disagreeing_points
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
+from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
@@ -44,22 +45,6 @@ LogFn = Callable[[str], None]
 __all__ = ["build_world", "extend_world", "extend_world_by_tracking", "extend_world_with_visit", "select_keyframes_stage",
            "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight",
            "coverage_band_m"]
-
-# Axial depth noise of a Kinect v1-class structured-light camera (TUM RGB-D's sensor): Nguyen,
-# Izadi & Lovell, "Modeling Kinect Sensor Noise for Improved 3D Reconstruction and Tracking",
-# 3DIMPVT 2012: sigma_z = a + b (z - z0)^2 metres (1.9 mm at 1 m, 1.4 cm at 3 m, 11 cm at 8 m;
-# Khoshelham & Elberink 2012 measured the same z^2 growth, ~4 cm at 5 m). The same constants as
-# the project's synthetic Kinect (sensors/synthetic.py KINECT_V1_SENSOR; a test keeps them equal).
-DEPTH_NOISE_A_M = 0.0012
-DEPTH_NOISE_B_PER_M = 0.0019
-DEPTH_NOISE_Z0_M = 0.4
-
-
-def depth_sigma_m(depth_m: np.ndarray) -> np.ndarray:
-    """Axial noise std (metres) of a depth reading ``depth_m`` (any shape), the sensor model above."""
-    z = np.asarray(depth_m, np.float64)
-    return DEPTH_NOISE_A_M + DEPTH_NOISE_B_PER_M * (z - DEPTH_NOISE_Z0_M) ** 2
-
 
 def depth_weight(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """Inverse-variance weight in (0, 1] of points at ``depth_m`` (any shape) for the voxel merge:
