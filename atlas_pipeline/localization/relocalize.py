@@ -86,6 +86,30 @@ FAST_MAX_RUNNER_UP_SCORE = 0.8
 MIN_APPEARANCE_NCC = 0.65
 
 
+# Two poses are distinct hypotheses when they differ by more than this (the tracker's basin on the
+# finest level is a few centimetres and degrees; closer poses converge to the same answer).
+DISTINCT_POSE_M = 0.05
+DISTINCT_POSE_DEG = 5.0
+
+
+def _is_distinct(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    dt, dr = pose_change(T_a, T_b)
+    return dt > DISTINCT_POSE_M or dr > DISTINCT_POSE_DEG
+
+
+def _distinct(screened: list[tuple[float, str, TrackResult]], n: int) -> list[tuple[str, TrackResult]]:
+    """The best ``n`` of ``screened`` (best first) whose coarse poses are distinct: hypotheses from
+    neighbouring viewpoints usually converge to one pose, and refining it twice would both waste
+    the time and keep a look-alike place out of the comparison that tells the frame is ambiguous."""
+    out: list[tuple[str, TrackResult]] = []
+    for _, src, r in screened:
+        if len(out) >= n:
+            break
+        if all(_is_distinct(r.T_world_cam, o.T_world_cam) for _, o in out):
+            out.append((src, r))
+    return out
+
+
 def select_priors(priors: np.ndarray, near: list[np.ndarray], k: int = MAX_PRIOR_VIEWPOINTS) -> np.ndarray:
     """At most ``k`` of ``priors [P, 4, 4]``: the ``k // 2`` whose camera centres are nearest any
     pose in ``near`` (none when it is empty), then farthest-point sampling of the centres (the
@@ -194,7 +218,7 @@ class Relocalizer:
                 screened.append((geometric_score(r), src, r))
         screened.sort(key=lambda x: -x[0])
         results: list[tuple[str, TrackResult]] = []
-        for _, src, rc in screened[:n_refine]:
+        for src, rc in _distinct(screened, n_refine):
             r = self.tracker.align(frame, self.model, rc.T_world_cam, None)
             if np.all(np.isfinite(r.T_world_cam)):
                 results.append((src, r))
@@ -213,8 +237,7 @@ class Relocalizer:
         conf = best.inlier_fraction
         ambiguous = False
         for _, other in results[1:]:
-            dt, dr = pose_change(best.T_world_cam, other.T_world_cam)
-            if dt > 0.05 or dr > 5.0:  # a distinct pose that explains the frame almost as well
+            if _is_distinct(best.T_world_cam, other.T_world_cam):  # another pose explaining the frame almost as well?
                 ambiguous = score(other) > FAST_MAX_RUNNER_UP_SCORE * score(best)
                 conf *= float(np.clip(1.0 - score(other) / max(score(best), 1e-9), 0.0, 1.0)) ** 0.5 if ambiguous else 1.0
                 break
