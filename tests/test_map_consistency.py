@@ -15,6 +15,7 @@ from atlas_pipeline.localization.tracker import (
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS
 from atlas_pipeline.mapping import mapper
 from atlas_pipeline.perception.rgbd import fuse
+from atlas_pipeline.mapping import consistency
 from atlas_pipeline.mapping.consistency import CONFLICT_MIN_M, conflict_tolerance_m, disagreeing_points
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -79,7 +80,7 @@ def test_a_drifted_return_does_not_double_the_tracking_map(small_manifest, small
     exact = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
     kept = mapper.build_world(fused, drifted, cfg.mapping, manifest=small_manifest)
     with monkeypatch.context() as m:  # every point merged, as before the check
-        m.setattr(mapper, "disagreeing_points", lambda model, pts, T, camera: np.zeros(len(pts), bool))
+        m.setattr(consistency, "disagreeing_points", lambda model, pts, T, camera: np.zeros(len(pts), bool))
         exact_all = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
         doubled = mapper.build_world(fused, drifted, cfg.mapping, manifest=small_manifest)
     # With the right poses the check leaves out almost nothing (edges and noise only) ...

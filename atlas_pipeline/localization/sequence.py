@@ -64,7 +64,7 @@ from atlas_pipeline.localization.tracker import (
     pose_change,
     predict_constant_velocity,
 )
-from atlas_pipeline.mapping.consistency import disagreeing_points
+from atlas_pipeline.mapping.consistency import agreeing_points
 from atlas_pipeline.perception.colour_timing import MAX_COLOUR_DELAY_S, colour_at_depth_time
 from atlas_pipeline.perception.rgbd import backproject
 from atlas_pipeline.sensors.camera import CameraIntrinsics
@@ -570,9 +570,8 @@ class SequenceTracker:
         if rgb is None:
             cols = np.full((len(pts), 3), 128, np.uint8)
         if self.one_surface:
-            agree = ~disagreeing_points(self.model, pts, T, self.camera)
-            self.n_refused_points += int(len(pts) - agree.sum())
-            pts, cols = pts[agree], cols[agree]
+            pts, cols, refused = agreeing_points(self.model, pts, cols, T, self.camera)
+            self.n_refused_points += refused
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         self.builder.integrate(pw, cols)
         self._coverage_map().add(pw)

@@ -19,7 +19,8 @@ import numpy as np
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
-__all__ = ["CONFLICT_LEVEL", "CONFLICT_MIN_M", "CONFLICT_SIGMAS", "conflict_tolerance_m", "disagreeing_points"]
+__all__ = ["CONFLICT_LEVEL", "CONFLICT_MIN_M", "CONFLICT_SIGMAS", "conflict_tolerance_m", "disagreeing_points",
+           "agreeing_points"]
 
 # The map is rendered at this pyramid level (half resolution): a view per keyframe costs
 # milliseconds, and a keyframe's points are a stride-2 sample of its depth anyway.
@@ -64,3 +65,11 @@ def disagreeing_points(model, points_cam: np.ndarray, T_world_cam: np.ndarray,
     seen = np.isfinite(zm)
     out[seen] = np.abs(z[seen] - zm[seen]) > conflict_tolerance_m(z[seen])
     return out
+
+
+def agreeing_points(model, points_cam: np.ndarray, colours: np.ndarray, T_world_cam: np.ndarray,
+                    camera: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(points [K, 3], colours [K, 3], n_left_out)``: the keyframe's ``points_cam [M, 3]`` and
+    ``colours [M, 3]`` that :func:`disagreeing_points` does not mark, the ones to merge."""
+    agree = ~disagreeing_points(model, points_cam, T_world_cam, camera)
+    return points_cam[agree], colours[agree], int(len(agree) - agree.sum())

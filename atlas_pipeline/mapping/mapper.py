@@ -28,7 +28,7 @@ import numpy as np
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
 from atlas_pipeline.localization.tracker import SurfelCache
-from atlas_pipeline.mapping.consistency import disagreeing_points
+from atlas_pipeline.mapping import consistency
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
 from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
 from atlas_pipeline.progress import Progress
@@ -194,9 +194,8 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         pts, cols = fused.frame(int(k))
         T = keyframes.T_world_cam[k]
         if surfels is not None:
-            agree = ~disagreeing_points(surfels.model(), pts, T, manifest.camera)
-            n_refused += int(len(pts) - agree.sum())
-            pts, cols = pts[agree], cols[agree]
+            pts, cols, refused = consistency.agreeing_points(surfels.model(), pts, cols, T, manifest.camera)
+            n_refused += refused
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
         tracking.integrate(pw, cols)
         measured, holes = _mapping_points(fused, int(k), cfg, manifest)
