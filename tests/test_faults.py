@@ -142,6 +142,7 @@ def dagster_bundle(dagster_project):
     return dagster_project / "artifacts" / "world_bundle" / "synth-small"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how, code, says", [
     ("artifact", 2, ["world_bundle artifact of the Dagster IO manager", "cp -a", "--world"]),
     ("cp -a", 0, []),
@@ -265,6 +266,7 @@ def _status(capsys, partition: str = "synth-small") -> tuple[int, str]:
     return code, out.out + out.err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("what, path, stale, says", [
     # a dataset change reruns every asset: in the full run (test_dataset_signature_notices_content_behind_restored_times
     # is its quick check); the bundle's rerun is the quick tier's

@@ -383,6 +383,7 @@ def test_a_closed_stdout_ends_the_command_quietly(isolated, argv, codes):
     assert "Broken pipe" not in err and "Traceback" not in err and "Exception ignored" not in err, err
 
 
+@pytest.mark.slow
 def test_head_of_dataset_list_in_a_shell(isolated):
     import subprocess
     import sys

@@ -279,6 +279,7 @@ def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
     assert end_error(res.T_world_cam) < 0.5 * end_error(drifted)
 
 
+@pytest.mark.slow
 def test_a_loop_that_would_move_the_camera_further_than_drift_can_is_refused(loop_sequence, monkeypatch):
     """A verified match that would move a keyframe 2 m after a short stretch of travel is a
     look-alike place, not a loop: refused, the trajectory left alone."""

@@ -82,6 +82,7 @@ def test_the_instance_config_example_queues_runs_two_at_a_time_one_per_partition
         {"key": "dagster/partition", "value": {"applyLimitPerUniqueValue": True}, "limit": 1}]
 
 
+@pytest.mark.slow
 def test_workers_are_forked_only_before_numbas_parallel_runtime_started():
     """GNU OpenMP aborts a child forked after the parent used it, so ``--all`` forks its workers
     (to share the parent's imports) only while no parallel kernel has run here; then it spawns."""

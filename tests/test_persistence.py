@@ -178,6 +178,7 @@ def test_a_second_pass_over_mapped_surfaces_adds_no_keyframes():
     assert len(st.keyframe_indices) == n_first
 
 
+@pytest.mark.slow
 def test_relocalization_in_a_saved_map_is_fast():
     """Frames with no pose are placed by the place index within the fast attempts, each well
     under the full search's seconds."""

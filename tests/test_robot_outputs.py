@@ -24,6 +24,7 @@ def small_source(small_manifest, small_world):
     return ExportSource(small_world, m, idx, m.T_world_cam_gt[idx], "ground_truth")
 
 
+@pytest.mark.slow
 def test_mesh_files_read_back(tmp_path, small_source):
     from plyfile import PlyData
 
