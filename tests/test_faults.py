@@ -266,14 +266,14 @@ def _status(capsys, partition: str = "synth-small") -> tuple[int, str]:
     return code, out.out + out.err
 
 
+# Full tier only: every case reruns part of the shared Dagster run (the dataset side's quick check
+# is test_dataset_signature_notices_content_behind_restored_times).
 @pytest.mark.slow
 @pytest.mark.parametrize("what, path, stale, says", [
-    # a dataset change reruns every asset: in the full run (test_dataset_signature_notices_content_behind_restored_times
-    # is its quick check); the bundle's rerun is the quick tier's
-    pytest.param("a ground-truth pose, mtime restored", "data/synth-small/groundtruth.txt", "raw_dataset",
-                 "dataset files changed", marks=pytest.mark.slow),
-    pytest.param("world.npz of the cached world, mtime restored", "artifacts/gaussian_world/synth-small/world.npz",
-                 "gaussian_world", "artifact files changed", marks=pytest.mark.slow),
+    ("a ground-truth pose, mtime restored", "data/synth-small/groundtruth.txt", "raw_dataset",
+     "dataset files changed"),
+    ("world.npz of the cached world, mtime restored", "artifacts/gaussian_world/synth-small/world.npz",
+     "gaussian_world", "artifact files changed"),
     ("surfels.npz of the bundle, mtime restored", "artifacts/world_bundle/synth-small/surfels.npz",
      "world_bundle", "artifact files changed"),
 ])
