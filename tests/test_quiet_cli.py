@@ -184,6 +184,49 @@ def test_run_is_quiet_by_default_and_says_more_with_v(isolated, capsys):
     assert "would be recomputed" in text and "localization_report  settings changed" in text
 
 
+_LAST_LINE_SCRIPT = """
+import logging, sys, tempfile
+from dagster import DagsterInstance, asset, materialize
+from assets.cli.output import CliOutput
+
+@asset
+def last_words():
+    logging.getLogger("atlas_gs.cli").info("the step's last line")
+
+with tempfile.TemporaryDirectory() as home, DagsterInstance.local_temp(home) as instance, CliOutput(False):
+    assert materialize([last_words], instance=instance).success
+"""
+
+
+MIRROR_LAG_S = 5  # longer than the one-asset run takes on a loaded machine
+
+
+@pytest.mark.slow
+def test_a_line_logged_at_the_end_of_a_step_reaches_stderr_however_late_dagsters_log_mirror_is(tmp_path):
+    """During a run Dagster points fd 2 at a compute-log file and mirrors that file back with
+    ``tail -F``, stopped as the run ends: what the mirror had not read yet (a loaded machine) was
+    lost, a stage's line among it. A mirror that lags behind, here by longer than the run, loses
+    none of the command's lines."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    lagging_tail = bin_dir / "tail"
+    # starts reading after MIRROR_LAG_S; stopped before that, it leaves no sleep behind
+    lagging_tail.write_text(f"#!/bin/sh\ntrap 'kill $!; exit 0' TERM\nsleep {MIRROR_LAG_S} & wait $!\n"
+                            f"exec {shutil.which('tail')} \"$@\"\n")
+    lagging_tail.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    done = subprocess.run([sys.executable, "-c", _LAST_LINE_SCRIPT], capture_output=True, text=True, env=env,
+                          cwd=Path(__file__).resolve().parents[1], timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stderr.splitlines().count("the step's last line") == 1, done.stderr
+
+
 # ---- download presets become partitions once fetched ----------------------------------------------
 
 

@@ -189,6 +189,20 @@ class CliHandler(logging.Handler):
             self.handleError(record)
 
 
+def _unmirrored(stream: Any) -> Any:
+    """A second handle on ``stream``'s file descriptor, or None when it has none (an in-process
+    caller's). Dagster's compute-log capture points fd 2 at a file during a run and mirrors it back
+    through ``tail -F``, which it stops at the run's end before reading the last second; writing
+    through a descriptor duplicated before the run keeps the command's own lines out of that path."""
+    try:
+        fd = stream.fileno()
+        stream.flush()
+    except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation is an OSError
+        return None
+    return os.fdopen(os.dup(fd), "w", buffering=1, encoding=getattr(stream, "encoding", None) or "utf-8",
+                     errors="backslashreplace")
+
+
 class CliOutput:
     """The command's stderr for the duration of ``main``: one handler on the root logger, levels of
     Dagster's and third-party loggers, warnings (ignored; with -v shown once, as log lines) and
@@ -204,7 +218,8 @@ class CliOutput:
 
         from atlas_pipeline.progress import Terminal, use_terminal
 
-        self.terminal = Terminal(sys.stderr)
+        self._own_stream = _unmirrored(sys.stderr)
+        self.terminal = Terminal(self._own_stream or sys.stderr)
         self.handler = CliHandler(self.terminal, self.verbose, self.prefix)
         root = logging.getLogger()
         self._levels = {n: logging.getLogger(n).level for n in ("", *MUTED_LOGGERS, *DAGSTER_LOGGERS, RUN_LOGGER)}
@@ -231,3 +246,8 @@ class CliOutput:
         logging.getLogger().removeHandler(self.handler)
         for n, level in self._levels.items():
             logging.getLogger(n).setLevel(level)
+        if self._own_stream is not None:
+            try:
+                self._own_stream.close()
+            except OSError:  # a reader that went away: nothing left to flush to
+                pass
