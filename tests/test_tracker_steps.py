@@ -333,7 +333,8 @@ def _splat(centres, normals, radius_m, blend_sigmas: float, blend_floor_m: float
     params = kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos, blend_sigmas,
                             blend_floor_m, C.depth_noise_a_m, C.depth_noise_b_per_m, C.depth_noise_z0_m)
     view = kn.PinholeView(np.eye(4), SPLAT_F, SPLAT_F, (SPLAT_W - 1) / 2.0, (SPLAT_H - 1) / 2.0, SPLAT_W, SPLAT_H)
-    return kn.splat_surfels(np.ascontiguousarray(centres), np.ascontiguousarray(normals), radius_m, view, params)[:2]
+    return kn.splat_surfels(np.ascontiguousarray(centres), np.ascontiguousarray(normals), radius_m, view, params, True,
+                            kn.NO_CULLING)[:2]
 
 
 def test_splatting_averages_a_noisy_layer_instead_of_taking_its_front():
@@ -441,14 +442,14 @@ def test_the_view_keeps_the_surface_behind_the_first():
                             0.02, C.depth_noise_a_m, C.depth_noise_b_per_m, C.depth_noise_z0_m)
     view = kn.PinholeView(np.eye(4), SPLAT_F, SPLAT_F, (SPLAT_W - 1) / 2.0, (SPLAT_H - 1) / 2.0, SPLAT_W, SPLAT_H)
     pts, nrm, behind, behind_nrm = kn.splat_surfels(np.concatenate([back, front]), np.concatenate([n2, n1]), 0.016,
-                                                    view, params)
+                                                    view, params, True, kn.NO_CULLING)
     hit = np.isfinite(pts[..., 2]) & np.isfinite(behind[..., 2])
     assert hit.mean() > 0.9
     np.testing.assert_allclose(pts[hit, 2], 1.0, atol=1e-12)
     np.testing.assert_allclose(behind[hit, 2], 1.06, atol=1e-12)
     np.testing.assert_allclose(behind_nrm[hit], np.broadcast_to([0.0, 0.0, -1.0], behind_nrm[hit].shape), atol=1e-12)
     alone, _, none_behind, _ = kn.splat_surfels(np.ascontiguousarray(front), np.ascontiguousarray(n1), 0.016, view,
-                                                params)
+                                                params, True, kn.NO_CULLING)
     assert np.isnan(none_behind).all() and np.isfinite(alone[..., 2]).mean() > 0.9
 
 

@@ -43,7 +43,7 @@ from atlas_pipeline.localization._pyramid_kernels import downsample_depth, downs
 __all__ = [
     "PinholeView", "SplatParams", "FramePoints", "ModelView", "ReferenceImage", "Params", "Correspondences", "Stats",
     "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "MATCH_IN_FRONT", "MATCH_BEHIND", "N_CHUNKS",
-    "downsample_depth", "downsample_mean", "image_gradients", "splat_surfels",
+    "downsample_depth", "downsample_mean", "image_gradients", "splat_surfels", "SplatCulling", "NO_CULLING",
     "associate", "build_linear_system", "normal_equations",
 ]
 
@@ -198,8 +198,20 @@ class Stats(NamedTuple):
 # ---- model view ---------------------------------------------------------------------------------
 
 
+class SplatCulling(NamedTuple):
+    """Surfels :func:`splat_surfels` may skip unseen (:mod:`atlas_pipeline.localization.culling`):
+    surfel ``k`` is looked at only where ``chunk_seen[chunk_of[k]]``. An empty ``chunk_of`` culls
+    nothing."""
+
+    chunk_of: np.ndarray  # [N] int32, or [0]
+    chunk_seen: np.ndarray  # [C] bool
+
+
+NO_CULLING = SplatCulling(np.zeros(0, np.int32), np.zeros(0, np.bool_))
+
+
 @njit(cache=True, parallel=True)
-def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind=True):
+def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling):
     """Render oriented disks (surfels) into a pinhole view with a z-buffer.
 
     Args:
@@ -209,6 +221,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind=T
         params: :class:`SplatParams`.
         surface_behind: also blend the next band of hits behind the first (False: the ``behind``
             pair stays NaN, and costs no blending).
+        culling: :class:`SplatCulling` (``NO_CULLING``: every surfel); it must be conservative:
+            the image is the same as without it, only cheaper.
     Returns:
         ``(points_cam, normals_cam, points_behind_cam, normals_behind_cam)``, each ``[h, w, 3]``
         float64, NaN where nothing was hit; each pixel holds the mean ray / disk-plane
@@ -233,7 +247,10 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind=T
     cam = np.empty((n, 7))  # xc yc zc nx ny nz n.c
     box = np.empty((n, 4), np.int64)  # ulo uhi vlo vhi
     visible = np.zeros(n, np.bool_)
+    cull = culling.chunk_of.shape[0] == n
     for k in prange(n):
+        if cull and not culling.chunk_seen[culling.chunk_of[k]]:
+            continue
         xc, yc, zc = _to_camera(pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2])
         if zc < min_depth_m:
             continue

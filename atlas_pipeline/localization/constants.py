@@ -47,6 +47,9 @@ class TrackerConstants:
     field_min_opacity: float = 0.5
     # ... unless fewer than this share of them are that opaque (a field of faint Gaussians only).
     field_min_solid_fraction: float = 0.25
+    # Maps of fewer surfels are splatted without culling by chunk: testing the chunks would cost
+    # about what looking at every surfel does.
+    min_surfels_to_cull: int = 20_000
     # Largest disk footprint splatted, pixels: bounds the cost of a surfel right in front of the camera.
     splat_max_radius_px: int = 8
     # A ray meeting a disk at cos(incidence) below this (> ~81 deg off its normal) or from behind

@@ -41,6 +41,7 @@ from atlas_pipeline.cores import kernel_threads
 from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp, so3_log
 from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
+from atlas_pipeline.localization.culling import ChunkGrid
 from atlas_pipeline.perception.rgbd import _undistort_normalized
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -120,6 +121,8 @@ class FramePyramid:
     intensity: list[np.ndarray]
     grad: list[tuple[np.ndarray, np.ndarray]]
     rgb: np.ndarray | None = None
+    # points() per (level, checkerboard): relocalization aligns one frame from a dozen poses
+    _points: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def build(cls, rgb: np.ndarray | None, depth_m: np.ndarray, camera: CameraIntrinsics, n_levels: int,
@@ -139,14 +142,20 @@ class FramePyramid:
     def points(self, level: int, checkerboard: bool = False) -> kn.FramePoints:
         """Camera-frame points ``[M, 3]`` float64 and their intensities ``[M]`` at ``level``
         (a named tuple: unpacks as ``points, intensity``); with ``checkerboard``, only pixels
-        whose ``u + v`` is even."""
-        z = self.depth[level]
-        valid = z > 0
-        if checkerboard:
-            valid = valid & _checkerboard(z.shape)
-        rays = _level_rays(self.camera, level)
-        return kn.FramePoints(rays[valid] * z[valid][:, None].astype(np.float64),
-                              self.intensity[level][valid].astype(np.float64))
+        whose ``u + v`` is even. Computed once per frame and read-only."""
+        key = (level, checkerboard)
+        if key not in self._points:
+            z = self.depth[level]
+            valid = z > 0
+            if checkerboard:
+                valid = valid & _checkerboard(z.shape)
+            rays = _level_rays(self.camera, level)
+            pts = kn.FramePoints(rays[valid] * z[valid][:, None].astype(np.float64),
+                                 self.intensity[level][valid].astype(np.float64))
+            for a in pts:
+                a.flags.writeable = False
+            self._points[key] = pts
+        return self._points[key]
 
     @property
     def n_valid(self) -> int:
@@ -335,6 +344,8 @@ class SurfelModel:
     # voxel statistics the surfels come from (computed when first needed).
     appearance_map: VoxelAppearance | None = field(default=None, repr=False, compare=False)
     builder: object = field(default=None, repr=False, compare=False)
+    # The surfels binned by chunk of space, for culling what a view cannot see (made when first needed).
+    _chunks: ChunkGrid | None = field(default=None, init=False, repr=False, compare=False)
 
     def appearance(self) -> VoxelAppearance | None:
         """The map's voxel grey (:class:`VoxelAppearance`), or None when nothing is known of it."""
@@ -414,8 +425,20 @@ class SurfelModel:
 
     def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
                surface_behind: bool) -> tuple[np.ndarray, ...]:
-        return kn.splat_surfels(self.centres, self.normals, self.radius_m, _level_view(T_world_cam, camera, level),
-                                _splat_params(self.radius_m), surface_behind)
+        view, params = _level_view(T_world_cam, camera, level), _splat_params(self.radius_m)
+        return kn.splat_surfels(self.centres, self.normals, self.radius_m, view, params, surface_behind,
+                                self.culling(view, params))
+
+    def culling(self, view: kn.PinholeView, params: kn.SplatParams) -> kn.SplatCulling:
+        """What the splat of ``view`` may skip: the chunks of the map no surfel of which it can draw
+        (:mod:`atlas_pipeline.localization.culling`); none for a map too small to be worth it."""
+        if len(self.centres) < C.min_surfels_to_cull:
+            return kn.NO_CULLING
+        if self._chunks is None:
+            self._chunks = ChunkGrid.build(self.centres)
+        seen = self._chunks.seen(view.T_world_cam, view.fx, view.fy, view.cx, view.cy, view.width, view.height,
+                                 params.max_radius_px, params.min_depth_m)
+        return kn.SplatCulling(self._chunks.chunk_of, seen)
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
                    surface_behind: bool = False) -> kn.ModelView:

@@ -1,0 +1,138 @@
+"""Per-frame tracking cost as the map grows: the model view and one frame's alignment, with the
+map culled by chunk (what the tracker does) against the whole map splatted (the reference), in the
+same run, on the same maps and frames.
+
+Maps: a floor of ``R`` rooms (4 x 3 m, 2.6 m high, a grid), surfels on the floor, the ceiling and
+every wall at a 4 cm voxel pitch with 3 mm of noise along the normal, as the voxel map makes them.
+The camera stands in the first room, 1.2 m up, and looks across it; the frame is the map's own
+depth at that pose (level 0, 640x480, Kinect-like intrinsics), and the alignment starts 2 cm and
+1 degree away from it. Every figure is the median of ``--repeats`` calls after one warm-up (the
+kernels compiled or loaded from numba's cache). Culled and whole renders are checked identical.
+
+Run: ``python benchmarks/bench_map_cost.py [--rooms 1 4 16 64] [--repeats 20] [--json out.json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from atlas_pipeline.config import load_profile  # noqa: E402
+from atlas_pipeline.geometry import so3_exp  # noqa: E402
+from atlas_pipeline.localization import _kernels as kn  # noqa: E402
+from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, _level_view, _splat_params  # noqa: E402
+from atlas_pipeline.sensors.camera import CameraIntrinsics  # noqa: E402
+
+CAMERA = CameraIntrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
+ROOM_M = (4.0, 3.0, 2.6)  # x, y, height
+VOXEL_M = 0.04
+NOISE_M = 0.003
+START_OFFSET_M = 0.02
+START_OFFSET_DEG = 1.0
+
+
+class WholeMap(SurfelModel):
+    """The reference: every surfel looked at for every view."""
+
+    def culling(self, view, params):
+        return kn.NO_CULLING
+
+
+def rooms_map(n_rooms: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Surfel centres and normals ``[N, 3]`` of a near-square grid of ``n_rooms`` rooms."""
+    rng = np.random.default_rng(seed)
+    nx = int(np.ceil(np.sqrt(n_rooms)))
+    ny = int(np.ceil(n_rooms / nx))
+    wx, wy, h = ROOM_M
+    centres, normals = [], []
+
+    def plane(origin, u, v, lu, lv, normal):
+        a, b = np.meshgrid(np.arange(0.0, lu, VOXEL_M), np.arange(0.0, lv, VOXEL_M), indexing="ij")
+        p = origin + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
+        centres.append(p + rng.normal(0.0, NOISE_M, (len(p), 1)) * normal)
+        normals.append(np.broadcast_to(normal, p.shape))
+
+    ex, ey, ez = np.eye(3)
+    for i in range(nx):  # walls x = const, the full floor's depth
+        plane(np.array([i * wx, 0.0, 0.0]), ey, ez, ny * wy, h, ex)
+    plane(np.array([nx * wx, 0.0, 0.0]), ey, ez, ny * wy, h, ex)
+    for j in range(ny + 1):
+        plane(np.array([0.0, j * wy, 0.0]), ex, ez, nx * wx, h, ey)
+    for z in (0.0, h):
+        plane(np.array([0.0, 0.0, z]), ex, ey, nx * wx, ny * wy, ez)
+    return np.ascontiguousarray(np.concatenate(centres)), np.ascontiguousarray(np.concatenate(normals))
+
+
+def camera_pose() -> np.ndarray:
+    """In the first room, 1.2 m up, looking along +x and a little down (camera z forward, y down)."""
+    R_world_cam = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # z -> +x, y -> -z
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.array([0.0, 0.3, 0.0])) @ R_world_cam
+    T[:3, 3] = [0.6, 1.5, 1.2]
+    return T
+
+
+def median_s(fn, repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def measure(n_rooms: int, repeats: int) -> dict:
+    centres, normals = rooms_map(n_rooms)
+    radius_m = 0.8 * VOXEL_M
+    culled, whole = SurfelModel(centres, normals, radius_m), WholeMap(centres, normals, radius_m)
+    cfg = load_profile("default").localization
+    tracker = RGBDTracker(CAMERA, cfg, (0.1, 8.0))
+    T = camera_pose()
+    pts, _ = whole.render(T, CAMERA, 0)
+    depth_m = np.nan_to_num(pts[..., 2], nan=0.0).astype(np.float32)
+    frame = tracker.prepare(None, depth_m)
+    T0 = T.copy()
+    T0[:3, :3] = so3_exp(np.radians([START_OFFSET_DEG, 0.0, 0.0])) @ T[:3, :3]
+    T0[:3, 3] += START_OFFSET_M / np.sqrt(3.0)
+    level = tracker.model_level
+    a, b = culled.model_view(T, CAMERA, level), whole.model_view(T, CAMERA, level)
+    identical = all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a[:4], b[:4]))
+    row = {"rooms": n_rooms, "surfels": len(centres), "identical": identical}
+    for name, model in (("culled", culled), ("whole", whole)):
+        row[f"view_ms_{name}"] = 1e3 * median_s(lambda m=model: m.model_view(T, CAMERA, level), repeats)
+        row[f"align_ms_{name}"] = 1e3 * median_s(lambda m=model: tracker.align(frame, m, T0), repeats)
+    seen = culled.culling(_level_view(T, CAMERA, level), _splat_params(radius_m))
+    row["looked_at_pct"] = 100.0 * float(seen.chunk_seen[seen.chunk_of].mean()) if len(seen.chunk_of) else 100.0
+    row["align_error_mm"] = 1e3 * float(np.linalg.norm(tracker.align(frame, culled, T0).T_world_cam[:3, 3] - T[:3, 3]))
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rooms", type=int, nargs="+", default=[1, 4, 16, 64])
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--json", type=Path, help="also write the rows here")
+    args = ap.parse_args(argv)
+    rows = [measure(n, args.repeats) for n in args.rooms]
+    print("| rooms | surfels | looked at % | model view ms culled / whole | align ms culled / whole "
+          "| align error mm | identical |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['rooms']} | {r['surfels']:,} | {r['looked_at_pct']:.1f} | {r['view_ms_culled']:.2f} / "
+              f"{r['view_ms_whole']:.2f} | {r['align_ms_culled']:.1f} / {r['align_ms_whole']:.1f} "
+              f"| {r['align_error_mm']:.2f} | {r['identical']} |")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+    return 0 if all(r["identical"] for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

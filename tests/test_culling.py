@@ -1,0 +1,104 @@
+"""Culling a surfel map by chunk: the splat of a view is the same image, at the cost of what it sees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from atlas_pipeline.geometry import so3_exp
+from atlas_pipeline.localization import _kernels as kn
+from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
+from atlas_pipeline.localization.culling import ChunkGrid
+from atlas_pipeline.localization.tracker import SurfelModel, _level_view, _splat_params
+from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+CAMERA = CameraIntrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
+ROOMS_M = np.array([16.0, 9.0, 3.0])  # a floor of rooms, larger than one view sees
+RADIUS_M = 0.8 * 0.04
+
+
+def _map(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` surfels on the floor, ceiling and a grid of walls of ``ROOMS_M`` (``[n, 3]`` each)."""
+    rng = np.random.default_rng(seed)
+    c = rng.uniform(0.0, 1.0, (n, 3)) * ROOMS_M
+    normals = np.zeros((n, 3))
+    kind = rng.integers(0, 3, n)
+    c[kind == 0, 2] = rng.choice([0.0, ROOMS_M[2]], int((kind == 0).sum()))  # floor / ceiling
+    normals[kind == 0, 2] = 1.0
+    c[kind == 1, 0] = np.round(c[kind == 1, 0] / 4.0) * 4.0  # walls every 4 m along x
+    normals[kind == 1, 0] = 1.0
+    c[kind == 2, 1] = np.round(c[kind == 2, 1] / 3.0) * 3.0  # and every 3 m along y
+    normals[kind == 2, 1] = 1.0
+    return np.ascontiguousarray(c), normals
+
+
+def _poses(n: int, seed: int = 1) -> list[np.ndarray]:
+    """Cameras inside the rooms, looking anywhere (level, up, down, along the walls)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(rng.normal(size=3) * 1.5)
+        T[:3, 3] = rng.uniform(0.2, 0.8, 3) * ROOMS_M
+        out.append(T)
+    return out
+
+
+def _splat(centres, normals, view, culling):
+    return kn.splat_surfels(centres, normals, RADIUS_M, view, _splat_params(RADIUS_M), True, culling)
+
+
+def test_culled_splat_is_the_same_image_and_skips_most_of_a_large_map():
+    centres, normals = _map(40_000)
+    grid = ChunkGrid.build(centres)
+    params = _splat_params(RADIUS_M)
+    seen_share = []
+    for level in (0, 1):
+        for T in _poses(12):
+            view = _level_view(T, CAMERA, level)
+            seen = grid.seen(T, view.fx, view.fy, view.cx, view.cy, view.width, view.height, params.max_radius_px,
+                             params.min_depth_m)
+            culled = _splat(centres, normals, view, kn.SplatCulling(grid.chunk_of, seen))
+            whole = _splat(centres, normals, view, kn.NO_CULLING)
+            for a, b in zip(culled, whole):
+                np.testing.assert_array_equal(a, b)  # NaN where nothing is hit, in both
+            seen_share.append(seen[grid.chunk_of].mean())
+    assert np.median(seen_share) < 0.6, seen_share  # the test culls: most views see a part of the map
+
+
+def test_a_chunk_is_seen_when_one_surfel_of_it_lands_just_inside_the_image_edge():
+    """A surfel whose disk reaches the image by its largest footprint alone, its centre off the
+    image by just under ``splat_max_radius_px``: its chunk stays in."""
+    view = _level_view(np.eye(4), CAMERA, 0)
+    z = 2.0
+    u = -C.splat_max_radius_px + 0.5  # centre left of the image, disk reaching in
+    x = (u - view.cx) * z / view.fx
+    centres = np.array([[x, 0.0, z], [x - 5.0, 0.0, z], [0.0, 0.0, -3.0]])  # + one far left, one behind
+    grid = ChunkGrid.build(centres, chunk_m=0.5)
+    seen = grid.seen(view.T_world_cam, view.fx, view.fy, view.cx, view.cy, view.width, view.height,
+                     C.splat_max_radius_px, C.min_view_depth_m)
+    assert seen[grid.chunk_of].tolist() == [True, False, False]
+
+
+def test_a_huge_map_gets_coarser_chunks_not_millions_of_them():
+    centres = np.array([[0.0, 0.0, 0.0], [5000.0, 3000.0, 40.0]])
+    grid = ChunkGrid.build(centres, max_chunks=4096)
+    assert grid.n_chunks <= 4096 and len(grid.occupied) == 2
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_an_empty_or_one_surfel_map_culls_without_error(n):
+    centres = np.zeros((n, 3))
+    grid = ChunkGrid.build(centres)
+    seen = grid.seen(np.eye(4), 525.0, 525.0, 319.5, 239.5, 640, 480, 8, 0.1)
+    assert len(grid.chunk_of) == n and seen.shape == (grid.n_chunks,)
+
+
+def test_the_surfel_model_renders_a_large_map_culled_and_the_same():
+    centres, normals = _map(C.min_surfels_to_cull + 5_000, seed=3)
+    model = SurfelModel(centres, normals, RADIUS_M)
+    for T in _poses(4, seed=4):
+        pts, nrm = model.render(T, CAMERA, 1)
+        whole = _splat(model.centres, model.normals, _level_view(T, CAMERA, 1), kn.NO_CULLING)
+        np.testing.assert_array_equal(pts, whole[0])
+        np.testing.assert_array_equal(nrm, whole[1])
