@@ -251,7 +251,8 @@ class Relocalizer:
         from atlas_pipeline._open3d import open3d
 
         o3d = open3d()
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+        # a writeable copy: Open3D refuses a read-only array (a frame's cached points)
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, np.float64)))
         pc = pc.voxel_down_sample(self.voxel)
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * self.voxel, max_nn=30))
         f = o3d.pipelines.registration.compute_fpfh_feature(

@@ -385,8 +385,9 @@ def information_matrix(points_source: np.ndarray, points_target: np.ndarray, T_t
     from atlas_pipeline._open3d import open3d
 
     o3d = open3d()
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_source, np.float64)))
-    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_target, np.float64)))
+    # writeable copies: Open3D refuses a read-only array (a frame's cached points)
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points_source, np.float64)))
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points_target, np.float64)))
     return np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
         src, dst, max_correspondence_m, np.asarray(T_target_source, np.float64)))
 
