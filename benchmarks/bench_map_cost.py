@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from atlas_pipeline.config import load_profile  # noqa: E402
 from atlas_pipeline.geometry import so3_exp  # noqa: E402
 from atlas_pipeline.localization import _kernels as kn  # noqa: E402
+from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C  # noqa: E402
 from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, _level_view, _splat_params  # noqa: E402
 from atlas_pipeline.sensors.camera import CameraIntrinsics  # noqa: E402
 
@@ -60,9 +61,8 @@ def rooms_map(n_rooms: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         normals.append(np.broadcast_to(normal, p.shape))
 
     ex, ey, ez = np.eye(3)
-    for i in range(nx):  # walls x = const, the full floor's depth
+    for i in range(nx + 1):  # walls x = const, the full floor's depth
         plane(np.array([i * wx, 0.0, 0.0]), ey, ez, ny * wy, h, ex)
-    plane(np.array([nx * wx, 0.0, 0.0]), ey, ez, ny * wy, h, ex)
     for j in range(ny + 1):
         plane(np.array([0.0, j * wy, 0.0]), ex, ez, nx * wx, h, ey)
     for z in (0.0, h):
@@ -91,7 +91,7 @@ def median_s(fn, repeats: int) -> float:
 
 def measure(n_rooms: int, repeats: int) -> dict:
     centres, normals = rooms_map(n_rooms)
-    radius_m = 0.8 * VOXEL_M
+    radius_m = C.surfel_radius_voxels * VOXEL_M
     culled, whole = SurfelModel(centres, normals, radius_m), WholeMap(centres, normals, radius_m)
     cfg = load_profile("default").localization
     tracker = RGBDTracker(CAMERA, cfg, (0.1, 8.0))

@@ -14,7 +14,7 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 
 CAMERA = CameraIntrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
 ROOMS_M = np.array([16.0, 9.0, 3.0])  # a floor of rooms, larger than one view sees
-RADIUS_M = 0.8 * 0.04
+RADIUS_M = C.surfel_radius_voxels * 0.04  # a 4 cm voxel's disk
 
 
 def _map(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -56,8 +56,7 @@ def test_culled_splat_is_the_same_image_and_skips_most_of_a_large_map():
     for level in (0, 1):
         for T in _poses(12):
             view = _level_view(T, CAMERA, level)
-            seen = grid.seen(T, view.fx, view.fy, view.cx, view.cy, view.width, view.height, params.max_radius_px,
-                             params.min_depth_m)
+            seen = grid.seen(view, params)
             culled = _splat(centres, normals, view, kn.SplatCulling(grid.chunk_of, seen))
             whole = _splat(centres, normals, view, kn.NO_CULLING)
             for a, b in zip(culled, whole):
@@ -75,8 +74,7 @@ def test_a_chunk_is_seen_when_one_surfel_of_it_lands_just_inside_the_image_edge(
     x = (u - view.cx) * z / view.fx
     centres = np.array([[x, 0.0, z], [x - 5.0, 0.0, z], [0.0, 0.0, -3.0]])  # + one far left, one behind
     grid = ChunkGrid.build(centres, chunk_m=0.5)
-    seen = grid.seen(view.T_world_cam, view.fx, view.fy, view.cx, view.cy, view.width, view.height,
-                     C.splat_max_radius_px, C.min_view_depth_m)
+    seen = grid.seen(view, _splat_params(RADIUS_M))
     assert seen[grid.chunk_of].tolist() == [True, False, False]
 
 
@@ -90,7 +88,7 @@ def test_a_huge_map_gets_coarser_chunks_not_millions_of_them():
 def test_an_empty_or_one_surfel_map_culls_without_error(n):
     centres = np.zeros((n, 3))
     grid = ChunkGrid.build(centres)
-    seen = grid.seen(np.eye(4), 525.0, 525.0, 319.5, 239.5, 640, 480, 8, 0.1)
+    seen = grid.seen(_level_view(np.eye(4), CAMERA, 0), _splat_params(RADIUS_M))
     assert len(grid.chunk_of) == n and seen.shape == (grid.n_chunks,)
 
 

@@ -14,6 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from atlas_pipeline.localization._kernels import PinholeView, SplatParams
+
 __all__ = ["ChunkGrid", "CHUNK_M", "MAX_CHUNKS"]
 
 CHUNK_M = 1.0  # edge of a chunk: a room is a few chunks across, a view sees a few dozen
@@ -61,19 +63,19 @@ class ChunkGrid(NamedTuple):
         corners = lo + (occ_ijk[:, None, :] + _CUBE[None]) * chunk_m  # [O, 8, 3]
         return cls(chunk_of.astype(np.int32), occupied, corners, n_chunks)
 
-    def seen(self, T_world_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-             max_radius_px: float, min_depth_m: float) -> np.ndarray:
-        """``[n_chunks]`` bool: the chunks a view (pinhole ``fx fy cx cy``, ``width x height``
-        px, at ``T_world_cam [4, 4]``) may see; False only where no surfel of the chunk can be
-        drawn (its centre behind ``min_depth_m``, or its disk of at most ``max_radius_px`` off
-        the image)."""
+    def seen(self, view: PinholeView, params: SplatParams) -> np.ndarray:
+        """``[n_chunks]`` bool: the chunks ``view`` may see; False only where no surfel of the
+        chunk can be drawn (its centre behind ``params.min_depth_m``, or its disk of at most
+        ``params.max_radius_px`` off the image)."""
         mask = np.zeros(self.n_chunks, bool)
         if len(self.occupied) == 0:
             return mask
-        R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        fx, fy, cx, cy, width, height = view.fx, view.fy, view.cx, view.cy, view.width, view.height
+        min_depth_m = params.min_depth_m
+        R, t = view.T_world_cam[:3, :3], view.T_world_cam[:3, 3]
         p = (self.corners_w - t) @ R  # [O, 8, 3] camera frame: R^T (p - t), row-wise
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
-        reach = max_radius_px + MARGIN_PX
+        reach = params.max_radius_px + MARGIN_PX
         # u = fx x / z + cx: u + reach < 0 <=> fx x + (cx + reach) z < 0 for z > 0, and the
         # same for the other edges; the near plane catches z <= 0.
         off = ((z < min_depth_m - MARGIN_M).all(axis=1)

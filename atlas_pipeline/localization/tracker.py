@@ -436,9 +436,7 @@ class SurfelModel:
             return kn.NO_CULLING
         if self._chunks is None:
             self._chunks = ChunkGrid.build(self.centres)
-        seen = self._chunks.seen(view.T_world_cam, view.fx, view.fy, view.cx, view.cy, view.width, view.height,
-                                 params.max_radius_px, params.min_depth_m)
-        return kn.SplatCulling(self._chunks.chunk_of, seen)
+        return kn.SplatCulling(self._chunks.chunk_of, self._chunks.seen(view, params))
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
                    surface_behind: bool = False) -> kn.ModelView:
