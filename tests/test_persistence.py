@@ -178,6 +178,48 @@ def test_a_second_pass_over_mapped_surfaces_adds_no_keyframes():
     assert len(st.keyframe_indices) == n_first
 
 
+# -- a session inside a saved world --------------------------------------------------------------
+
+WALL_DEPTH_M = 1.5
+WALL_NOISE_M = 0.004
+WALL_STEP_M = 0.01  # camera motion per frame, along the wall
+
+
+def _wall_depth(camera, rng) -> np.ndarray:
+    """``[H, W]`` a camera facing a flat, textureless wall ``WALL_DEPTH_M`` ahead, with noise."""
+    shape = (camera.height, camera.width)
+    return (WALL_DEPTH_M + rng.normal(0.0, WALL_NOISE_M, shape)).astype(np.float32)
+
+
+@pytest.mark.parametrize("hold", [False, True])
+def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free(hold):
+    """Passing along a flat wall of a saved world, nothing in the depth says how far the camera
+    moved along it: with the motion model holding the free directions (as a session extending a
+    world does), the pose stays within the distance travelled; without, depth noise slides it
+    further than the camera went."""
+    import copy
+
+    spec = syn.SyntheticSpec(n_frames=1, **QVGA)
+    cam, rng = spec.camera(), np.random.default_rng(0)
+    saved = VoxelGaussianBuilder(0.02)
+    pts, _ = backproject(_wall_depth(cam, rng), None, cam, 2, *DEPTH_RANGE)
+    for x in np.linspace(-1.0, 1.5, 11):  # a wall 2.5 m wide, mapped
+        saved.integrate(pts.astype(np.float64) + [x, 0.0, 0.0], np.full((len(pts), 3), 128, np.uint8))
+    st = SequenceTracker(cam, LocalizationConfig(), DEPTH_RANGE, builder=copy.deepcopy(saved), one_surface=True,
+                         hold_to_motion=hold)
+    n = 40
+    for i in range(n):
+        T_true = np.eye(4)
+        T_true[0, 3] = WALL_STEP_M * i
+        est = st.process(i, None, _wall_depth(cam, rng), T_given=T_true if i == 0 else None, timestamp_s=i / spec.fps)
+    err_m = float(np.linalg.norm(est.T_world_cam[:3, 3] - T_true[:3, 3]))
+    travelled_m = WALL_STEP_M * (n - 1)
+    if hold:
+        assert err_m <= travelled_m + 0.02
+    else:  # what the hold prevents: the test would pass vacuously if nothing slid
+        assert err_m > 2 * travelled_m
+
+
 @pytest.mark.slow
 def test_relocalization_in_a_saved_map_is_fast():
     """Frames with no pose are placed by the place index within the fast attempts, each well

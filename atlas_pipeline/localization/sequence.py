@@ -183,12 +183,17 @@ class SequenceTracker:
         one_surface: mapping only; a keyframe's points that contradict a surface already in the
             map are left out (:func:`~atlas_pipeline.mapping.consistency.disagreeing_points`), as
             the world build does, so a session extending a saved world does not double it.
+        hold_to_motion: mapping only; the motion model's prediction holds the camera centre where
+            the map's surfaces leave it free, as it does along a fixed world (localization always
+            does). For a session inside a saved world: the map it tracks against is mostly the
+            saved one, and a pose slid along a wall would merge its surfaces into that world.
     """
 
     def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
                  model: SurfelModel | None = None, builder=None, keyframe_translation_m: float = 0.08,
                  keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None,
-                 new_map_after_lost_frames: int = 0, one_surface: bool = False):
+                 new_map_after_lost_frames: int = 0, one_surface: bool = False,
+                 hold_to_motion: bool = False):
         if model is None and builder is None:
             raise ValueError("SequenceTracker needs a model (localization) or a builder (mapping)")
         self.camera = camera
@@ -199,6 +204,7 @@ class SequenceTracker:
         self.kf_t, self.kf_r = keyframe_translation_m, keyframe_rotation_deg
         self.fusion_stride = fusion_stride
         self.one_surface = bool(one_surface)
+        self.hold_to_motion = bool(hold_to_motion) or builder is None
         self.n_refused_points = 0  # keyframe points left out by the one-surface check
         # Mapping: the surfel map follows the builder incrementally (cost per keyframe, not per map).
         self._surfels = None if builder is None else SurfelCache(builder)
@@ -339,9 +345,13 @@ class SequenceTracker:
             # Along a fixed world (no map being built) a frame may match a surface behind the
             # first: a world can hold two copies of a wall that drift left a few cm apart.
             behind = self.builder is None
-            # ... and where its surfaces leave a direction free, the motion model decides it (when
-            # there is one: the last pose after a loss or a gap is no prediction of motion).
-            prior = moved if behind else None
+            # ... and where its surfaces leave a direction free, the motion model decides it. With
+            # no velocity (the first frame after a start, a loss or a gap) a fixed world's frame
+            # is left free, as the last pose is no prediction of motion; a session mapping into a
+            # saved world holds it there instead, since a pose slid along a wall would be merged.
+            prior = None
+            if self.hold_to_motion:
+                prior = moved if moved is not None or self.builder is None else guess
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
                                      motion_prior=prior)
             if not res.ok:

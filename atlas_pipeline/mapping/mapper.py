@@ -233,7 +233,8 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
                              log: Callable[[str], None] | None = None):
     """A second session inside a saved world: the first frame is relocalized in ``world`` (no
     initial pose), then every frame is tracked against the world and keyframes are merged into a
-    copy of its voxel statistics (ids of surfaces seen before are kept).
+    copy of its voxel statistics (ids of surfaces seen before are kept). As along a fixed world,
+    the motion model holds the camera where the surfaces leave a direction free.
 
     Returns ``(extended world, T_world_cam [N, 4, 4], status [N])``; ``world`` is not modified.
     Raises :class:`DatasetError` when no frame of the sequence can be placed in the world.
@@ -251,7 +252,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=tracking,
                          keyframe_translation_m=mapping.keyframe_translation_m,
                          keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
-                         prior_poses=world.T_world_cam_keyframes, one_surface=True)
+                         prior_poses=world.T_world_cam_keyframes, one_surface=True, hold_to_motion=True)
     n = manifest.n_frames
     poses = np.full((n, 4, 4), np.nan)
     status: list[str] = []
