@@ -58,9 +58,8 @@ class TrackerConstants:
     # Visibility band of a model-view pixel: the disks met within this many sigma of depth noise
     # (the sensor model below) behind the nearest one are averaged with it ... A surface fused
     # from a few noisy frames is a layer of disks as thick as their noise; the nearest disk lies
-    # about a sigma in front of the true surface, and every frame aligned to it was pulled towards
-    # its camera by that much. On synthetic-handheld each keyframe moved the next frame ~7 mm
-    # back, 2.4 cm of ATE in 150 frames; with the band, 0.44 cm (bench_robustness, README).
+    # about a sigma in front of the true surface, and a frame aligned to it alone is pulled
+    # towards its camera by that much, an error each keyframe hands on to the next.
     splat_blend_sigmas: float = 3.0
     # ... or within this many voxels, when more: surfels are voxel means, so even noise-free
     # depth gives a layer about a voxel thick where neighbouring disks overlap.
@@ -128,8 +127,7 @@ class TrackerConstants:
     motion_prior_share: float = 0.02
     # Converged when a step moves less than this (m) and turns less than this (rad) at the finest
     # level: 0.1 mm / 6 mdeg, a tenth of the best depth noise; smaller steps only polish within
-    # the noise (1e-5 everywhere tracked 1.1-1.6x slower for the same ATE, within 0.04 cm, on
-    # every sequence of bench_robustness) ...
+    # the noise, at the cost of more iterations ...
     converged_step: float = 1e-4
     # ... and this many times more per coarser level, whose solution the finer levels refine.
     converged_step_level_factor: float = 4.0

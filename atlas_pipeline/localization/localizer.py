@@ -68,12 +68,11 @@ OUTCOME_STOPPED_WORLD_MISMATCH = "stopped_world_mismatch"  # stopped early: the 
 # Fail fast, rule 1: stop when none of the first MISMATCH_WINDOW_FRAMES frames *tried* against the
 # map (enough valid depth to align; a given anchor does not count, its pose says nothing about the
 # map) was placed (tracked or relocalized). In a world that contains the sequence a tried frame is
-# placed almost always: tracked from the anchor, or relocalized with no initial pose in 97 % (29/30,
-# synthetic) and 100 % (50/50, TUM teddy) of frames unseen by the map (README benchmarks), so five
-# failures in a row from the start would be ~1e-8 by chance. In a world from another place every
-# tried frame is lost and pays a global relocalization (1-10 s each on 2 cores at 160x120; the issue
-# measured 109 s for 15 frames), so 5 bounds a mismatched run to tens of seconds whatever the
-# sequence length, and still tolerates a start on a few blurred or featureless frames.
+# placed almost always (tracked from the anchor, or relocalized with no initial pose), so five
+# failures in a row from the start are very unlikely by chance. In a world from another place every
+# tried frame is lost and pays a global relocalization (seconds each), so 5 bounds a mismatched run
+# to tens of seconds whatever the sequence length, and still tolerates a start on a few blurred or
+# featureless frames.
 MISMATCH_WINDOW_FRAMES = 5
 # Fail fast, rule 2: stop when more than this many frames in a row are lost (of any kind, including
 # frames with no valid depth, which rule 1 does not count because nothing was tried) and no frame
