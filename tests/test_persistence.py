@@ -260,3 +260,23 @@ def test_ate_grades_placed_frames_only_a_lost_frames_guess_is_not_an_estimate():
     summary, err_t, _ = grade(np.arange(n) * 0.1, T_est, status, T_gt)
     assert summary["n_graded"] == 4 and summary["n_lost"] == 1
     assert summary["ate_rmse_m"] < 1e-9 and np.isnan(err_t[3]) and np.isnan(err_t[0])
+
+
+def test_the_extension_trace_benchmark_grades_a_second_pass_in_the_worlds_frame(isolated, capsys):
+    """benchmarks/bench_extension_trace.py on a sequence that is its own second visit: every block
+    is printed, placed, and within a few cm of the truth in the world's frame."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_extension_trace.py"
+    spec = importlib.util.spec_from_file_location("bench_extension_trace", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main(["--pair", "synth-small", "synth-small", "--frames", "12", "--block", "6"]) == 0
+    rows = [line.split("|")[1:-1] for line in capsys.readouterr().out.splitlines()
+            if line.startswith("| 0-5") or line.startswith("| 6-11")]
+    assert len(rows) == 2
+    for frames, ext_status, ext_err, loc_status, loc_err, moved, constraint in rows:
+        assert "l" not in ext_status and "l" not in loc_status
+        assert float(ext_err) < 3.0 and float(loc_err) < 3.0
+        assert float(moved) >= 0.0 and 0.0 < float(constraint) <= 100.0
