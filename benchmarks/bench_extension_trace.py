@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import platform
 import sys
 from pathlib import Path
@@ -30,7 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_persistence import SUITE_PAIR, _gt_to_world, _placed  # noqa: E402
+from benchmarks.bench_persistence import SUITE_PAIR, _gt_to_world, _placed, _slice  # noqa: E402
 
 
 STATUS_LETTERS = {"tracked": "t", "relocalized": "r", "lost": "l", "anchor": "a", "new_map": "m", "not_attempted": "-"}
@@ -48,7 +49,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--block", type=int, default=20, help="frames per printed row")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    from benchmarks.bench_persistence import _slice
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.localization.localizer import localize_sequence, tracking_map
     from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
 
     ext_e, loc_e = error_cm(ext_poses, ext_status), error_cm(loc.T_world_cam, list(loc.status))
     tracker = RGBDTracker(v2.camera, cfg.localization, depth_range)
-    print(f"machine: {platform.machine()}, {__import__('os').cpu_count()} cores; {args.pair[0]} / {args.pair[1]}, "
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores; {args.pair[0]} / {args.pair[1]}, "
           f"frames 0-{v2.n_frames - 1}; errors in cm in the world's frame (median over placed frames of the block)")
     print("| frames | extension status | extension err cm | localization status | localization err cm "
           "| from truth, no prior: moved cm | translation constraint % |")
