@@ -12,6 +12,8 @@ import ctypes
 import importlib
 from types import ModuleType
 
+import numpy as np
+
 _o3d: ModuleType | None = None
 
 
@@ -38,3 +40,10 @@ def open3d() -> ModuleType:
         ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
         _o3d = importlib.import_module("open3d")
     return _o3d
+
+
+def point_cloud(points: np.ndarray):
+    """An Open3D ``PointCloud`` of ``points [N, 3]`` (any frame), from a float64 copy: Open3D refuses a
+    read-only array (a frame's cached points are read-only)."""
+    o3d = open3d()
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, np.float64)))

@@ -248,12 +248,10 @@ class Relocalizer:
 
     def _features(self, points: np.ndarray):
         """Downsampled Open3D cloud with normals and its FPFH features."""
-        from atlas_pipeline._open3d import open3d
+        from atlas_pipeline._open3d import open3d, point_cloud
 
         o3d = open3d()
-        # a writeable copy: Open3D refuses a read-only array (a frame's cached points)
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, np.float64)))
-        pc = pc.voxel_down_sample(self.voxel)
+        pc = point_cloud(points).voxel_down_sample(self.voxel)
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * self.voxel, max_nn=30))
         f = o3d.pipelines.registration.compute_fpfh_feature(
             pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * self.voxel, max_nn=100))

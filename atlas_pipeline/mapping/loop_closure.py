@@ -382,12 +382,10 @@ def information_matrix(points_source: np.ndarray, points_target: np.ndarray, T_t
                        max_correspondence_m: float) -> np.ndarray:
     """Open3D's ``[6, 6]`` information matrix of an edge from the two keyframes' camera-frame
     points ``[M, 3]`` (it grows with the number of correspondences within the distance)."""
-    from atlas_pipeline._open3d import open3d
+    from atlas_pipeline._open3d import open3d, point_cloud
 
     o3d = open3d()
-    # writeable copies: Open3D refuses a read-only array (a frame's cached points)
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points_source, np.float64)))
-    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points_target, np.float64)))
+    src, dst = point_cloud(points_source), point_cloud(points_target)
     return np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
         src, dst, max_correspondence_m, np.asarray(T_target_source, np.float64)))
 
