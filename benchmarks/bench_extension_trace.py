@@ -31,7 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_persistence import SUITE_PAIR, _gt_to_world, _placed, _slice  # noqa: E402
+from benchmarks.bench_persistence import (  # noqa: E402
+    SUITE_PAIR, _gt_to_world, _placed, _slice, benchmark_config, build_first_world)
 
 
 STATUS_LETTERS = {"tracked": "t", "relocalized": "r", "lost": "l", "anchor": "a", "new_map": "m", "not_attempted": "-"}
@@ -49,23 +50,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--block", type=int, default=20, help="frames per printed row")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    from atlas_pipeline.config import load_profile
     from atlas_pipeline.localization.localizer import localize_sequence, tracking_map
     from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
-    from atlas_pipeline.mapping.keyframes import KeyframeSet, slam_poses
-    from atlas_pipeline.mapping.mapper import build_world, extend_world_by_tracking
-    from atlas_pipeline.perception.rgbd import fuse_frames
+    from atlas_pipeline.mapping.mapper import extend_world_by_tracking
     from atlas_pipeline.sensors.registry import load_dataset, load_registry
 
-    cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated", "mapping.fit.epochs": 0,
-                                                  "mapping.colour_refinement.iterations": 0})
+    cfg = benchmark_config()
     reg = load_registry()
     v1, v2 = load_dataset(reg[args.pair[0]], cfg), load_dataset(reg[args.pair[1]], cfg)
     v2 = _slice(v2, 0, min(args.frames, v2.n_frames), args.pair[1])
     depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
-    slam = slam_poses(v1, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride)
-    kf = KeyframeSet(slam.T_world_cam, slam.valid, slam.keyframe_indices, "estimated", slam.loop_closure, slam.maps)
-    world = build_world(fuse_frames(v1, cfg.fusion), kf, cfg.mapping, manifest=v1)
+    slam, world, _ = build_first_world(v1, cfg)
     T_align = _gt_to_world(slam.T_world_cam, slam.valid, v1)
     if T_align is None:
         raise SystemExit(f"{args.pair[0]}: too few ground-truth poses to move visit 2 into the world's frame")

@@ -161,29 +161,44 @@ def _progress(stage: str, row: dict) -> None:
           file=sys.stderr, flush=True)
 
 
-def run_pair(label: str, v1, v2, cfg) -> dict:
-    from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map
+def benchmark_config():
+    """The default profile as ``atlas-gs build --set mapping.pose_source=estimated`` with no fit."""
+    from atlas_pipeline.config import load_profile
+
+    return load_profile("default").with_overrides({"mapping.pose_source": "estimated", "mapping.fit.epochs": 0,
+                                                   "mapping.colour_refinement.iterations": 0})
+
+
+def build_first_world(v1, cfg) -> tuple[object, object, dict[str, float]]:
+    """Visit 1 fused, tracked and mapped (loop closure included), then merged into a world from
+    its keyframes: ``(slam_poses result, world, seconds per step: fuse_s, slam_s, world_s)``."""
     from atlas_pipeline.mapping.keyframes import KeyframeSet, slam_poses
-    from atlas_pipeline.mapping.mapper import build_world, extend_world_by_tracking
+    from atlas_pipeline.mapping.mapper import build_world
     from atlas_pipeline.perception.rgbd import fuse_frames
 
     depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
-    row: dict = {"pair": label, "visit1_frames": v1.n_frames, "visit2_frames": v2.n_frames}
     t0 = time.perf_counter()
     fused = fuse_frames(v1, cfg.fusion)
     t1 = time.perf_counter()
     slam = slam_poses(v1, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride)
-    t_slam = time.perf_counter() - t1
     kf = KeyframeSet(slam.T_world_cam, slam.valid, slam.keyframe_indices, "estimated", slam.loop_closure, slam.maps)
     t2 = time.perf_counter()
     world = build_world(fused, kf, cfg.mapping, manifest=v1)
-    t_build = time.perf_counter() - t0
-    row.update({"fuse_s": t1 - t0, "world_s": time.perf_counter() - t2})
+    return slam, world, {"fuse_s": t1 - t0, "slam_s": t2 - t1, "world_s": time.perf_counter() - t2}
+
+
+def run_pair(label: str, v1, v2, cfg) -> dict:
+    from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map
+    from atlas_pipeline.mapping.mapper import extend_world_by_tracking
     from benchmarks.common import grade
 
+    depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
+    row: dict = {"pair": label, "visit1_frames": v1.n_frames, "visit2_frames": v2.n_frames}
+    slam, world, seconds = build_first_world(v1, cfg)
+    row.update({"fuse_s": seconds["fuse_s"], "world_s": seconds["world_s"]})
     g = grade(v1, np.where(slam.valid[:, None, None], slam.T_world_cam, np.nan))
-    row.update({"slam_ate_m": g.get("ate_rmse_m"), "slam_frames_per_s": v1.n_frames / t_slam,
-                "build_s": t_build, "keyframes": len(kf.indices), "gaussians": len(world.field),
+    row.update({"slam_ate_m": g.get("ate_rmse_m"), "slam_frames_per_s": v1.n_frames / seconds["slam_s"],
+                "build_s": sum(seconds.values()), "keyframes": len(slam.keyframe_indices), "gaussians": len(world.field),
                 "loops": None if slam.loop_closure is None else slam.loop_closure.get("n_loops")})
     _progress("build", row)
     # Own frames in the world they built.
@@ -239,11 +254,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="write the rows here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
-    from atlas_pipeline.config import load_profile
-
-    cfg = load_profile("default")
-    cfg = cfg.with_overrides({"mapping.pose_source": "estimated", "mapping.fit.epochs": 0,
-                              "mapping.colour_refinement.iterations": 0})
+    cfg = benchmark_config()
     rows = []
     for label, v1, v2 in _pairs(args, cfg):
         print(f"running {label} ...", flush=True)
