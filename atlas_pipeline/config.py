@@ -225,6 +225,8 @@ class LocalizationConfig(Section):
     min_correspondence_m: float = Field(0.02, gt=0, description="its floor: the finest level, and grading (m)")
     huber_depth_m: float = Field(0.01, gt=0, description="Huber threshold of the point-to-plane residual (m)")
     photometric_weight: float = Field(0.1, ge=0, description="intensity term against the point-to-plane term; 0 = geometry only")
+    map_photometric_weight: float = Field(1.0, ge=0, description=(
+        "tracking in a saved world: intensity against the map's own colours instead of the last keyframe's; 0 = keyframe"))
     motion_model: Literal["constant_velocity", "none"] = Field("constant_velocity", description=(
         "initial guess: constant velocity, or the previous pose"))
     min_fitness: float = Field(0.15, ge=0, le=1, description="share of frame points with a map correspondence; below: lost")

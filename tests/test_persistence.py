@@ -220,6 +220,75 @@ def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free
         assert err_m > 2 * travelled_m
 
 
+TEXTURE_PERIOD_M = (0.3, 0.25)  # the wallpaper's blobs along x and y
+
+
+def _wallpaper_grey(xy: np.ndarray) -> np.ndarray:
+    """``[M]`` grey in [0, 1] of a blotchy wallpaper at wall points ``xy [M, 2]`` (metres)."""
+    fx, fy = (2 * np.pi / p for p in TEXTURE_PERIOD_M)
+    return 0.5 + 0.2 * np.sin(fx * xy[:, 0]) * np.sin(fy * xy[:, 1]) + 0.1 * np.sin(fx * 1.7 * xy[:, 0] + 1.0)
+
+
+def _textured_wall_world(camera):
+    """A saved world of one flat wallpapered wall ``WALL_DEPTH_M`` ahead of the origin (its
+    colours in the voxels, as a built world has them) and a function that renders a frame of it
+    ``(rgb [H, W, 3] uint8, depth_m [H, W])`` from a camera moved by ``x`` m along it, with the
+    exposure ``gain * grey + offset``."""
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    rays_xy = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], -1) * WALL_DEPTH_M
+    rng = np.random.default_rng(1)
+
+    def frame(x_m: float, gain: float = 1.0, offset: float = 0.0):
+        xy = rays_xy.reshape(-1, 2) + [x_m, 0.0]
+        grey = np.clip(gain * _wallpaper_grey(xy) + offset, 0, 1).reshape(camera.height, camera.width)
+        rgb = np.repeat((255 * grey)[..., None], 3, axis=-1).astype(np.uint8)
+        return rgb, (WALL_DEPTH_M + rng.normal(0.0, WALL_NOISE_M, grey.shape)).astype(np.float32)
+
+    gx, gy = np.meshgrid(np.arange(-1.2, 1.2, 0.004), np.arange(-0.8, 0.8, 0.004))
+    xy = np.stack([gx.ravel(), gy.ravel()], -1)
+    builder = VoxelGaussianBuilder(0.02)
+    grey = np.repeat((255 * _wallpaper_grey(xy))[:, None], 3, axis=-1).astype(np.uint8)
+    builder.integrate(np.column_stack([xy, np.full(len(xy), WALL_DEPTH_M)]), grey)
+    return SurfelModel.from_builder(builder), frame
+
+
+@pytest.mark.parametrize("exposure", [(1.0, 0.0), (0.6, 0.15)])
+def test_the_maps_colours_hold_a_camera_a_wall_leaves_free(exposure):
+    """Facing one flat wall, depth says nothing of where along it the camera is; the colours the
+    world was built with do. From a guess 4 cm off along the wall, a frame aligned with the map
+    as its photometric reference comes back to the true pose, at the visit's own exposure too;
+    geometry alone leaves it where the guess was."""
+    spec = syn.SyntheticSpec(n_frames=1, **QVGA)
+    cam = spec.camera()
+    model, frame = _textured_wall_world(cam)
+    tracker = RGBDTracker(cam, LocalizationConfig(), DEPTH_RANGE)
+    T_true = np.eye(4)
+    T_true[0, 3] = 0.1
+    fp = tracker.prepare(*frame(0.1, *exposure))
+    guess = T_true.copy()
+    guess[0, 3] += 0.04
+    with_map = tracker.align(fp, model, guess, map_reference=True)
+    geometry = tracker.align(fp, model, guess)
+    assert abs(with_map.T_world_cam[0, 3] - T_true[0, 3]) < 0.01
+    assert abs(geometry.T_world_cam[0, 3] - T_true[0, 3]) > 0.03  # not vacuous: depth alone does not hold it
+
+
+def test_a_map_without_colour_under_the_view_gives_no_photometric_reference():
+    """Where the frame sees none of the map's coloured voxels, there is nothing to hold the
+    pose to: no reference, and the solve is the geometric one."""
+    from atlas_pipeline.localization.tracker import VoxelAppearance, map_reference_image
+
+    spec = syn.SyntheticSpec(n_frames=1, **QVGA)
+    cam = spec.camera()
+    model, frame = _textured_wall_world(cam)
+    tracker = RGBDTracker(cam, LocalizationConfig(), DEPTH_RANGE)
+    fp = tracker.prepare(*frame(0.0))
+    view = model.model_view(np.eye(4), cam, tracker.model_level)
+    blank = VoxelAppearance(np.zeros(0, np.uint64), np.zeros(0, np.float32), 0.02)
+    assert map_reference_image(view, blank, fp, tracker.model_level) is None
+    assert map_reference_image(view, model.appearance(), fp, tracker.model_level) is not None
+
+
 @pytest.mark.slow
 def test_relocalization_in_a_saved_map_is_fast():
     """Frames with no pose are placed by the place index within the fast attempts, each well

@@ -302,6 +302,22 @@ class VoxelAppearance(NamedTuple):
         mean = np.bincount(inv, grey, len(uniq)) / np.bincount(inv, minlength=len(uniq))
         return cls(uniq, mean.astype(np.float32), float(voxel_size_m))
 
+    def grey_at(self, points_world: np.ndarray) -> np.ndarray:
+        """``[M]`` the grey of the voxel each of ``points_world [M, 3]`` falls in; NaN where the
+        map has no voxel."""
+        from atlas_pipeline.gaussian_world.builder import _OFFSET, pack_voxel_ids
+
+        out = np.full(len(points_world), np.nan)
+        if not len(self.ids) or not len(points_world):
+            return out
+        ijk = np.floor(np.asarray(points_world, np.float64) / self.voxel_size_m).astype(np.int64)
+        inside = np.flatnonzero((np.abs(ijk) < _OFFSET).all(axis=1))
+        ids = pack_voxel_ids(ijk[inside])
+        pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+        hit = self.ids[pos] == ids
+        out[inside[hit]] = self.grey[pos[hit]]
+        return out
+
     def correlation(self, points_world: np.ndarray, grey: np.ndarray) -> tuple[float, int]:
         """``(normalized cross-correlation, pairs)`` of ``grey [M]`` seen at ``points_world [M, 3]``
         with the map's grey of the voxels they fall in: invariant to exposure and gain, near 0 where
@@ -326,6 +342,40 @@ class VoxelAppearance(NamedTuple):
 
 # Fewer frame points in mapped voxels than this: no appearance check is possible.
 MIN_APPEARANCE_PAIRS = 50
+# The map's grey is matched to a frame's exposure by a gain within this factor either way
+# (a second visit at another time of day); past it the fit says more about a wrong pose.
+MAX_EXPOSURE_GAIN = 4.0
+
+
+def map_reference_image(view: kn.ModelView, appearance: VoxelAppearance, frame: "FramePyramid",
+                        level: int) -> kn.ReferenceImage | None:
+    """The map as a photometric reference: the grey of the voxels under the model ``view``'s
+    surface points (``[h, w]`` at pyramid ``level``, posed where the view was rendered), with
+    the gain and offset that match it to ``frame``'s grey at the same pixels (exposure).
+
+    Unlike a keyframe of the same session, the map does not move with the camera's own error,
+    so where the surfaces leave a direction free (one textured wall in view) the texture the
+    world was built with holds the pose. None when too few pixels see coloured map voxels."""
+    pts = view.points_cam
+    on_map = np.isfinite(pts[..., 2])
+    T = view.T_world_cam
+    grey_map = np.full(on_map.shape, np.nan)
+    grey_map[on_map] = appearance.grey_at(pts[on_map] @ T[:3, :3].T + T[:3, 3])
+    frame_grey, frame_depth = frame.intensity[level], frame.depth[level]
+    pairs = np.isfinite(grey_map) & (frame_depth > 0)
+    if pairs.sum() < MIN_APPEARANCE_PAIRS:
+        return None
+    m, f = grey_map[pairs], frame_grey[pairs].astype(np.float64)
+    # Moments, not least squares: misregistration at the guess dilutes a regression's slope.
+    spread = m.std()
+    gain = float(np.clip(f.std() / spread, 1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN)) if spread > 0 else 1.0
+    offset = float(f.mean() - gain * m.mean())
+    seen = np.isfinite(grey_map)
+    intensity = np.where(seen, gain * grey_map + offset, f.mean()).astype(np.float32)  # holes: flat, no gradient
+    depth = np.where(seen, pts[..., 2], 0.0).astype(np.float32)
+    gx, gy = kn.image_gradients(intensity)
+    return kn.ReferenceImage(intensity, gx, gy, depth, np.ascontiguousarray(T, np.float64), view.fx, view.fy,
+                             view.cx, view.cy, np.zeros(5))
 
 
 # surfels.npz members: (dtype kinds, ndim) -- centres [M, 3], normals [M, 3], radius_m scalar.
@@ -525,13 +575,16 @@ class RGBDTracker:
 
     def align(self, frame: FramePyramid, model: SurfelModel, T_init: np.ndarray,
               reference: tuple[FramePyramid, np.ndarray] | None = None, surface_behind: bool = False,
-              motion_prior: np.ndarray | None = None) -> TrackResult:
+              motion_prior: np.ndarray | None = None, map_reference: bool = False) -> TrackResult:
         """Coarse-to-fine Gauss-Newton from ``T_init``; ``reference`` = (frame, its pose) for the
         photometric term (None: geometry only). ``surface_behind``: points behind the map's first
         surface may match the one behind it (:class:`kn.ModelView`): for tracking along a fixed
         world, never for mapping, loop or relocalization checks, which must see a doubled surface
         as a disagreement. ``motion_prior``: ``[4, 4]`` the motion model's prediction, which holds
-        the camera centre where the surfaces leave it free (:func:`add_motion_prior`)."""
+        the camera centre where the surfaces leave it free (:func:`add_motion_prior`).
+        ``map_reference``: the photometric reference is the map's own colours rendered at the
+        initial pose (:func:`map_reference_image`, weight ``map_photometric_weight``) instead
+        of ``reference``, where the map has colours."""
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
@@ -539,6 +592,11 @@ class RGBDTracker:
         # One model view per frame, at the initial pose; every level projects into it.
         view = model.model_view(T, self.camera, self.model_level, surface_behind)
         w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
+        map_ref = None
+        if map_reference and cfg.map_photometric_weight > 0 and model.appearance() is not None:
+            map_ref = map_reference_image(view, model.appearance(), frame, self.model_level)
+            if map_ref is not None:
+                w_photo = cfg.map_photometric_weight * C.photometric_scale
         n_levels = len(cfg.iterations)
         total_it = 0
         for li, iters in enumerate(cfg.iterations):
@@ -547,7 +605,10 @@ class RGBDTracker:
             if len(points.points_cam) < C.min_points_per_level:
                 continue
             params = self._params._replace(max_distance_m=self._gate_m(li), photometric_weight=w_photo)
-            ref = self._no_reference if reference is None else self._reference_image(reference[0], reference[1], level)
+            if map_ref is not None:
+                ref = map_ref
+            else:
+                ref = self._no_reference if reference is None else self._reference_image(reference[0], reference[1], level)
             # Trust region, per level: coarse levels may step further (their basin is wider).
             max_step_m = C.max_step_m * 2 ** (level - fin)
             for _ in range(iters):
