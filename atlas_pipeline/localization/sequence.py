@@ -95,6 +95,11 @@ RELOCALIZATION_BACKOFF_MAX_FRAMES = 16
 # search (seconds) only after this many lost frames in a row, then with the back-off above. A
 # brief loss recovers within a few frames at tracking cost.
 FAST_ONLY_ATTEMPTS = 3
+# In a saved world, a frame more than this many frames after the last placed one is not tracked
+# from that pose: the camera has moved past the tracker's basin, and an alignment from there can
+# settle on surfaces that fit at a wrong place. Only a verified relocalization (geometry and
+# texture, that pose among its hypotheses) places it.
+STALE_POSE_AFTER_FRAMES = 4
 # Mapping only: the points of the previous frame that a frame is tracked against when the map does
 # not cover it (a pan into unmapped space). One point per this many pixels in u and v.
 FRAME_TO_FRAME_STRIDE = 2
@@ -338,6 +343,10 @@ class SequenceTracker:
             est = FrameEstimate(index, T, STATUS_LOST, 0.0, nan, 0.0, note=NOTE_NO_DEPTH)
         elif self._last is None or len(self.model) == 0:
             est = self._relocalize(index, fp, [])
+        elif self.hold_to_motion and self.cfg.relocalize and abs(index - self._last[0]) > STALE_POSE_AFTER_FRAMES:
+            est = self._relocalize(index, fp, [self._last[1]])
+            if not np.isfinite(est.T_world_cam).all():
+                est.T_world_cam = self._last[1].copy()  # lost: the last pose, as a prediction
         else:
             moved = self._motion_prediction(index, timestamp_s)
             guess = self._last[1].copy() if moved is None else moved  # as _predict
