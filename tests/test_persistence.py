@@ -289,6 +289,31 @@ def test_a_map_without_colour_under_the_view_gives_no_photometric_reference():
     assert map_reference_image(view, model.appearance(), fp, tracker.model_level) is not None
 
 
+@pytest.mark.parametrize("blind_frames", [2, 8])
+def test_a_frame_long_after_the_last_placed_one_is_relocalized_not_tracked(blind_frames):
+    """After a few frames with no depth the last pose is still a tracking guess; after more than
+    ``STALE_POSE_AFTER_FRAMES`` it is not (an alignment from there can settle on a wrong place
+    that fits), and the frame is placed by a verified relocalization instead."""
+    from atlas_pipeline.localization.sequence import STALE_POSE_AFTER_FRAMES, STATUS_LOST, STATUS_TRACKED
+
+    spec = _suite_spec()
+    model, poses, scene = _suite_map(spec, np.arange(0.0, 40.0, 0.5))
+    st = SequenceTracker(spec.camera(), LocalizationConfig(), DEPTH_RANGE, model=model, prior_poses=poses)
+    t_start = 10.4
+    blank = np.zeros((spec.height, spec.width), np.float32)
+    for k in range(3 + blind_frames + 1):
+        t = t_start + k / spec.fps
+        T_true = syn.camera_path(spec, np.array([t]))[0]
+        rgb, depth = syn.render_synthetic_frame(spec, scene, T_true)
+        blind = 3 <= k < 3 + blind_frames
+        est = st.process(k, rgb, blank if blind else depth, T_given=T_true if k == 0 else None, timestamp_s=t)
+        if blind:
+            assert est.status == STATUS_LOST
+    stale = blind_frames + 1 > STALE_POSE_AFTER_FRAMES
+    assert est.status == (STATUS_RELOCALIZED if stale else STATUS_TRACKED)
+    assert np.linalg.norm(est.T_world_cam[:3, 3] - T_true[:3, 3]) < 0.05
+
+
 @pytest.mark.slow
 def test_relocalization_in_a_saved_map_is_fast():
     """Frames with no pose are placed by the place index within the fast attempts, each well
