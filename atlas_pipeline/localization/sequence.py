@@ -16,7 +16,9 @@ Per frame the status is one of:
   revisit: merging it would double the surface);
 * ``relocalized``: tracking failed, and the frame was placed by :class:`Relocalizer`: first from
   the place index's nearest keyframe views (milliseconds, every lost frame), then, with back-off,
-  by the full search (seconds);
+  by the full search (seconds). In a saved world a frame more than
+  :data:`STALE_POSE_AFTER_FRAMES` after the last placed one is not tracked at all, only
+  relocalized (the last pose is one of the hypotheses);
 * ``lost``: no good alignment (too few correspondences, too large a residual, no valid depth);
   the pose is the motion-model prediction, and the frame never touches the map. After a failed
   relocalization the next tries back off (1, 2, 4 ... frames, at most

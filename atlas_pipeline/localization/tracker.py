@@ -9,7 +9,10 @@ Each frame is aligned to two references at once:
   chained frame-to-frame odometry does.
 * the **reference frame** (appearance): the last keyframe's intensity image. Residual: intensity
   difference at the point's projection (dense direct alignment, Kerl et al. 2013), which fixes the
-  degrees of freedom geometry alone leaves weak (sliding along planes).
+  degrees of freedom geometry alone leaves weak (sliding along planes). In a saved world the
+  reference is the world itself instead: the colours of its voxels rendered at the guess
+  (:func:`map_reference_image`), which, unlike a keyframe of the same session, do not move with
+  the camera's own error.
 
 The initial guess comes from a constant-velocity motion model (falling back to the previous pose
 when that aligns worse); the solve runs over an image pyramid (coarse levels first, wider
