@@ -224,7 +224,9 @@ class LocalizationConfig(Section):
     max_correspondence_m: float = Field(0.1, gt=0, description="association gate at the coarsest level (halves per level, m)")
     min_correspondence_m: float = Field(0.02, gt=0, description="its floor: the finest level, and grading (m)")
     huber_depth_m: float = Field(0.01, gt=0, description="Huber threshold of the point-to-plane residual (m)")
-    photometric_weight: float = Field(0.1, ge=0, description="intensity term against the point-to-plane term; 0 = geometry only")
+    photometric_weight: float = Field(0.1, ge=0, description=(
+        "intensity term against the point-to-plane term, the last keyframe as reference (SLAM; a saved world "
+        "without colours); 0 = geometry only"))
     map_photometric_weight: float = Field(1.0, ge=0, description=(
         "tracking in a saved world: intensity against the map's own colours instead of the last keyframe's; 0 = keyframe"))
     motion_model: Literal["constant_velocity", "none"] = Field("constant_velocity", description=(

@@ -104,14 +104,14 @@ def test_localization_change_recomputes_only_localization_and_downstream(persist
     root, instance = persistent
     _run(root, instance)
     up_before = _files(root, UPSTREAM)
-    change = {"localization.photometric_weight": 0.3}
+    change = {"localization.map_photometric_weight": 0.3}
     defs = build_definitions(root / "artifacts")
     assert set(_dagster_ui_status(defs, instance, PART).values()) == {"FRESH"}
     # What a run with the change would recompute: the settings of localization_report (and of the
     # bundle, which records the whole config) changed; everything after it may change.
     stale = stale_assets(defs, instance, PART, atlas_config(None, change))
     assert sorted(stale) == sorted(DOWNSTREAM_OF_LOCALIZATION)
-    assert stale["localization_report"] == ["settings changed: localization.photometric_weight 0.1 -> 0.3"]
+    assert stale["localization_report"] == ["settings changed: localization.map_photometric_weight 1.0 -> 0.3"]
     # The UI of a code location whose profile has the change (edited, reloaded): the settings it changes
     # show as stale (keyframes' in case the dataset is tracked; this one is not, see test_keyframes_read...).
     ui = _dagster_ui_status(build_definitions(root / "artifacts", overrides=change), instance, PART)
@@ -124,9 +124,9 @@ def test_localization_change_recomputes_only_localization_and_downstream(persist
     rec = json.loads((root / "artifacts" / "localization_report" / PART / "_artifact.json").read_text())
     assert rec["run_id"] == result.run_id
     # The run recorded its overrides; everything is current again, in the UI's view and for the change.
-    assert instance.get_run_by_id(result.run_id).tags["atlas/set/localization.photometric_weight"] == "0.3"
+    assert instance.get_run_by_id(result.run_id).tags["atlas/set/localization.map_photometric_weight"] == "0.3"
     assert instance.get_run_by_id(result.run_id).run_config["resources"]["atlas"]["config"] == {
-        "localization": {"photometric_weight": 0.3}}
+        "localization": {"map_photometric_weight": 0.3}}
     assert set(_dagster_ui_status(defs, instance, PART).values()) == {"FRESH"}
     assert stale_assets(defs, instance, PART, atlas_config(None, change)) == {}
     # Back to the profile's value: localization and after recomputed; a check threshold versions nothing.
@@ -168,10 +168,10 @@ def test_cli_stale_only_runs_nothing_when_current_then_only_the_changed(isolated
     assert main(["run", PART, "--stale-only"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["stale"] == [] and out["ran"] is False
-    assert main(["status", PART, "--json", "--set", "localization.photometric_weight=0.5"]) == 0
+    assert main(["status", PART, "--json", "--set", "localization.map_photometric_weight=0.5"]) == 0
     status = json.loads(capsys.readouterr().out)[PART]
     assert sorted(status) == sorted(DOWNSTREAM_OF_LOCALIZATION)
-    assert main(["run", PART, "--stale-only", "--set", "localization.photometric_weight=0.5"]) == 0
+    assert main(["run", PART, "--stale-only", "--set", "localization.map_photometric_weight=0.5"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert sorted(out["stale"]) == sorted(out["recomputed"]) == sorted(DOWNSTREAM_OF_LOCALIZATION)
     assert out["reused"] == []
