@@ -43,6 +43,7 @@ from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.cores import kernel_threads
 from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp, so3_log
 from atlas_pipeline.localization import _kernels as kn
+from atlas_pipeline.localization import _voxel_hash
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
 from atlas_pipeline.localization.culling import ChunkGrid
 from atlas_pipeline.perception.rgbd import _undistort_normalized
@@ -270,13 +271,25 @@ def _near(ids: np.ndarray, touched: np.ndarray) -> np.ndarray:
     return out
 
 
-class VoxelAppearance(NamedTuple):
+class VoxelAppearance:
     """Mean grey of every voxel of a map, to check a pose's appearance: ``ids [V]`` sorted uint64
-    (:func:`pack_voxel_ids`), ``grey [V]`` float32 in [0, 1], the voxel size (m)."""
+    (:func:`pack_voxel_ids`), ``grey [V]`` float32 in [0, 1], the voxel size (m). Lookups go
+    through a hash table of the ids (:mod:`._voxel_hash`), made on the first one."""
 
-    ids: np.ndarray
-    grey: np.ndarray
-    voxel_size_m: float
+    def __init__(self, ids: np.ndarray, grey: np.ndarray, voxel_size_m: float):
+        self.ids = ids
+        self.grey = grey
+        self.voxel_size_m = float(voxel_size_m)
+        self._table: _voxel_hash.VoxelTable | None = None
+
+    def voxel_index(self, points_world: np.ndarray) -> np.ndarray:
+        """``[M]`` int64 index into ``ids`` of the voxel each of ``points_world [M, 3]`` falls in;
+        -1 where the map has none."""
+        if self._table is None:
+            ids = np.ascontiguousarray(self.ids, np.uint64)
+            bits = _voxel_hash.table_bits(len(ids))
+            self._table = _voxel_hash.VoxelTable(ids, _voxel_hash.build_slots(ids, bits), bits, self.voxel_size_m)
+        return _voxel_hash.lookup_points(self._table, np.ascontiguousarray(points_world, np.float64).reshape(-1, 3))
 
     @classmethod
     def from_builder(cls, builder) -> "VoxelAppearance":
@@ -308,36 +321,25 @@ class VoxelAppearance(NamedTuple):
     def grey_at(self, points_world: np.ndarray) -> np.ndarray:
         """``[M]`` the grey of the voxel each of ``points_world [M, 3]`` falls in; NaN where the
         map has no voxel."""
-        from atlas_pipeline.gaussian_world.builder import _OFFSET, pack_voxel_ids
-
         out = np.full(len(points_world), np.nan)
         if not len(self.ids) or not len(points_world):
             return out
-        ijk = np.floor(np.asarray(points_world, np.float64) / self.voxel_size_m).astype(np.int64)
-        inside = np.flatnonzero((np.abs(ijk) < _OFFSET).all(axis=1))
-        ids = pack_voxel_ids(ijk[inside])
-        pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-        hit = self.ids[pos] == ids
-        out[inside[hit]] = self.grey[pos[hit]]
+        idx = self.voxel_index(points_world)
+        hit = idx >= 0
+        out[hit] = self.grey[idx[hit]]
         return out
 
     def correlation(self, points_world: np.ndarray, grey: np.ndarray) -> tuple[float, int]:
         """``(normalized cross-correlation, pairs)`` of ``grey [M]`` seen at ``points_world [M, 3]``
         with the map's grey of the voxels they fall in: invariant to exposure and gain, near 0 where
         the pose puts the frame on surfaces of other texture (a look-alike room)."""
-        from atlas_pipeline.gaussian_world.builder import _OFFSET, pack_voxel_ids
-
         if not len(self.ids) or not len(points_world):
             return float("nan"), 0
-        ijk = np.floor(np.asarray(points_world, np.float64) / self.voxel_size_m).astype(np.int64)
-        inside = (np.abs(ijk) < _OFFSET).all(axis=1)
-        ijk, g = ijk[inside], np.asarray(grey, np.float64)[inside]
-        ids = pack_voxel_ids(ijk)
-        pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
-        hit = self.ids[pos] == ids
+        idx = self.voxel_index(points_world)
+        hit = idx >= 0
         if hit.sum() < MIN_APPEARANCE_PAIRS:
             return float("nan"), int(hit.sum())
-        a, b = g[hit], self.grey[pos[hit]].astype(np.float64)
+        a, b = np.asarray(grey, np.float64)[hit], self.grey[idx[hit]].astype(np.float64)
         a, b = a - a.mean(), b - b.mean()
         den = np.sqrt((a * a).sum() * (b * b).sum())
         return (float((a * b).sum() / den) if den > 0 else float("nan")), int(hit.sum())
