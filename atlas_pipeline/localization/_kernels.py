@@ -230,61 +230,42 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
         :func:`_splat_band`), so the model surface is smooth and point-to-plane residuals against
         it are sub-voxel; the ``behind`` pair, the same of the next band of hits behind it.
     """
-    R = view.T_world_cam[:3, :3]
     pose = _pose(view.T_world_cam)
     fx, fy, cx, cy, w, h = view.fx, view.fy, view.cx, view.cy, view.width, view.height
-    min_depth_m = params.min_depth_m
-    max_px = params.max_radius_px
+    intrinsics = (fx, fy, cx, cy, w, h)
+    limits = (params.min_depth_m, params.max_radius_px, radius_m)
     zbuf = np.full((h, w), np.inf)
     pts = np.full((h, w, 3), np.nan)
     nrm = np.full((h, w, 3), np.nan)
     pts2 = np.full((h, w, 3), np.nan)
     nrm2 = np.full((h, w, 3), np.nan)
     r2 = radius_m * radius_m
-    n = centres_w.shape[0]
-    # Pass 1 (parallel over surfels): camera-frame centre, camera-facing normal, pixel box. Only
-    # the visible surfels' rows are written (a large map is mostly out of view).
-    cam = np.empty((n, 7))  # xc yc zc nx ny nz n.c
-    box = np.empty((n, 4), np.int64)  # ulo uhi vlo vhi
-    visible = np.zeros(n, np.bool_)
-    cull = culling.chunk_of.shape[0] == n
-    for k in prange(n):
-        if cull and not culling.chunk_seen[culling.chunk_of[k]]:
+    # Pass 1: the surfels the view sees, in surfel order, written compactly. Only the candidates
+    # (surfels of chunks the view may see) are looked at; the visible ones are counted first and
+    # then written, so memory is allocated for what the view sees, not for the whole map.
+    cand = _candidates(centres_w.shape[0], culling)
+    m = cand.shape[0]
+    visible = np.zeros(m, np.bool_)
+    for j in prange(m):
+        k = cand[j]
+        visible[j] = _footprint(pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2], normals_w[k, 0],
+                                normals_w[k, 1], normals_w[k, 2], intrinsics, limits)[0]
+    slot = np.cumsum(visible.astype(np.int64)) - 1
+    n_visible = slot[m - 1] + 1 if m else 0
+    cam = np.empty((n_visible, 7))  # xc yc zc nx ny nz n.c
+    box = np.empty((n_visible, 4), np.int64)  # ulo uhi vlo vhi
+    for j in prange(m):
+        if not visible[j]:
             continue
-        xc, yc, zc = _to_camera(pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2])
-        if zc < min_depth_m:
-            continue
-        nx = R[0, 0] * normals_w[k, 0] + R[1, 0] * normals_w[k, 1] + R[2, 0] * normals_w[k, 2]
-        ny = R[0, 1] * normals_w[k, 0] + R[1, 1] * normals_w[k, 1] + R[2, 1] * normals_w[k, 2]
-        nz = R[0, 2] * normals_w[k, 0] + R[1, 2] * normals_w[k, 1] + R[2, 2] * normals_w[k, 2]
-        ndotc = nx * xc + ny * yc + nz * zc
-        if ndotc > 0.0:  # face the camera: a visible surface's normal points back to the viewer
-            nx, ny, nz, ndotc = -nx, -ny, -nz, -ndotc
-        u0 = fx * xc / zc + cx
-        v0 = fy * yc / zc + cy
-        # Pixel box of the disk: a ray meets it only if it passes within radius_m of the centre
-        # c; a ray through the point c + d of the centre's depth plane passes at least
-        # zc |d| / |c + d| from it, so |d| <= radius_m |c| / (zc - radius_m), which is
-        # f radius_m |c| / (zc (zc - radius_m)) pixels from the centre's projection; capped at max_px.
-        if zc > radius_m:
-            reach = radius_m * math.sqrt(xc * xc + yc * yc + zc * zc) / (zc * (zc - radius_m))
-            ru = min(fx * reach, float(max_px))
-            rv = min(fy * reach, float(max_px))
-        else:  # the camera is within a radius of the disk's plane
-            ru = rv = float(max_px)
-        if u0 + ru < 0.0 or u0 - ru > w - 1 or v0 + rv < 0.0 or v0 - rv > h - 1:
-            continue
-        ulo = max(int(math.ceil(u0 - ru)), 0)
-        uhi = min(int(math.floor(u0 + ru)), w - 1)
-        vlo = max(int(math.ceil(v0 - rv)), 0)
-        vhi = min(int(math.floor(v0 + rv)), h - 1)
-        if ulo > uhi or vlo > vhi:
-            continue
-        cam[k, 0], cam[k, 1], cam[k, 2] = xc, yc, zc
-        cam[k, 3], cam[k, 4], cam[k, 5], cam[k, 6] = nx, ny, nz, ndotc
-        box[k, 0], box[k, 1], box[k, 2], box[k, 3] = ulo, uhi, vlo, vhi
-        visible[k] = True
-    order = np.nonzero(visible)[0]  # the visible surfels, in surfel order
+        k = cand[j]
+        _, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
+            pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2], normals_w[k, 0], normals_w[k, 1],
+            normals_w[k, 2], intrinsics, limits)
+        i = slot[j]
+        cam[i, 0], cam[i, 1], cam[i, 2] = xc, yc, zc
+        cam[i, 3], cam[i, 4], cam[i, 5], cam[i, 6] = nx, ny, nz, ndotc
+        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = ulo, uhi, vlo, vhi
+    order = np.arange(n_visible)  # the visible surfels, in surfel order
     # Pass 2 (parallel over image bands): each band writes only its own rows, so there is no
     # race on the z-buffer and the result does not depend on the number of threads.
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
@@ -292,6 +273,60 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
         _splat_band(min(h, band * band_h), min(h, (band + 1) * band_h), VisibleSurfels(cam, box, order, r2),
                     (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm, pts2, nrm2), surface_behind)
     return pts, nrm, pts2, nrm2
+
+
+@njit(cache=True)
+def _candidates(n, culling):
+    """``[M]`` int64 ascending: the surfels of the chunks ``culling`` keeps (all ``n`` without culling)."""
+    if culling.chunk_of.shape[0] != n:
+        return np.arange(n)
+    keep = np.empty(n, np.int64)
+    m = 0
+    for k in range(n):
+        if culling.chunk_seen[culling.chunk_of[k]]:
+            keep[m] = k
+            m += 1
+    return keep[:m]
+
+
+@njit(cache=True, inline="always")
+def _footprint(pose, xw, yw, zw, nxw, nyw, nzw, intrinsics, limits):
+    """One surfel (centre and unit normal, world) in a view: ``(visible, xc, yc, zc, nx, ny, nz,
+    n.c, ulo, uhi, vlo, vhi)``, the camera-frame centre, the normal turned to face the camera,
+    and the pixel box of the disk; ``visible`` False when it is behind the near clip or its box
+    misses the image. ``intrinsics`` = (fx, fy, cx, cy, w, h); ``limits`` = (min depth m, max
+    footprint px, disk radius m)."""
+    fx, fy, cx, cy, w, h = intrinsics
+    min_depth_m, max_px, radius_m = limits
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, _, _, _ = pose
+    xc, yc, zc = _to_camera(pose, xw, yw, zw)
+    if zc < min_depth_m:
+        return False, xc, yc, zc, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0
+    nx = r00 * nxw + r10 * nyw + r20 * nzw
+    ny = r01 * nxw + r11 * nyw + r21 * nzw
+    nz = r02 * nxw + r12 * nyw + r22 * nzw
+    ndotc = nx * xc + ny * yc + nz * zc
+    if ndotc > 0.0:  # face the camera: a visible surface's normal points back to the viewer
+        nx, ny, nz, ndotc = -nx, -ny, -nz, -ndotc
+    u0 = fx * xc / zc + cx
+    v0 = fy * yc / zc + cy
+    # Pixel box of the disk: a ray meets it only if it passes within radius_m of the centre
+    # c; a ray through the point c + d of the centre's depth plane passes at least
+    # zc |d| / |c + d| from it, so |d| <= radius_m |c| / (zc - radius_m), which is
+    # f radius_m |c| / (zc (zc - radius_m)) pixels from the centre's projection; capped at max_px.
+    if zc > radius_m:
+        reach = radius_m * math.sqrt(xc * xc + yc * yc + zc * zc) / (zc * (zc - radius_m))
+        ru = min(fx * reach, float(max_px))
+        rv = min(fy * reach, float(max_px))
+    else:  # the camera is within a radius of the disk's plane
+        ru = rv = float(max_px)
+    if u0 + ru < 0.0 or u0 - ru > w - 1 or v0 + rv < 0.0 or v0 - rv > h - 1:
+        return False, xc, yc, zc, nx, ny, nz, ndotc, 0, 0, 0, 0
+    ulo = max(int(math.ceil(u0 - ru)), 0)
+    uhi = min(int(math.floor(u0 + ru)), w - 1)
+    vlo = max(int(math.ceil(v0 - rv)), 0)
+    vhi = min(int(math.floor(v0 + rv)), h - 1)
+    return ulo <= uhi and vlo <= vhi, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi
 
 
 class VisibleSurfels(NamedTuple):

@@ -542,7 +542,8 @@ class TrackResult:
 class RGBDTracker:
     """Aligns frames to a :class:`SurfelModel` and a reference frame (see the module docstring)."""
 
-    def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float]):
+    def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
+                 screening: bool = False):
         self.camera = camera
         self.cfg = cfg
         self.depth_range_m = depth_range_m
@@ -550,6 +551,9 @@ class RGBDTracker:
         self.dist = _dist5(camera)
         coarser = cfg.finest_level + C.model_level_offset
         self.model_level = coarser if camera.width // 2 ** coarser >= C.model_min_width_px else cfg.finest_level
+        # A screening tracker only ranks hypotheses (relocalization) for a full one to refine and
+        # grade: it grades the result against the view it started from, without a second splat.
+        self.screening = bool(screening)
         # Gates and weights of the kernel; the association gate and photometric weight vary per call.
         self._params = kn.Params(
             max_distance_m=cfg.min_correspondence_m, huber_depth_m=cfg.huber_depth_m, photometric_weight=0.0,
@@ -632,7 +636,7 @@ class RGBDTracker:
         # Quality at the final pose, finest level, geometry only; a view re-rendered there when
         # the pose travelled far from the one the model view was made at (relocalization).
         moved_m, turned_deg = pose_change(view.T_world_cam, T)
-        if moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg:
+        if not self.screening and (moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg):
             view = model.model_view(T, self.camera, self.model_level, surface_behind)
         H_final, stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
