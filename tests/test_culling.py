@@ -100,3 +100,29 @@ def test_the_surfel_model_renders_a_large_map_culled_and_the_same():
         whole = _splat(model.centres, model.normals, _level_view(T, CAMERA, 1), kn.NO_CULLING)
         np.testing.assert_array_equal(pts, whole[0])
         np.testing.assert_array_equal(nrm, whole[1])
+
+
+def test_surfels_the_view_cannot_see_change_nothing_wherever_they_sit_in_the_map():
+    """Pass 1 keeps the visible surfels in map order: a wall rendered alone and the same wall
+    shuffled among surfels behind the camera and beside the view give the same image."""
+    rng = np.random.default_rng(3)
+    u, v = np.meshgrid(np.arange(-1.0, 1.0, 0.02), np.arange(-0.8, 0.8, 0.02))
+    wall = np.stack([u.ravel(), v.ravel(), 2.0 + rng.normal(0.0, 0.003, u.size)], 1)  # z = 2 m ahead
+    wall_n = np.tile([0.0, 0.0, 1.0], (len(wall), 1))
+    behind = wall[:3000] * [1.0, 1.0, -1.0]  # behind the camera
+    beside = wall[:3000] + [9.0, 0.0, 0.0]  # off the image
+    hidden = np.concatenate([behind, beside])
+    mixed = np.concatenate([wall, hidden])
+    mixed_n = np.concatenate([wall_n, np.tile([0.0, 0.0, 1.0], (len(hidden), 1))])
+    # interleave: the wall's surfels keep their relative order, the others fall anywhere
+    slots = np.sort(rng.choice(len(mixed), len(wall), replace=False))
+    rest = np.setdiff1d(np.arange(len(mixed)), slots)
+    centres, normals = np.empty_like(mixed), np.empty_like(mixed_n)
+    centres[slots], normals[slots] = wall, wall_n
+    centres[rest], normals[rest] = hidden, mixed_n[len(wall):]
+    view = _level_view(np.eye(4), CAMERA, 1)
+    alone = _splat(np.ascontiguousarray(wall), wall_n, view, kn.NO_CULLING)
+    shuffled = _splat(np.ascontiguousarray(centres), np.ascontiguousarray(normals), view, kn.NO_CULLING)
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(alone, shuffled))
+    hit = np.isfinite(alone[0][..., 2])
+    assert hit.mean() > 0.5 and np.abs(alone[0][..., 2][hit] - 2.0).max() < 0.02  # the wall, where it is

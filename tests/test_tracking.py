@@ -243,3 +243,32 @@ def test_localize_sequence_without_start_pose_relocalizes_its_first_frame(small_
                             prior_poses=world.T_world_cam_keyframes)
     assert rep.status[0] == "relocalized" and rep.summary["start"] == "relocalized"
     assert rep.summary["rmse_t_unaligned_m"] < 0.01
+
+
+def test_a_screening_alignment_renders_the_map_once_a_full_one_again_where_it_moved(small_manifest, small_world):
+    """Relocalization screens many hypotheses only to rank them: a screening tracker grades the
+    result against the view it started from (one splat); a full tracker re-renders the map at
+    a pose that moved away from its start before it grades it."""
+    cfg, world = small_world
+    m = small_manifest
+
+    class Counting(SurfelModel):
+        views = 0
+
+        def model_view(self, *args, **kwargs):
+            type(self).views += 1
+            return super().model_view(*args, **kwargs)
+
+    base = SurfelModel.from_builder(world.tracking_voxels)
+    model = Counting(base.centres, base.normals, base.radius_m)
+    frame = RGBDTracker(m.camera, cfg.localization, (0.1, 4.0)).prepare(read_rgb(m.rgb_path(3), m.camera),
+                                                                      read_depth_m(m.depth_path(3), m.camera))
+    start = m.T_world_cam_gt[3].copy()
+    start[:3, 3] += [0.08, 0.0, 0.0]  # past the re-render distance from the truth
+    results = {}
+    for screening in (True, False):
+        Counting.views = 0
+        results[screening] = RGBDTracker(m.camera, cfg.localization, (0.1, 4.0), screening=screening).align(
+            frame, model, start)
+        assert Counting.views == (1 if screening else 2)
+    assert all(pose_change(r.T_world_cam, m.T_world_cam_gt[3])[0] < 0.02 for r in results.values())
