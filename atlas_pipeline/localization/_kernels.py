@@ -240,32 +240,27 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
     pts2 = np.full((h, w, 3), np.nan)
     nrm2 = np.full((h, w, 3), np.nan)
     r2 = radius_m * radius_m
-    # Pass 1: the surfels the view sees, in surfel order, written compactly. Only the candidates
-    # (surfels of chunks the view may see) are looked at; the visible ones are counted first and
-    # then written, so memory is allocated for what the view sees, not for the whole map.
+    # Pass 1 (parallel over surfels): camera-frame centre, camera-facing normal, pixel box. Only
+    # the candidates (surfels of the chunks the view may see) are looked at, and memory is
+    # allocated for them, not for the whole map. One parallel loop: waking the threads costs more
+    # than the work of a small map.
     cand = _candidates(centres_w.shape[0], culling)
     m = cand.shape[0]
+    cam = np.empty((m, 7))  # xc yc zc nx ny nz n.c
+    box = np.empty((m, 4), np.int64)  # ulo uhi vlo vhi
     visible = np.zeros(m, np.bool_)
     for j in prange(m):
         k = cand[j]
-        visible[j] = _footprint(pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2], normals_w[k, 0],
-                                normals_w[k, 1], normals_w[k, 2], intrinsics, limits)[0]
-    slot = np.cumsum(visible.astype(np.int64)) - 1
-    n_visible = slot[m - 1] + 1 if m else 0
-    cam = np.empty((n_visible, 7))  # xc yc zc nx ny nz n.c
-    box = np.empty((n_visible, 4), np.int64)  # ulo uhi vlo vhi
-    for j in prange(m):
-        if not visible[j]:
-            continue
-        k = cand[j]
-        _, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
+        seen, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
             pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2], normals_w[k, 0], normals_w[k, 1],
             normals_w[k, 2], intrinsics, limits)
-        i = slot[j]
-        cam[i, 0], cam[i, 1], cam[i, 2] = xc, yc, zc
-        cam[i, 3], cam[i, 4], cam[i, 5], cam[i, 6] = nx, ny, nz, ndotc
-        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = ulo, uhi, vlo, vhi
-    order = np.arange(n_visible)  # the visible surfels, in surfel order
+        if not seen:
+            continue
+        cam[j, 0], cam[j, 1], cam[j, 2] = xc, yc, zc
+        cam[j, 3], cam[j, 4], cam[j, 5], cam[j, 6] = nx, ny, nz, ndotc
+        box[j, 0], box[j, 1], box[j, 2], box[j, 3] = ulo, uhi, vlo, vhi
+        visible[j] = True
+    order = np.nonzero(visible)[0]  # the visible candidates, in surfel order
     # Pass 2 (parallel over image bands): each band writes only its own rows, so there is no
     # race on the z-buffer and the result does not depend on the number of threads.
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS

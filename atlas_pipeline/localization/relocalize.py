@@ -180,6 +180,7 @@ class Relocalizer:
         self._coarse = RGBDTracker(tracker.camera, cfg.model_copy(update={"iterations": coarse_iters}), tracker.depth_range_m,
                                    screening=True)
         self._map_features = None
+        self._map_cloud = None
         self.places = places
 
     def relocalize_fast(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
@@ -269,6 +270,9 @@ class Relocalizer:
         reg = o3d.pipelines.registration
         if self._map_features is None:
             self._map_features = self._features(self.model.centres)
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.model.centres))
+            cloud.normals = o3d.utility.Vector3dVector(self.model.normals)
+            self._map_cloud = cloud
         pts, _ = frame.points(self.tracker.cfg.finest_level + 1)
         if len(pts) < 30:
             return []
@@ -288,10 +292,8 @@ class Relocalizer:
             if res.fitness <= 0:
                 continue
             T = np.asarray(res.transformation, np.float64)
-            # Against the map as downsampled for its features (a tenth of its surfels or fewer):
-            # Open3D builds the target's search tree on every call; the tracker refines after.
             for gate in (4.0 * self.voxel, 2.0 * self.voxel, self.voxel):
-                T = np.asarray(reg.registration_icp(src, dst, gate, T,
+                T = np.asarray(reg.registration_icp(src, self._map_cloud, gate, T,
                                                     reg.TransformationEstimationPointToPlane(),
                                                     reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
             out.append(T)
