@@ -14,7 +14,6 @@ power of two), ``points [M, 3]`` float64.
 from __future__ import annotations
 
 import math
-
 from typing import NamedTuple
 
 import numpy as np
