@@ -19,9 +19,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET
+from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, pack_voxel_ids
 
-__all__ = ["VoxelTable", "table_bits", "build_slots", "lookup_points"]
+__all__ = ["VoxelTable", "table_bits", "build_slots", "lookup_point", "lookup_points", "table_of_points"]
 
 # Fibonacci hashing: multiply by 2^64 / golden ratio, keep the top bits (Knuth, TAOCP 6.4).
 _GOLDEN_64 = np.uint64(0x9E3779B97F4A7C15)
@@ -64,32 +64,41 @@ def build_slots(ids, bits):
     return slots
 
 
-@njit(cache=True)
-def lookup_points(table, points):
-    """``[M]`` int64: for each of ``points [M, 3]`` (world, m) the index into ``table.ids`` of the
-    voxel it falls in (``floor(x / voxel_size_m)``, as the map's ids were made), -1 where the map
-    has none, the point is not finite, or it lies outside the addressable range."""
+@njit(cache=True, inline="always")
+def lookup_point(table, x, y, z):
+    """Index into ``table.ids`` of the voxel the world point ``(x, y, z)`` (m) falls in
+    (``floor(x / voxel_size_m)``, as the map's ids were made); -1 where the map has none, the
+    point is not finite, or it lies outside the addressable range."""
     ids, slots, voxel = table.ids, table.slots, table.voxel_size_m
     mask = slots.shape[0] - 1
-    shift = np.uint64(64 - table.bits)
+    key = np.uint64(0)
+    for v in (x, y, z):
+        c = math.floor(v / voxel) if math.isfinite(v) else float(_OFFSET)
+        if not (-_OFFSET < c < _OFFSET):
+            return -1
+        key = (key << np.uint64(_BITS)) | np.uint64(np.int64(c) + _OFFSET)
+    s = _slot(key, np.uint64(64 - table.bits))
+    while slots[s] >= 0:
+        i = slots[s]
+        if ids[i] == key:
+            return i
+        s = (s + 1) & mask
+    return -1
+
+
+@njit(cache=True)
+def lookup_points(table, points):
+    """``[M]`` int64: :func:`lookup_point` of each of ``points [M, 3]`` (world, m)."""
     n = points.shape[0]
-    out = np.full(n, -1, np.int64)
+    out = np.empty(n, np.int64)
     for m in range(n):
-        key = np.uint64(0)
-        inside = True
-        for a in range(3):
-            c = math.floor(points[m, a] / voxel) if math.isfinite(points[m, a]) else float(_OFFSET)
-            if not (-_OFFSET < c < _OFFSET):
-                inside = False
-                break
-            key = (key << np.uint64(_BITS)) | np.uint64(np.int64(c) + _OFFSET)
-        if not inside:
-            continue
-        s = _slot(key, shift)
-        while slots[s] >= 0:
-            i = slots[s]
-            if ids[i] == key:
-                out[m] = i
-                break
-            s = (s + 1) & mask
+        out[m] = lookup_point(table, points[m, 0], points[m, 1], points[m, 2])
     return out
+
+
+def table_of_points(points: np.ndarray, voxel_size_m: float) -> VoxelTable:
+    """The hashed set of voxels (edge ``voxel_size_m``) that ``points [M, 3]`` (world, m) occupy."""
+    ijk = np.floor(np.asarray(points, np.float64).reshape(-1, 3) / voxel_size_m)
+    ids = np.unique(pack_voxel_ids(ijk[np.isfinite(ijk).all(axis=1)]))
+    bits = table_bits(len(ids))
+    return VoxelTable(ids, build_slots(ids, bits), bits, float(voxel_size_m))

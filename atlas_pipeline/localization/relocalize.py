@@ -6,9 +6,9 @@ looks most like the frame's, and the tracker verifies them. Full path (:meth:`Re
 seconds, for when the fast one finds nothing): two sources of hypotheses, then one refinement and
 one score for all of them:
 
-1. *Global registration*: FPFH features of the frame's points and of the map's surfel centres,
-   matched by RANSAC (Open3D's ``registration_ransac_based_on_feature_matching``), so a frame can
-   be placed anywhere in the map.
+1. *Global registration* (:mod:`.global_registration`): FPFH features of the frame's points and
+   of the map's surfel centres, matched by a repeatable RANSAC, so a frame can be placed anywhere
+   in the map.
 2. *Viewpoint priors*: the poses the map was built from (its keyframes), the same poses swung
    about the point they look at, and, while tracking, the last good pose.
 
@@ -20,21 +20,19 @@ fraction scaled down when a runner-up that disagrees scores almost as well (an a
 from __future__ import annotations
 
 import dataclasses
-import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
 from atlas_pipeline.geometry import so3_exp
+from atlas_pipeline.localization.global_registration import GlobalRegistration
 from atlas_pipeline.localization.places import PlaceIndex
 from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, SurfelModel, TrackResult, pose_change
 
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
     from atlas_pipeline.sensors.tum import FrameManifest
-
-logger = logging.getLogger(__name__)
 
 __all__ = ["RelocalizationResult", "Relocalizer", "relocalize_frames", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
 
@@ -159,7 +157,9 @@ class Relocalizer:
         model: the map as surfels.
         prior_poses: ``[K, 4, 4]`` viewpoint priors (e.g. the map's keyframe poses); may be empty.
         feature_voxel_m: voxel size for FPFH features (frame and map are downsampled to it).
-        use_global: run global registration (Open3D) as well as the priors.
+        use_global: run global registration as well as the priors.
+        seed: global registration's RANSAC seed (the same seed, the same poses).
+        n_global: at most this many global registration poses per search.
     """
 
     def __init__(self, tracker: RGBDTracker, model: SurfelModel, prior_poses: np.ndarray | None = None,
@@ -179,8 +179,7 @@ class Relocalizer:
         coarse_iters = tuple(cfg.iterations[:-1]) + (0,) if len(cfg.iterations) > 1 else cfg.iterations
         self._coarse = RGBDTracker(tracker.camera, cfg.model_copy(update={"iterations": coarse_iters}), tracker.depth_range_m,
                                    screening=True)
-        self._map_features = None
-        self._map_cloud = None
+        self._global: GlobalRegistration | None = None
         self.places = places
 
     def relocalize_fast(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
@@ -247,67 +246,24 @@ class Relocalizer:
         return RelocalizationResult(best.T_world_cam, ok, float(conf), best.inlier_fraction, best.residual_m,
                                     src, len(hyps), ambiguous, best.translation_constraint)
 
-    def _features(self, points: np.ndarray):
-        """Downsampled Open3D cloud with normals and its FPFH features."""
-        from atlas_pipeline._open3d import open3d, point_cloud
-
-        o3d = open3d()
-        pc = point_cloud(points).voxel_down_sample(self.voxel)
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * self.voxel, max_nn=30))
-        f = o3d.pipelines.registration.compute_fpfh_feature(
-            pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * self.voxel, max_nn=100))
-        return pc, f
-
     def _global_hypotheses(self, frame: FramePyramid) -> list[np.ndarray]:
-        """Poses from FPFH + RANSAC, several seeded runs (feature matches in man-made scenes are
-        ambiguous, so one run often locks onto a symmetric twin), each polished by a coarse-to-fine
-        point-to-plane ICP whose wide first gate widens the tracker's basin."""
-        from atlas_pipeline._open3d import open3d
-
-        o3d = open3d()
-        # Open3D prints a warning per RANSAC run when the mutual filter leaves few matches.
-        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-        reg = o3d.pipelines.registration
-        if self._map_features is None:
-            self._map_features = self._features(self.model.centres)
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.model.centres))
-            cloud.normals = o3d.utility.Vector3dVector(self.model.normals)
-            self._map_cloud = cloud
+        """Poses from FPFH matches and RANSAC (:mod:`.global_registration`): the best and its
+        distinct runners-up (feature matches in man-made scenes are ambiguous, so the best often
+        belongs to a symmetric twin), each polished by a coarse-to-fine point-to-plane ICP whose
+        wide first gate widens the tracker's basin."""
+        if self._global is None:
+            self._global = GlobalRegistration(self.model.centres, self.model.normals, self.voxel, self.seed)
         pts, _ = frame.points(self.tracker.cfg.finest_level + 1)
         if len(pts) < 30:
             return []
-        src, src_f = self._features(pts)
-        dst, dst_f = self._map_features
-        if len(src.points) < 10:
-            return []
-        out = []
-        for k in range(self.n_global):
-            o3d.utility.random.seed(self.seed + k)  # RANSAC made repeatable
-            res = reg.registration_ransac_based_on_feature_matching(
-                src, dst, src_f, dst_f, True, 1.5 * self.voxel,
-                reg.TransformationEstimationPointToPoint(False), 3,
-                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * self.voxel)],
-                reg.RANSACConvergenceCriteria(100000, 0.999),
-            )
-            if res.fitness <= 0:
-                continue
-            T = np.asarray(res.transformation, np.float64)
-            for gate in (4.0 * self.voxel, 2.0 * self.voxel, self.voxel):
-                T = np.asarray(reg.registration_icp(src, self._map_cloud, gate, T,
-                                                    reg.TransformationEstimationPointToPlane(),
-                                                    reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
-            out.append(T)
-        return out
+        return self._global.hypotheses(pts, self.n_global)
 
     def relocalize(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
         """Pose of ``frame`` in the map, with no initial guess needed."""
         hyps: list[tuple[str, np.ndarray]] = [("previous", np.asarray(T, np.float64)) for T in (extra_priors or [])]
         hyps += [("keyframe", T) for T in select_priors(self.priors, [T for _, T in hyps])]
         if self.use_global:
-            try:
-                hyps += [("global", T) for T in self._global_hypotheses(frame)]
-            except RuntimeError as exc:  # Open3D reports degenerate inputs this way
-                logger.debug("global registration failed: %s", exc)
+            hyps += [("global", T) for T in self._global_hypotheses(frame)]
         # Viewpoints around each prior: the camera swung about the point it looks at (an RGB-D
         # session usually circles what it scans), so a later frame from further round is reachable.
         hyps += [("keyframe", T) for _, P in list(hyps) if _ == "keyframe" for T in orbit_samples(P, frame)]
