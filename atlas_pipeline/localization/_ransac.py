@@ -2,7 +2,7 @@
 
 The minimal sample of iteration ``i`` is drawn from a counter-based generator (SplitMix64 of
 ``seed`` and ``i``), not from a shared random state, so iterations run in any order on any number of
-threads and the result is the same bit for bit. Each iteration's pose and inlier count are kept, so
+threads and the result is the same bit for bit. Each iteration's pose and its counts are kept, so
 the caller can take several distinct poses, not only the best (a symmetric room has a twin pose
 that explains the frame almost as well).
 
