@@ -24,9 +24,9 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from atlas_pipeline.geometry import so3_exp
 from atlas_pipeline.localization._ransac import SAMPLE_SIZE, RansacParams, fit_rigid, iterations_needed, ransac_batch
 from atlas_pipeline.localization._voxel_hash import VoxelTable, table_of_points
+from atlas_pipeline.localization.tracker import apply_update, converged, pose_change
 
 __all__ = ["FeatureCloud", "GlobalRegistration", "feature_cloud", "mutual_matches", "ransac_poses", "icp_point_to_plane"]
 
@@ -59,8 +59,7 @@ ICP_MIN_POINTS = 6
 # ICP aligns at most this many of the frame's points (an even stride through them): six degrees of
 # freedom need far fewer, and each costs a query of the map's KD-tree per iteration.
 ICP_MAX_POINTS = 1500
-ICP_CONVERGED_RAD = 1e-6
-ICP_CONVERGED_M = 1e-6
+ICP_CONVERGED_STEP = 1e-6  # m and rad
 
 
 class FeatureCloud(NamedTuple):
@@ -114,17 +113,18 @@ def ransac_poses(src: np.ndarray, dst: np.ndarray, cloud: np.ndarray, table: Vox
     src = np.ascontiguousarray(src, np.float64)
     dst = np.ascontiguousarray(dst, np.float64)
     cloud = np.ascontiguousarray(cloud, np.float64)
-    poses, supports, agreeing = [], [], []
+    poses, supports = [], []
+    best_support, best_agreeing = -1, 0  # of the earliest best-supported iteration so far
     done = 0
     while done < max_iterations:
         n = min(BATCH_ITERATIONS, max_iterations - done)
         p, s, a = ransac_batch(src, dst, cloud, table, done, n, params)
         poses.append(p)
         supports.append(s)
-        agreeing.append(a)
         done += n
-        k = int(np.argmax(np.concatenate(supports)))
-        best_agreeing = int(np.concatenate(agreeing)[k])
+        k = int(np.argmax(s))
+        if s[k] > best_support:
+            best_support, best_agreeing = int(s[k]), int(a[k])
         if best_agreeing > 0 and done >= iterations_needed(best_agreeing / C, CONFIDENCE):
             break
     pose_all = np.concatenate(poses)
@@ -155,9 +155,8 @@ def _refit(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, inlier_m: float) 
 
 
 def _far(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    dt = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
-    cos = np.clip((np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return dt > DISTINCT_M or float(np.degrees(np.arccos(cos))) > DISTINCT_DEG
+    dt, dr = pose_change(T_a, T_b)
+    return dt > DISTINCT_M or dr > DISTINCT_DEG
 
 
 def icp_point_to_plane(points: np.ndarray, T: np.ndarray, tree: cKDTree, map_points: np.ndarray,
@@ -177,16 +176,13 @@ def icp_point_to_plane(points: np.ndarray, T: np.ndarray, tree: cKDTree, map_poi
                 break
             p, q, n = p[ok], map_points[j[ok]], map_normals[j[ok]]
             r = np.einsum("ij,ij->i", p - q, n)  # [K]
-            J = np.concatenate([np.cross(p, n), n], axis=1)  # [K, 6]
+            J = np.concatenate([n, np.cross(p, n)], axis=1)  # [K, 6], xi = (v, omega) as the tracker's
             try:
-                x = np.linalg.solve(J.T @ J, -J.T @ r)
+                xi = np.linalg.solve(J.T @ J, -J.T @ r)
             except np.linalg.LinAlgError:
                 break
-            step = np.eye(4)
-            step[:3, :3] = so3_exp(x[:3])
-            step[:3, 3] = x[3:]
-            T = step @ T
-            if np.linalg.norm(x[:3]) < ICP_CONVERGED_RAD and np.linalg.norm(x[3:]) < ICP_CONVERGED_M:
+            T = apply_update(xi, T)
+            if converged(xi, ICP_CONVERGED_STEP):
                 break
     return T
 

@@ -20,6 +20,7 @@ fraction scaled down when a runner-up that disagrees scores almost as well (an a
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterable, Iterator
 
@@ -33,6 +34,8 @@ from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, Surfe
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
     from atlas_pipeline.sensors.tum import FrameManifest
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["RelocalizationResult", "Relocalizer", "relocalize_frames", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
 
@@ -263,7 +266,10 @@ class Relocalizer:
         hyps: list[tuple[str, np.ndarray]] = [("previous", np.asarray(T, np.float64)) for T in (extra_priors or [])]
         hyps += [("keyframe", T) for T in select_priors(self.priors, [T for _, T in hyps])]
         if self.use_global:
-            hyps += [("global", T) for T in self._global_hypotheses(frame)]
+            try:
+                hyps += [("global", T) for T in self._global_hypotheses(frame)]
+            except RuntimeError as exc:  # Open3D (the features) reports degenerate inputs this way
+                logger.debug("global registration failed: %s", exc)
         # Viewpoints around each prior: the camera swung about the point it looks at (an RGB-D
         # session usually circles what it scans), so a later frame from further round is reachable.
         hyps += [("keyframe", T) for _, P in list(hyps) if _ == "keyframe" for T in orbit_samples(P, frame)]
