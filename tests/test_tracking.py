@@ -272,3 +272,53 @@ def test_a_screening_alignment_renders_the_map_once_a_full_one_again_where_it_mo
             frame, model, start)
         assert Counting.views == (1 if screening else 2)
     assert all(pose_change(r.T_world_cam, m.T_world_cam_gt[3])[0] < 0.02 for r in results.values())
+
+
+# -- frame-to-frame odometry (the prediction along a saved world) -------------------------------
+
+def test_a_frames_own_view_holds_its_surface_on_the_pinhole_grid():
+    """A distorted sensor facing a flat wall with a step: the frame's own view holds the wall's
+    points on the level's pinhole grid (each projects into the pixel it sits in), normals facing
+    the camera, and no normal across the depth jump of the step."""
+    from atlas_pipeline.localization.tracker import frame_view
+    from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+    cam = CameraIntrinsics(160, 120, 131.25, 131.25, 79.5, 59.5, distortion=(0.2, -0.3, 0.001, -0.001, 0.1))
+    tracker = RGBDTracker(cam, load_profile("default").localization, (0.1, 4.0))
+    depth_m = np.full((cam.height, cam.width), 1.5, np.float32)
+    depth_m[:, 100:] = 2.5  # a step back: a depth jump, no surface joins the two
+    level = tracker.model_level
+    view = frame_view(tracker.prepare(None, depth_m), np.eye(4), level)
+    ok = np.isfinite(view.points_cam).all(axis=-1)
+    h, w = ok.shape
+    assert ok.sum() > 0.5 * h * w
+    p, n = view.points_cam[ok], view.normals_cam[ok]
+    assert np.allclose(p[:, 2][p[:, 2] < 2.0], 1.5) and np.allclose(p[:, 2][p[:, 2] > 2.0], 2.5)
+    np.testing.assert_allclose(n, np.tile([0.0, 0.0, -1.0], (len(n), 1)), atol=1e-6)
+    v, u = np.nonzero(ok)
+    np.testing.assert_allclose(view.fx * p[:, 0] / p[:, 2] + view.cx, u, atol=0.5 + 1e-9)
+    np.testing.assert_allclose(view.fy * p[:, 1] / p[:, 2] + view.cy, v, atol=0.5 + 1e-9)
+    step_col = int(round(view.fx * (100 - cam.cx) / cam.fx + view.cx))  # the step, roughly, at this level
+    assert not ok[:, step_col - 1:step_col + 1].any()  # on both sides of the jump: no normal
+    assert np.isnan(view.points_behind_cam).all()
+
+
+def test_odometry_follows_the_camera_from_the_last_frame_and_gives_up_without_overlap(small_manifest):
+    """Frame 4 aligned to frame 3's own surface from frame 3's pose lands near its true pose (a
+    prediction for the map alignment); from a pose that sees nothing of frame 3 it is None."""
+    from atlas_pipeline.localization.tracker import frame_view
+
+    m = small_manifest
+    tracker = RGBDTracker(m.camera, load_profile("default").localization, (0.1, 4.0))
+    frames = [tracker.prepare(read_rgb(m.rgb_path(i), m.camera), read_depth_m(m.depth_path(i), m.camera))
+              for i in (3, 4)]
+    T3, T4 = m.T_world_cam_gt[3], m.T_world_cam_gt[4]
+    start_m, start_deg = pose_change(T3, T4)
+    assert start_m > 0.01  # the camera moved: there is something to follow
+    view = frame_view(frames[0], T3, tracker.model_level)
+    T = tracker.odometry(frames[1], view, T3, reference=(frames[0], T3))
+    moved_m, turned_deg = pose_change(T, T4)
+    assert moved_m < 0.25 * start_m and moved_m < 0.01 and turned_deg < max(0.5, 0.5 * start_deg)
+    away = T3.copy()
+    away[:3, 3] += [0.0, 0.0, -20.0]  # 20 m behind frame 3: none of its surface in front
+    assert tracker.odometry(frames[1], view, away) is None

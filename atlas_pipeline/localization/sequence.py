@@ -10,6 +10,8 @@ Per frame the status is one of:
 
 * ``anchor``: the pose was given (where the session starts);
 * ``tracked``: aligned to the map from the motion-model guess (or, failing that, the last pose);
+  in a saved world the guess is the frame aligned to the previous one (odometry), so a direction
+  the map leaves free follows that frame's surfaces, not a velocity that carries any error on;
   when mapping, a frame the map does not explain is aligned to the previous frame instead (note
   ``frame-to-frame``); it becomes a keyframe only when enough of it is surface the map lacks (a
   pan into unmapped space), never when it sees mapped surface the map disagrees with (drift on a
@@ -63,6 +65,7 @@ from atlas_pipeline.localization.tracker import (
     SurfelCache,
     SurfelModel,
     TrackResult,
+    frame_view,
     pose_change,
     predict_constant_velocity,
 )
@@ -363,6 +366,9 @@ class SequenceTracker:
             prior = None
             if self.hold_to_motion:
                 prior = moved if moved is not None or self.builder is None else guess
+            odo = self._odometry(index, fp, guess, prior)
+            if odo is not None:
+                guess = prior = odo  # odometry runs only where the motion model holds the pose
             # In a saved world (along it, or extending it) the world's own colours are the
             # photometric reference: a keyframe of this session would move with the camera's error.
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
@@ -532,6 +538,25 @@ class SequenceTracker:
             return FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0, note="poor alignment")
         return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, r.inlier_fraction, r.residual_m, 0.0,
                              note="relocalization failed")
+
+    def _odometry(self, index: int, fp, guess: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
+        """Along a saved world (:attr:`hold_to_motion`): frame ``index`` aligned from ``guess`` to
+        the frame before it (either direction) when that one was tracked
+        (:meth:`RGBDTracker.odometry`), as the motion model's prediction; else None.
+
+        Where the map leaves a direction free (a wall whose floor the first visit never saw), the
+        pose there is the prediction's; a velocity taken from the last two such poses would carry
+        any error on and grow it frame by frame. The last frame's own surfaces (that floor) hold
+        the camera relative to it instead, so an error there grows no faster than odometry drifts;
+        ``prior`` (the motion model's prediction) holds what neither frame pins (a bare wall).
+        """
+        if not self.hold_to_motion or self._last_frame is None or self._last is None:
+            return None
+        if abs(index - self._last[0]) != 1 or self._prev is None:  # _prev: the last frame was tracked
+            return None
+        prev, T_prev = self._last_frame
+        reference = self._last_frame if self.cfg.photometric_weight > 0 else None
+        return self.tracker.odometry(fp, frame_view(prev, T_prev, self.tracker.model_level), guess, reference, prior)
 
     def _align_to_last_frame(self, fp, guess: np.ndarray) -> TrackResult | None:
         """Mapping: align to the previous accepted frame's points when the map does not explain the

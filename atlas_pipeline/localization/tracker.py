@@ -386,6 +386,47 @@ def map_reference_image(view: kn.ModelView, appearance: VoxelAppearance, frame: 
 _SURFEL_MEMBERS = {"centres": ("f", 2), "normals": ("f", 2), "radius_m": ("f", 0)}
 
 
+def frame_view(frame: FramePyramid, T_world_cam: np.ndarray, level: int) -> kn.ModelView:
+    """A placed frame's own surface as a model view: its level-``level`` points and normals
+    (from neighbouring pixels), moved onto the level's pinhole grid (a distorted sensor's pixels
+    are not on it) with the nearest point kept per pixel. No surface behind (NaN).
+
+    It is the geometric reference of the frame that follows: surfaces the map lacks (a floor
+    the first visit never saw) still hold the camera relative to the last frame.
+    """
+    camera = frame.camera
+    z = frame.depth[level].astype(np.float64)  # [h, w]
+    h, w = z.shape
+    P = _level_rays(camera, level) * z[..., None]  # [h, w, 3] camera frame
+    # Normals from central differences; a pixel next to a depth jump (an occluding edge) or an
+    # invalid reading has none.
+    n = np.full((h, w, 3), np.nan)
+    dx = P[1:-1, 2:] - P[1:-1, :-2]
+    dy = P[2:, 1:-1] - P[:-2, 1:-1]
+    c = np.cross(dx, dy)
+    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    zc = z[1:-1, 1:-1]
+    nb = np.stack([z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1]])
+    jump = C.pyramid_max_depth_jump_m + C.pyramid_depth_jump_fraction * zc
+    ok = (zc > 0) & (nb > 0).all(axis=0) & (np.abs(nb - zc).max(axis=0) <= 2 * jump) & (norm[..., 0] > 0)
+    c = c / np.where(norm > 0, norm, 1.0)
+    c = np.where((np.einsum("ijk,ijk->ij", c, P[1:-1, 1:-1]) > 0)[..., None], -c, c)  # facing the camera
+    n[1:-1, 1:-1][ok] = c[ok]
+    pts, nrm = P[1:-1, 1:-1][ok], n[1:-1, 1:-1][ok]  # [M, 3]
+    fx, fy, cx, cy = _level_K(camera, level)
+    u = np.rint(fx * pts[:, 0] / pts[:, 2] + cx).astype(np.int64)
+    v = np.rint(fy * pts[:, 1] / pts[:, 2] + cy).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    order = np.argsort(-pts[inside, 2], kind="stable")  # far first: the nearest is written last
+    u, v, pts, nrm = u[inside][order], v[inside][order], pts[inside][order], nrm[inside][order]
+    out_p = np.full((h, w, 3), np.nan)
+    out_n = np.full((h, w, 3), np.nan)
+    out_p[v, u] = pts
+    out_n[v, u] = nrm
+    empty = np.full((h, w, 3), np.nan)
+    return kn.ModelView(out_p, out_n, np.ascontiguousarray(T_world_cam, np.float64), fx, fy, cx, cy, empty, empty)
+
+
 @dataclass
 class SurfelModel:
     """The map as surfels: ``centres [M, 3]``, ``normals [M, 3]``, one disk radius (m)."""
@@ -644,6 +685,39 @@ class RGBDTracker:
         return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points,
                            self.judge(stats.inlier_fraction, stats.rmse_m, stats.agreement), total_it, stats.agreement,
                            overlap, in_front, translation_constraint(H_final))
+
+    def odometry(self, frame: FramePyramid, local_view: kn.ModelView, T_init: np.ndarray,
+                 reference: tuple[FramePyramid, np.ndarray] | None = None,
+                 motion_prior: np.ndarray | None = None) -> np.ndarray | None:
+        """``T_world_cam [4, 4]`` of ``frame`` aligned to the previous frame's own surface
+        (:func:`frame_view`) and, with ``reference`` (that frame and its pose), its intensities:
+        frame-to-frame odometry, coarse levels only (a prediction, not a result). None when the
+        two frames share too little surface. ``motion_prior``: ``[4, 4]`` holds the camera centre
+        where the two frames' surfaces leave it free (:func:`add_motion_prior`), as in :meth:`align`."""
+        cfg = self.cfg
+        T = np.array(T_init, np.float64)
+        fin = cfg.finest_level
+        n_levels = len(cfg.iterations)
+        w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
+        for li, iters in enumerate(cfg.iterations[:-1]):  # the finest level would only polish it
+            level = fin + (n_levels - 1 - li)
+            points = frame.points(level)
+            params = self._params._replace(max_distance_m=self._gate_m(li), photometric_weight=w_photo)
+            ref = self._no_reference if reference is None else self._reference_image(reference[0], reference[1], level)
+            max_step_m = C.max_step_m * 2 ** (level - fin)
+            for _ in range(iters):
+                H, g, stats = kn.normal_equations(points, T, local_view, ref, params)
+                if stats.n_geometric < C.min_geometric_inliers:
+                    return None
+                if motion_prior is not None:
+                    add_motion_prior(H, g, T, motion_prior[:3, 3], C.motion_prior_share)
+                xi = solve_update(H, g, max_step_m, C.max_step_rad)
+                if xi is None:
+                    return None
+                T = apply_update(xi, T)
+                if converged(xi, C.converged_step * C.converged_step_level_factor ** (level - fin)):
+                    break
+        return T
 
     def quality_stats(self, frame: FramePyramid, view: kn.ModelView,
                       T_world_cam: np.ndarray) -> tuple[np.ndarray, kn.Stats]:
