@@ -231,6 +231,9 @@ class LocalizationConfig(Section):
         "tracking in a saved world: intensity against the map's own colours instead of the last keyframe's; 0 = keyframe"))
     motion_model: Literal["constant_velocity", "none"] = Field("constant_velocity", description=(
         "initial guess: constant velocity, or the previous pose"))
+    odometry_prediction: bool = Field(True, description=(
+        "in a saved world, each frame first aligned to the previous frame's own surface: the guess, and the pose "
+        "where the map leaves the camera free"))
     min_fitness: float = Field(0.15, ge=0, le=1, description="share of frame points with a map correspondence; below: lost")
     min_agreement: float = Field(0.6, ge=0, le=1, description="share of the points landing on the map that fit it; below: lost")
     max_residual_m: float = Field(0.02, gt=0, description="RMS point-to-plane residual; above: lost (m)")

@@ -22,7 +22,10 @@ the data folder on first use), and the real TUM frames in ``../shared/data`` spl
 (teddy frames 0-49 / 50-99; fr1 xyz 0-4 / 5-9). ``--pair A B`` adds registered datasets.
 Ground truth only grades. Usage::
 
-    python benchmarks/bench_persistence.py [--quick] [--json out.json] [--pair NAME1 NAME2]
+    python benchmarks/bench_persistence.py [--quick] [--json out.json] [--pair NAME1 NAME2] [--variant KEY=VALUE]
+
+``--variant localization.odometry_prediction=false`` adds a row per pair: the same world, its
+sessions run again with that override (a reference in the same run).
 """
 
 from __future__ import annotations
@@ -187,12 +190,11 @@ def build_first_world(v1, cfg) -> tuple[object, object, dict[str, float]]:
     return slam, world, {"fuse_s": t1 - t0, "slam_s": t2 - t1, "world_s": time.perf_counter() - t2}
 
 
-def run_pair(label: str, v1, v2, cfg) -> dict:
-    from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map
-    from atlas_pipeline.mapping.mapper import extend_world_by_tracking
+def run_pair(label: str, v1, v2, cfg, variants: list[tuple[str, object]]) -> list[dict]:
+    """The pair's row, then one row per variant ``(its label, its config)``: the same world,
+    its sessions (own frames, second visit, extension) run again with the variant's config."""
     from benchmarks.common import grade
 
-    depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
     row: dict = {"pair": label, "visit1_frames": v1.n_frames, "visit2_frames": v2.n_frames}
     slam, world, seconds = build_first_world(v1, cfg)
     row.update({"fuse_s": seconds["fuse_s"], "world_s": seconds["world_s"]})
@@ -201,6 +203,22 @@ def run_pair(label: str, v1, v2, cfg) -> dict:
                 "build_s": sum(seconds.values()), "keyframes": len(slam.keyframe_indices), "gaussians": len(world.field),
                 "loops": None if slam.loop_closure is None else slam.loop_closure.get("n_loops")})
     _progress("build", row)
+    rows = [{**row, **sessions_in_world(slam, world, v1, v2, cfg)}]
+    for variant, vcfg in variants:
+        print(f"  ... with {variant}", flush=True)
+        rows.append({**row, "pair": f"{label}, {variant}", **sessions_in_world(slam, world, v1, v2, vcfg)})
+    return rows
+
+
+def sessions_in_world(slam, world, v1, v2, cfg) -> dict:
+    """Visit 1's own frames, then visit 2, localized in ``world``; visit 2 mapped into it
+    (extension) and localized in the extended world. The row's figures of these steps."""
+    from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map
+    from atlas_pipeline.mapping.mapper import extend_world_by_tracking
+    from benchmarks.common import grade
+
+    depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
+    row: dict = {}
     # Own frames in the world they built.
     own = localize(v1, world, cfg)
     row.update({"own_placed_pct": 100 * _placed(own.status).mean(), "own_ate_m": own.summary.get("ate_rmse_m"),
@@ -252,13 +270,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="two registered datasets of one place")
     ap.add_argument("--no-suite", action="store_true", help="leave out the synthetic suite pair")
     ap.add_argument("--json", type=Path, help="write the rows here")
+    ap.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
+                    help="also run the sessions in the same world with this config override (a row each)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
+    from atlas_pipeline.config import parse_set_overrides
+
     cfg = benchmark_config()
+    variants = [(v, cfg.with_overrides(parse_set_overrides([v], "--variant"))) for v in args.variant]
     rows = []
     for label, v1, v2 in _pairs(args, cfg):
         print(f"running {label} ...", flush=True)
-        rows.append(run_pair(label, v1, v2, cfg))
+        rows.extend(run_pair(label, v1, v2, cfg, variants))
     print(f"\nmachine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores; "
           f"profile default, mapping.pose_source=estimated, no fit")
     print("| pair | frames | SLAM ATE cm | SLAM f/s | build s | keyframes | own placed % | own ATE cm | own f/s "

@@ -550,7 +550,7 @@ class SequenceTracker:
         the camera relative to it instead, so an error there grows no faster than odometry drifts;
         ``prior`` (the motion model's prediction) holds what neither frame pins (a bare wall).
         """
-        if not self.hold_to_motion or self._last_frame is None or self._last is None:
+        if not (self.hold_to_motion and self.cfg.odometry_prediction) or self._last_frame is None or self._last is None:
             return None
         if abs(index - self._last[0]) != 1 or self._prev is None:  # _prev: the last frame was tracked
             return None
