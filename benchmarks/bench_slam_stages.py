@@ -104,7 +104,7 @@ def main() -> None:
         print(f"| {stage} | " + " | ".join(cells) + " |")
     for r in results:
         print(f"{r['frames']} frames: {r['wall_s_profiled']:.1f} s profiled ({r['frames_per_s_profiled']:.1f} frames/s), "
-              f"{r['keyframes']} keyframes, ATE {100 * r['ate_m']:.2f} cm")
+              f"{r['keyframes']} keyframes, ATE " + ("-" if r["ate_m"] is None else f"{100 * r['ate_m']:.2f} cm"))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 
