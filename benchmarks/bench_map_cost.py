@@ -1,13 +1,16 @@
 """Per-frame tracking cost as the map grows: the model view and one frame's alignment, with the
-map culled by chunk (what the tracker does) against the whole map splatted (the reference), in the
-same run, on the same maps and frames.
+map culled by chunk against the whole map splatted (the reference), and culled and clipped to the
+frame's depth range (what the tracker does: ``RGBDTracker.align(within_range=True)``), in the same
+run, on the same maps and frames.
 
 Maps: a floor of ``R`` rooms (4 x 3 m, 2.6 m high, a grid), surfels on the floor, the ceiling and
 every wall at a 4 cm voxel pitch with 3 mm of noise along the normal, as the voxel map makes them.
 The camera stands in the first room, 1.2 m up, and looks across it; the frame is the map's own
 depth at that pose (level 0, 640x480, Kinect-like intrinsics), and the alignment starts 2 cm and
 1 degree away from it. Every figure is the median of ``--repeats`` calls after one warm-up (the
-kernels compiled or loaded from numba's cache). Culled and whole renders are checked identical.
+kernels compiled or loaded from numba's cache). Culled and whole renders are checked identical,
+and so are the poses aligned within range and against the whole view. The tracker's depth range
+is the default profile's (``fusion``).
 
 Run: ``python benchmarks/bench_map_cost.py [--rooms 1 4 16 64] [--repeats 20] [--json out.json]``.
 """
@@ -94,7 +97,8 @@ def measure(n_rooms: int, repeats: int) -> dict:
     radius_m = C.surfel_radius_voxels * VOXEL_M
     culled, whole = SurfelModel(centres, normals, radius_m), WholeMap(centres, normals, radius_m)
     cfg = load_profile("default").localization
-    tracker = RGBDTracker(CAMERA, cfg, (0.1, 8.0))
+    fusion = load_profile("default").fusion
+    tracker = RGBDTracker(CAMERA, cfg, (fusion.min_depth_m, fusion.max_depth_m))
     T = camera_pose()
     pts, _ = whole.render(T, CAMERA, 0)
     depth_m = np.nan_to_num(pts[..., 2], nan=0.0).astype(np.float32)
@@ -105,13 +109,20 @@ def measure(n_rooms: int, repeats: int) -> dict:
     level = tracker.model_level
     a, b = culled.model_view(T, CAMERA, level), whole.model_view(T, CAMERA, level)
     identical = all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a[:4], b[:4]))
+    far_m = tracker.tracking_far_m
+    ranged_pose = tracker.align(frame, culled, T0, within_range=True).T_world_cam
+    aligned = tracker.align(frame, culled, T0).T_world_cam
+    identical = identical and np.array_equal(ranged_pose, aligned)
     row = {"rooms": n_rooms, "surfels": len(centres), "identical": identical}
     for name, model in (("culled", culled), ("whole", whole)):
         row[f"view_ms_{name}"] = 1e3 * median_s(lambda m=model: m.model_view(T, CAMERA, level), repeats)
         row[f"align_ms_{name}"] = 1e3 * median_s(lambda m=model: tracker.align(frame, m, T0), repeats)
-    seen = culled.culling(_level_view(T, CAMERA, level), _splat_params(radius_m))
-    row["looked_at_pct"] = 100.0 * float(seen.chunk_seen[seen.chunk_of].mean()) if len(seen.chunk_of) else 100.0
-    row["align_error_mm"] = 1e3 * float(np.linalg.norm(tracker.align(frame, culled, T0).T_world_cam[:3, 3] - T[:3, 3]))
+    row["view_ms_range"] = 1e3 * median_s(lambda: culled.model_view(T, CAMERA, level, max_depth_m=far_m), repeats)
+    row["align_ms_range"] = 1e3 * median_s(lambda: tracker.align(frame, culled, T0, within_range=True), repeats)
+    for name, far in (("", np.inf), ("_range", far_m)):
+        seen = culled.culling(_level_view(T, CAMERA, level), _splat_params(radius_m, far))
+        row[f"looked_at_pct{name}"] = 100.0 * float(seen.chunk_seen[seen.chunk_of].mean()) if len(seen.chunk_of) else 100.0
+    row["align_error_mm"] = 1e3 * float(np.linalg.norm(ranged_pose[:3, 3] - T[:3, 3]))
     return row
 
 
@@ -122,12 +133,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows here")
     args = ap.parse_args(argv)
     rows = [measure(n, args.repeats) for n in args.rooms]
-    print("| rooms | surfels | looked at % | model view ms culled / whole | align ms culled / whole "
-          "| align error mm | identical |")
+    print("| rooms | surfels | looked at %: culled / within range | model view ms: whole / culled / within range "
+          "| align ms: whole / culled / within range | align error mm | identical |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['rooms']} | {r['surfels']:,} | {r['looked_at_pct']:.1f} | {r['view_ms_culled']:.2f} / "
-              f"{r['view_ms_whole']:.2f} | {r['align_ms_culled']:.1f} / {r['align_ms_whole']:.1f} "
+        print(f"| {r['rooms']} | {r['surfels']:,} | {r['looked_at_pct']:.1f} / {r['looked_at_pct_range']:.1f} "
+              f"| {r['view_ms_whole']:.2f} / {r['view_ms_culled']:.2f} / {r['view_ms_range']:.2f} "
+              f"| {r['align_ms_whole']:.1f} / {r['align_ms_culled']:.1f} / {r['align_ms_range']:.1f} "
               f"| {r['align_error_mm']:.2f} | {r['identical']} |")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))

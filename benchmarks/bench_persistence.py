@@ -12,7 +12,8 @@ For every pair of visits of one place, on the frames as read from disk:
    ground truth: the visit's true pose moved into the world's frame by the rigid alignment of
    visit 1's estimates to its ground truth, and at least half of the frame's points landing on
    the map there), ATE, frames/s, mean seconds per relocalization attempt, the place index's
-   fast one and the full search apart (every attempt timed, failed ones too).
+   fast one and the full search apart (every attempt timed, failed ones too), and the seconds
+   spent indexing world 1's keyframes into the place index (the first attempt waits for it).
 4. **extend**: visit 2 tracked and mapped into world 1 (``atlas-gs build --extend``): placed %,
    ATE (the extension's own poses: a frame placed at a wrong pose maps its surfaces there),
    frames/s; then visit 2 localized in the extended world with no start pose: placed %, ATE.
@@ -123,16 +124,19 @@ def _gt_to_world(slam_poses: np.ndarray, valid: np.ndarray, manifest) -> np.ndar
 
 class _AttemptTimer:
     """Seconds of every relocalization attempt while active, by path: the place index's fast
-    attempt (``fast``) and the full search (``full``), successful or not. Wraps the two
-    :class:`Relocalizer` methods (timing only; results pass through unchanged)."""
+    attempt (``fast``) and the full search (``full``), successful or not; and of indexing each
+    keyframe into the place index (``index``), which the first attempt of a session waits for.
+    Wraps those methods (timing only; results pass through unchanged)."""
 
     def __init__(self):
-        self.seconds: dict[str, list[float]] = {"fast": [], "full": []}
+        self.seconds: dict[str, list[float]] = {"fast": [], "full": [], "index": []}
 
     def __enter__(self):
+        from atlas_pipeline.localization.places import PlaceIndex
         from atlas_pipeline.localization.relocalize import Relocalizer
 
-        self._orig = {"fast": Relocalizer.relocalize_fast, "full": Relocalizer.relocalize}
+        self._orig = {"fast": Relocalizer.relocalize_fast, "full": Relocalizer.relocalize,
+                      "index": PlaceIndex.add_keyframe}
 
         def timed(kind):
             orig = self._orig[kind]
@@ -146,12 +150,15 @@ class _AttemptTimer:
             return run
 
         Relocalizer.relocalize_fast, Relocalizer.relocalize = timed("fast"), timed("full")
+        PlaceIndex.add_keyframe = timed("index")
         return self
 
     def __exit__(self, *exc):
+        from atlas_pipeline.localization.places import PlaceIndex
         from atlas_pipeline.localization.relocalize import Relocalizer
 
         Relocalizer.relocalize_fast, Relocalizer.relocalize = self._orig["fast"], self._orig["full"]
+        PlaceIndex.add_keyframe = self._orig["index"]
 
     def mean_s(self, kind: str) -> float:
         t = self.seconds[kind]
@@ -235,6 +242,7 @@ def sessions_in_world(slam, world, v1, v2, cfg) -> dict:
                 "visit2_frames_per_s": second.summary.get("frames_per_s"),
                 "visit2_reloc_fast_s": attempts.mean_s("fast"), "visit2_reloc_fast_n": len(attempts.seconds["fast"]),
                 "visit2_reloc_full_s": attempts.mean_s("full"), "visit2_reloc_full_n": len(attempts.seconds["full"]),
+                "visit2_index_s": float(np.sum(attempts.seconds["index"])), "visit2_index_n": len(attempts.seconds["index"]),
                 "visit2_outcome": second.summary.get("outcome")})
     if T_align is not None:
         sees = _sees_map(v2, model, T_align, cfg)
@@ -285,10 +293,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nmachine: {platform.processor() or platform.machine()}, {__import__('os').cpu_count()} cores; "
           f"profile default, mapping.pose_source=estimated, no fit")
     print("| pair | frames | SLAM ATE cm | SLAM f/s | build s | keyframes | own placed % | own ATE cm | own f/s "
-          "| visit 2 placed % (of seeing map) | visit 2 ATE cm | visit 2 f/s | reloc s fast (n) / full (n) | extend placed % "
+          "| visit 2 placed % (of seeing map) | visit 2 ATE cm | visit 2 f/s | reloc s fast (n) / full (n) "
+          "| place index s (keyframes) | extend placed % "
           "| extend ATE cm | extend f/s "
           "| in extended placed % | ATE cm |")
-    print("|" + "---|" * 18)
+    print("|" + "---|" * 19)
     for r in rows:
         print(f"| {r['pair']} | {r['visit1_frames']} + {r['visit2_frames']} | {_fmt(r['slam_ate_m'], 100, 2)} "
               f"| {_fmt(r['slam_frames_per_s'])} | {_fmt(r['build_s'])} | {r['keyframes']} "
@@ -296,6 +305,7 @@ def main(argv: list[str] | None = None) -> int:
               f"| {_fmt(r['visit2_placed_pct'])} ({_fmt(r.get('visit2_placed_of_seeing_pct'))} of "
               f"{r.get('visit2_seeing_map', '-')}) | {_fmt(r['visit2_ate_m'], 100, 2)} "
               f"| {_fmt(r['visit2_frames_per_s'])} | {_fmt(r['visit2_reloc_fast_s'], 1, 3)} ({r['visit2_reloc_fast_n']}) / {_fmt(r['visit2_reloc_full_s'], 1, 2)} ({r['visit2_reloc_full_n']}) "
+              f"| {_fmt(r['visit2_index_s'], 1, 2)} ({r['visit2_index_n']}) "
               f"| {_fmt(r['extend_placed_pct'])} | {_fmt(r['extend_ate_m'], 100, 2)} | {_fmt(r['extend_frames_per_s'])} "
               f"| {_fmt(r['extended_placed_pct'])} | {_fmt(r['extended_ate_m'], 100, 2)} |")
     if args.json:

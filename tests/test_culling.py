@@ -126,3 +126,102 @@ def test_surfels_the_view_cannot_see_change_nothing_wherever_they_sit_in_the_map
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(alone, shuffled))
     hit = np.isfinite(alone[0][..., 2])
     assert hit.mean() > 0.5 and np.abs(alone[0][..., 2][hit] - 2.0).max() < 0.02  # the wall, where it is
+
+
+def test_a_far_clip_drops_only_what_lies_beyond_it_and_culls_those_chunks_too():
+    """Surfels farther than ``max_depth_m`` are not drawn; everything nearer renders as before,
+    and chunk culling with the clip stays conservative (the same image as the clipped whole map)."""
+    centres, normals = _map(40_000, seed=5)
+    grid = ChunkGrid.build(centres)
+    far_m = 3.0
+    clipped_params = _splat_params(RADIUS_M, far_m)
+    n_seen, n_seen_clipped = 0, 0
+    for T in _poses(8, seed=6):
+        view = _level_view(T, CAMERA, 1)
+        seen = grid.seen(view, clipped_params)
+        culled = kn.splat_surfels(centres, normals, RADIUS_M, view, clipped_params, True,
+                                  kn.SplatCulling(grid.chunk_of, seen))
+        whole = kn.splat_surfels(centres, normals, RADIUS_M, view, clipped_params, True, kn.NO_CULLING)
+        for a, b in zip(culled, whole):
+            np.testing.assert_array_equal(a, b)
+        unclipped = _splat(centres, normals, view, kn.NO_CULLING)
+        z, z_all = culled[0][..., 2], unclipped[0][..., 2]
+        assert not (z > far_m + RADIUS_M).any()  # nothing drawn beyond the clip (a disk's edge at most)
+        near = np.isfinite(z_all) & (z_all < far_m - 0.5)  # well inside: the same surface, bit for bit
+        np.testing.assert_array_equal(z[near], z_all[near])
+        n_seen += int(grid.seen(view, _splat_params(RADIUS_M)).sum())
+        n_seen_clipped += int(seen.sum())
+    assert n_seen_clipped < 0.8 * n_seen  # the clip also skips whole chunks
+
+
+def test_tracking_within_range_gives_the_same_pose_as_the_whole_view():
+    """A tracking view holds only the map the frame's depth can reach: the correspondences, the
+    pose and the judgement are those of the whole view; only the count of points in front of
+    the unreachable far surfaces goes."""
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.localization.tracker import RGBDTracker
+
+    centres, normals = _map(C.min_surfels_to_cull + 60_000, seed=7)
+    model = SurfelModel(centres, normals, RADIUS_M)
+    tracker = RGBDTracker(CAMERA, load_profile("default").localization, (0.1, 3.0))
+    compared = 0
+    for T in _poses(6, seed=8):
+        pts, _ = model.render(T, CAMERA, 0)
+        depth_m = np.nan_to_num(pts[..., 2], nan=0.0).astype(np.float32)
+        if (depth_m > 0).mean() < 0.3:
+            continue
+        frame = tracker.prepare(None, depth_m)
+        T0 = T.copy()
+        T0[:3, 3] += [0.01, -0.01, 0.01]
+        whole = tracker.align(frame, model, T0)
+        ranged = tracker.align(frame, model, T0, within_range=True)
+        np.testing.assert_array_equal(ranged.T_world_cam, whole.T_world_cam)
+        assert (ranged.inlier_fraction, ranged.agreement, ranged.ok) == (whole.inlier_fraction, whole.agreement, whole.ok)
+        assert ranged.in_front <= whole.in_front
+        compared += 1
+    assert compared >= 3
+
+
+def _dense_room(voxel_m: float, size_m=(4.0, 3.0, 2.6), noise_m: float = 0.003, seed: int = 11):
+    """Surfels at every voxel of a box room's floor, ceiling and walls, as a voxel map makes them
+    (``[n, 3]`` centres and normals)."""
+    rng = np.random.default_rng(seed)
+    centres, normals = [], []
+    for axis in range(3):
+        u_ax, v_ax = [k for k in range(3) if k != axis]
+        a, b = np.meshgrid(np.arange(0.0, size_m[u_ax], voxel_m), np.arange(0.0, size_m[v_ax], voxel_m), indexing="ij")
+        for side in (0.0, size_m[axis]):
+            p = np.zeros((a.size, 3))
+            p[:, u_ax], p[:, v_ax] = a.ravel() + voxel_m / 2, b.ravel() + voxel_m / 2
+            p[:, axis] = side + rng.normal(0.0, noise_m, a.size)
+            n = np.zeros((a.size, 3))
+            n[:, axis] = 1.0
+            centres.append(p)
+            normals.append(n)
+    return np.ascontiguousarray(np.concatenate(centres)), np.ascontiguousarray(np.concatenate(normals))
+
+
+def test_a_coarse_map_keeps_one_surfel_per_cell_and_renders_the_same_layout():
+    from atlas_pipeline.localization.places import depth_layout
+
+    voxel_m = RADIUS_M / C.surfel_radius_voxels
+    centres, normals = _dense_room(voxel_m)
+    model = SurfelModel(centres, normals, RADIUS_M)
+    assert model.coarse(1) is model
+    coarse = model.coarse(2)
+    assert coarse is model.coarse(2)  # made once
+    cells = np.floor(model.centres / (2 * voxel_m)).astype(np.int64)
+    assert len(coarse.centres) == len(np.unique(cells, axis=0)) < len(model.centres) / 2
+    assert coarse.radius_m == 2 * RADIUS_M
+    rng = np.random.default_rng(12)
+    diffs = []
+    for _ in range(6):  # inside the room, looking anywhere
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(rng.normal(size=3) * 1.5)
+        T[:3, 3] = rng.uniform(0.3, 0.7, 3) * [4.0, 3.0, 2.6]
+        a = depth_layout(model.render(T, CAMERA, 2)[0][..., 2])
+        b = depth_layout(coarse.render(T, CAMERA, 2)[0][..., 2])
+        both = np.isfinite(a) & np.isfinite(b)
+        assert (np.isfinite(a) != np.isfinite(b)).mean() < 0.05
+        diffs.append(np.abs(a[both] - b[both]).mean())
+    assert np.median(diffs) < 0.02  # log depth: under 2 % per block

@@ -97,6 +97,8 @@ class SplatParams(NamedTuple):
     noise_a_m: float
     noise_b_per_m: float
     noise_z0_m: float
+    # Far clip: surfels whose centre lies farther along the optical axis are not drawn (inf: none).
+    max_depth_m: float = math.inf
 
 
 class FramePoints(NamedTuple):
@@ -233,7 +235,7 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
     pose = _pose(view.T_world_cam)
     fx, fy, cx, cy, w, h = view.fx, view.fy, view.cx, view.cy, view.width, view.height
     intrinsics = (fx, fy, cx, cy, w, h)
-    limits = (params.min_depth_m, params.max_radius_px, radius_m)
+    limits = (params.min_depth_m, params.max_radius_px, radius_m, params.max_depth_m)
     zbuf = np.full((h, w), np.inf)
     pts = np.full((h, w, 3), np.nan)
     nrm = np.full((h, w, 3), np.nan)
@@ -288,14 +290,14 @@ def _candidates(n, culling):
 def _footprint(pose, xw, yw, zw, nxw, nyw, nzw, intrinsics, limits):
     """One surfel (centre and unit normal, world) in a view: ``(visible, xc, yc, zc, nx, ny, nz,
     n.c, ulo, uhi, vlo, vhi)``, the camera-frame centre, the normal turned to face the camera,
-    and the pixel box of the disk; ``visible`` False when it is behind the near clip or its box
-    misses the image. ``intrinsics`` = (fx, fy, cx, cy, w, h); ``limits`` = (min depth m, max
-    footprint px, disk radius m)."""
+    and the pixel box of the disk; ``visible`` False when it is outside the near and far clips or
+    its box misses the image. ``intrinsics`` = (fx, fy, cx, cy, w, h); ``limits`` = (min depth m,
+    max footprint px, disk radius m, max depth m)."""
     fx, fy, cx, cy, w, h = intrinsics
-    min_depth_m, max_px, radius_m = limits
+    min_depth_m, max_px, radius_m, max_depth_m = limits
     r00, r01, r02, r10, r11, r12, r20, r21, r22, _, _, _ = pose
     xc, yc, zc = _to_camera(pose, xw, yw, zw)
-    if zc < min_depth_m:
+    if zc < min_depth_m or zc > max_depth_m:
         return False, xc, yc, zc, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0
     nx = r00 * nxw + r10 * nyw + r20 * nzw
     ny = r01 * nxw + r11 * nyw + r21 * nzw

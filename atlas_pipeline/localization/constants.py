@@ -78,6 +78,11 @@ class TrackerConstants:
     model_level_offset: int = 1
     # ... unless that view would be narrower than this (pixels): small images keep the finest level.
     model_min_width_px: int = 160
+    # A tracking view (RGBDTracker.align with within_range) leaves out surfels farther than the
+    # frame's depth range plus the association gate plus this margin, m: no frame point can match
+    # them, even after the solve moved the pose, and in a map of many rooms they are most of what
+    # the frustum holds (the rooms behind the walls).
+    view_far_margin_m: float = 1.0
     # After the solve, the quality is graded against a view re-rendered at the final pose when the
     # pose moved this far from where the view was made (relocalization): the view's edges and
     # occlusions no longer match the frame beyond that.

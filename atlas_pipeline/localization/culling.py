@@ -3,9 +3,9 @@ what the camera sees rather than the size of the map.
 
 The map's bounding box is cut into cubes (chunks); a chunk is *unseen* by a view when all eight
 corners of its cube lie on the outer side of one of the view's culling planes: behind the near
-clip, or beyond an image edge widened by the largest disk footprint. Every surfel the splat kernel
-would draw passes its own tests against the same planes, so the test is conservative: culling
-changes which surfels the kernel looks at, never the image it renders.
+clip, beyond the far clip, or beyond an image edge widened by the largest disk footprint. Every
+surfel the splat kernel would draw passes its own tests against the same planes, so the test is
+conservative: culling changes which surfels the kernel looks at, never the image it renders.
 """
 
 from __future__ import annotations
@@ -65,8 +65,8 @@ class ChunkGrid(NamedTuple):
 
     def seen(self, view: PinholeView, params: SplatParams) -> np.ndarray:
         """``[n_chunks]`` bool: the chunks ``view`` may see; False only where no surfel of the
-        chunk can be drawn (its centre behind ``params.min_depth_m``, or its disk of at most
-        ``params.max_radius_px`` off the image)."""
+        chunk can be drawn (its centre nearer than ``params.min_depth_m`` or farther than
+        ``params.max_depth_m``, or its disk of at most ``params.max_radius_px`` off the image)."""
         mask = np.zeros(self.n_chunks, bool)
         if len(self.occupied) == 0:
             return mask
@@ -79,6 +79,7 @@ class ChunkGrid(NamedTuple):
         # u = fx x / z + cx: u + reach < 0 <=> fx x + (cx + reach) z < 0 for z > 0, and the
         # same for the other edges; the near plane catches z <= 0.
         off = ((z < min_depth_m - MARGIN_M).all(axis=1)
+               | (z > params.max_depth_m + MARGIN_M).all(axis=1)
                | (fx * x + (cx + reach) * z < 0.0).all(axis=1)
                | (fx * x + (cx - reach - (width - 1)) * z > 0.0).all(axis=1)
                | (fy * y + (cy + reach) * z < 0.0).all(axis=1)

@@ -372,12 +372,12 @@ class SequenceTracker:
             # In a saved world (along it, or extending it) the world's own colours are the
             # photometric reference: a keyframe of this session would move with the camera's error.
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
-                                     motion_prior=prior, map_reference=self.hold_to_motion)
+                                     motion_prior=prior, map_reference=self.hold_to_motion, within_range=True)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the
                 # hybrid solve), held to the same prior: it must not slide where the first could not.
                 res2 = self.tracker.align(fp, self.model, self._last[1], None, surface_behind=behind,
-                                          motion_prior=prior)
+                                          motion_prior=prior, within_range=True)
                 if _better(res2, res):
                     res = res2
             f2f = None

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -93,12 +94,13 @@ def _level_view(T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -
                           camera.width // s, camera.height // s)
 
 
-def _splat_params(radius_m: float) -> kn.SplatParams:
-    """Splatting limits for disks of ``radius_m`` (``surfel_radius_voxels`` voxels)."""
+def _splat_params(radius_m: float, max_depth_m: float = math.inf) -> kn.SplatParams:
+    """Splatting limits for disks of ``radius_m`` (``surfel_radius_voxels`` voxels), drawn up to
+    ``max_depth_m`` from the camera (inf: all)."""
     voxel_m = radius_m / C.surfel_radius_voxels
     return kn.SplatParams(C.splat_max_radius_px, C.min_view_depth_m, C.splat_min_incidence_cos, C.splat_blend_sigmas,
                           C.splat_blend_floor_voxels * voxel_m, C.depth_noise_a_m, C.depth_noise_b_per_m,
-                          C.depth_noise_z0_m)
+                          C.depth_noise_z0_m, max_depth_m)
 
 
 def _dist5(camera: CameraIntrinsics) -> np.ndarray:
@@ -441,6 +443,8 @@ class SurfelModel:
     builder: object = field(default=None, repr=False, compare=False)
     # The surfels binned by chunk of space, for culling what a view cannot see (made when first needed).
     _chunks: ChunkGrid | None = field(default=None, init=False, repr=False, compare=False)
+    # Coarser copies of the map (:meth:`coarse`), by cell size in voxels (made when first needed).
+    _coarse: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def appearance(self) -> VoxelAppearance | None:
         """The map's voxel grey (:class:`VoxelAppearance`), or None when nothing is known of it."""
@@ -519,10 +523,28 @@ class SurfelModel:
         return self._splat(T_world_cam, camera, level, False)[:2]
 
     def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
-               surface_behind: bool) -> tuple[np.ndarray, ...]:
-        view, params = _level_view(T_world_cam, camera, level), _splat_params(self.radius_m)
+               surface_behind: bool, max_depth_m: float = math.inf) -> tuple[np.ndarray, ...]:
+        view, params = _level_view(T_world_cam, camera, level), _splat_params(self.radius_m, max_depth_m)
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, view, params, surface_behind,
                                 self.culling(view, params))
+
+    def coarse(self, cell_voxels: int) -> "SurfelModel":
+        """The map with one surfel per cube of ``cell_voxels`` voxels a side (the first of the
+        cube's surfels in map order, so the result is deterministic), disks that many times wider:
+        for low-resolution views, whose pixels are wider than a voxel at most depths, at a fraction
+        of the splatting cost. ``cell_voxels`` 1 is the map itself."""
+        if cell_voxels <= 1 or len(self.centres) == 0:
+            return self
+        if cell_voxels not in self._coarse:
+            voxel_m = self.radius_m / C.surfel_radius_voxels
+            ijk = np.floor(self.centres / (voxel_m * cell_voxels)).astype(np.int64)
+            ijk -= ijk.min(axis=0)
+            dims = ijk.max(axis=0) + 1
+            key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+            first = np.sort(np.unique(key, return_index=True)[1])
+            self._coarse[cell_voxels] = SurfelModel(self.centres[first], self.normals[first],
+                                                    self.radius_m * cell_voxels)
+        return self._coarse[cell_voxels]
 
     def culling(self, view: kn.PinholeView, params: kn.SplatParams) -> kn.SplatCulling:
         """What the splat of ``view`` may skip: the chunks of the map no surfel of which it can draw
@@ -534,11 +556,12 @@ class SurfelModel:
         return kn.SplatCulling(self._chunks.chunk_of, self._chunks.seen(view, params))
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
-                   surface_behind: bool = False) -> kn.ModelView:
+                   surface_behind: bool = False, max_depth_m: float = math.inf) -> kn.ModelView:
         """The map splatted at ``T_world_cam`` as the tracker's geometric reference: the first surface
-        along each ray, with ``surface_behind`` the next one behind it too (else NaN), and the view's pinhole."""
+        along each ray, with ``surface_behind`` the next one behind it too (else NaN), and the view's
+        pinhole; surfels farther than ``max_depth_m`` from the camera are left out."""
         T = np.ascontiguousarray(T_world_cam, np.float64)
-        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level, surface_behind)
+        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level, surface_behind, max_depth_m)
         return kn.ModelView(pts, nrm, T, *_level_K(camera, level), pts_behind, nrm_behind)
 
 
@@ -604,6 +627,12 @@ class RGBDTracker:
         empty = np.zeros((1, 1), np.float32)
         self._no_reference = kn.ReferenceImage(empty, empty, empty, empty, np.eye(4), 1.0, 1.0, 0.0, 0.0, self.dist)
 
+    @property
+    def tracking_far_m(self) -> float:
+        """Far clip of a tracking view, m: the frame's farthest depth, the widest association gate
+        and ``view_far_margin_m``; no frame point can match a surface beyond it."""
+        return self.depth_range_m[1] + self.cfg.max_correspondence_m + C.view_far_margin_m
+
     def prepare(self, rgb: np.ndarray | None, depth_m: np.ndarray) -> FramePyramid:
         return FramePyramid.build(rgb, depth_m, self.camera, self.n_levels, self.depth_range_m)
 
@@ -624,7 +653,8 @@ class RGBDTracker:
 
     def align(self, frame: FramePyramid, model: SurfelModel, T_init: np.ndarray,
               reference: tuple[FramePyramid, np.ndarray] | None = None, surface_behind: bool = False,
-              motion_prior: np.ndarray | None = None, map_reference: bool = False) -> TrackResult:
+              motion_prior: np.ndarray | None = None, map_reference: bool = False,
+              within_range: bool = False) -> TrackResult:
         """Coarse-to-fine Gauss-Newton from ``T_init``; ``reference`` = (frame, its pose) for the
         photometric term (None: geometry only). ``surface_behind``: points behind the map's first
         surface may match the one behind it (:class:`kn.ModelView`): for tracking along a fixed
@@ -633,13 +663,17 @@ class RGBDTracker:
         the camera centre where the surfaces leave it free (:func:`add_motion_prior`).
         ``map_reference``: the photometric reference is the map's own colours rendered at the
         initial pose (:func:`map_reference_image`, weight ``map_photometric_weight``) instead
-        of ``reference``, where the map has colours."""
+        of ``reference``, where the map has colours. ``within_range``: the model view holds only
+        the map within reach of the frame's depth range (:meth:`tracking_far_m`), which changes
+        no correspondence, only the count of points in front of the map beyond it
+        (:attr:`TrackResult.in_front`): for tracking, not for checks that weigh free space."""
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
         kernel_threads()  # this process's share of the cores now (a pool of runs may change it)
+        far_m = self.tracking_far_m if within_range else math.inf
         # One model view per frame, at the initial pose; every level projects into it.
-        view = model.model_view(T, self.camera, self.model_level, surface_behind)
+        view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m)
         w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
         map_ref = None
         if map_reference and cfg.map_photometric_weight > 0 and model.appearance() is not None:
@@ -677,7 +711,7 @@ class RGBDTracker:
         # the pose travelled far from the one the model view was made at (relocalization).
         moved_m, turned_deg = pose_change(view.T_world_cam, T)
         if not self.screening and (moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg):
-            view = model.model_view(T, self.camera, self.model_level, surface_behind)
+            view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m)
         H_final, stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
         overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0
