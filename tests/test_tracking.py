@@ -303,6 +303,63 @@ def test_a_frames_own_view_holds_its_surface_on_the_pinhole_grid():
     assert np.isnan(view.points_behind_cam).all()
 
 
+def _frame_view_reference(depth_m: np.ndarray, rays: np.ndarray, K4: tuple, jump_m: float, jump_fraction: float):
+    """The frame's own surface (``kn.frame_surface``) in array operations, step by step: the
+    reference the kernel must match bit for bit."""
+    z = depth_m.astype(np.float64)
+    h, w = z.shape
+    P = rays * z[..., None]  # [h, w, 3]
+    n = np.full((h, w, 3), np.nan)
+    dx = P[1:-1, 2:] - P[1:-1, :-2]
+    dy = P[2:, 1:-1] - P[:-2, 1:-1]
+    c = np.cross(dx, dy)
+    norm = np.linalg.norm(c, axis=-1, keepdims=True)
+    zc = z[1:-1, 1:-1]
+    nb = np.stack([z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1]])
+    jump = jump_m + jump_fraction * zc
+    ok = (zc > 0) & (nb > 0).all(axis=0) & (np.abs(nb - zc).max(axis=0) <= 2 * jump) & (norm[..., 0] > 0)
+    c = c / np.where(norm > 0, norm, 1.0)
+    c = np.where((np.einsum("ijk,ijk->ij", c, P[1:-1, 1:-1]) > 0)[..., None], -c, c)
+    n[1:-1, 1:-1][ok] = c[ok]
+    pts, nrm = P[1:-1, 1:-1][ok], n[1:-1, 1:-1][ok]
+    fx, fy, cx, cy = K4
+    u = np.rint(fx * pts[:, 0] / pts[:, 2] + cx).astype(np.int64)
+    v = np.rint(fy * pts[:, 1] / pts[:, 2] + cy).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    order = np.argsort(-pts[inside, 2], kind="stable")  # far first: the nearest is written last
+    u, v, pts, nrm = u[inside][order], v[inside][order], pts[inside][order], nrm[inside][order]
+    out_p, out_n = np.full((h, w, 3), np.nan), np.full((h, w, 3), np.nan)
+    out_p[v, u] = pts
+    out_n[v, u] = nrm
+    return out_p, out_n
+
+
+@pytest.mark.parametrize("distortion", [(), (0.2, -0.3, 0.001, -0.001, 0.1)])
+def test_the_frame_surface_kernel_matches_its_reference_bit_for_bit(distortion):
+    """Noisy depth with holes, steps and a slanted floor, on a distorted sensor (pixels moving onto
+    the pinhole grid collide there) and an undistorted one."""
+    from atlas_pipeline.localization import _kernels as kn
+    from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as TC
+    from atlas_pipeline.localization.tracker import _level_K, _level_rays
+    from atlas_pipeline.sensors.camera import CameraIntrinsics
+
+    cam = CameraIntrinsics(160, 120, 131.25, 131.25, 79.5, 59.5, distortion=distortion)
+    rng = np.random.default_rng(5)
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    depth_m = 1.2 + 0.01 * v + rng.normal(0.0, 0.004, v.shape)
+    depth_m[:, 90:] += 0.8  # a step back
+    depth_m[rng.random(v.shape) < 0.05] = 0.0  # holes
+    depth_m[40:60, 20:40] = np.round(depth_m[40:60, 20:40], 1)  # ties
+    for level in (0, 1):
+        z = np.ascontiguousarray(depth_m[::2 ** level, ::2 ** level], np.float64)
+        rays, K4 = _level_rays(cam, level), _level_K(cam, level)
+        got = kn.frame_surface(z, rays, K4, TC.pyramid_max_depth_jump_m, TC.pyramid_depth_jump_fraction)
+        want = _frame_view_reference(z, rays, K4, TC.pyramid_max_depth_jump_m, TC.pyramid_depth_jump_fraction)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        assert np.isfinite(got[0]).all(axis=-1).mean() > 0.5
+
+
 def test_odometry_follows_the_camera_from_the_last_frame_and_gives_up_without_overlap(small_manifest):
     """Frame 4 aligned to frame 3's own surface from frame 3's pose lands near its true pose (a
     prediction for the map alignment); from a pose that sees nothing of frame 3 it is None."""

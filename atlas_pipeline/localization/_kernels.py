@@ -451,6 +451,59 @@ def _blend_band(hit_z, hit_k, j0, cam, params):
     return zsum / count, nx / nn, ny / nn, nz / nn, nxt
 
 
+@njit(cache=True)
+def frame_surface(depth_m, rays, intrinsics, jump_m, jump_fraction):
+    """A frame's own surface as a model view (``tracker.frame_view``): the points ``rays * depth``
+    with normals from central differences, moved onto the pinhole grid, the nearest kept per pixel.
+
+    Args:
+        depth_m: ``[h, w]`` float64 (0 = none); rays: ``[h, w, 3]`` float64 undistorted, z = 1;
+        intrinsics: (fx, fy, cx, cy) of the grid; jump_m, jump_fraction: a neighbour further
+            than ``2 (jump_m + jump_fraction z)`` from the pixel's depth is across an occluding edge.
+    Returns:
+        ``(points_cam [h, w, 3], normals_cam [h, w, 3])`` float64, NaN where nothing lands; the
+        normals face the camera. Border pixels, pixels by an edge or an invalid reading have none.
+    """
+    h, w = depth_m.shape
+    fx, fy, cx, cy = intrinsics
+    out_p = np.full((h, w, 3), np.nan)
+    out_n = np.full((h, w, 3), np.nan)
+    zbuf = np.full((h, w), np.inf)
+    for i in range(1, h - 1):
+        for j in range(1, w - 1):
+            zc = depth_m[i, j]
+            zr, zl, zd, zu = depth_m[i, j + 1], depth_m[i, j - 1], depth_m[i + 1, j], depth_m[i - 1, j]
+            if not (zc > 0.0 and zr > 0.0 and zl > 0.0 and zd > 0.0 and zu > 0.0):
+                continue
+            jump = 2.0 * (jump_m + jump_fraction * zc)
+            if max(abs(zr - zc), abs(zl - zc), abs(zd - zc), abs(zu - zc)) > jump:
+                continue
+            dx0 = rays[i, j + 1, 0] * zr - rays[i, j - 1, 0] * zl
+            dx1 = rays[i, j + 1, 1] * zr - rays[i, j - 1, 1] * zl
+            dx2 = rays[i, j + 1, 2] * zr - rays[i, j - 1, 2] * zl
+            dy0 = rays[i + 1, j, 0] * zd - rays[i - 1, j, 0] * zu
+            dy1 = rays[i + 1, j, 1] * zd - rays[i - 1, j, 1] * zu
+            dy2 = rays[i + 1, j, 2] * zd - rays[i - 1, j, 2] * zu
+            n0 = dx1 * dy2 - dx2 * dy1
+            n1 = dx2 * dy0 - dx0 * dy2
+            n2 = dx0 * dy1 - dx1 * dy0
+            norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            if not norm > 0.0:
+                continue
+            n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
+            px, py, pz = rays[i, j, 0] * zc, rays[i, j, 1] * zc, rays[i, j, 2] * zc
+            if n0 * px + n1 * py + n2 * pz > 0.0:  # face the camera
+                n0, n1, n2 = -n0, -n1, -n2
+            u = int(np.rint(fx * px / pz + cx))
+            v = int(np.rint(fy * py / pz + cy))
+            if u < 0 or u >= w or v < 0 or v >= h or pz > zbuf[v, u]:
+                continue  # ties: the later pixel wins
+            zbuf[v, u] = pz
+            out_p[v, u, 0], out_p[v, u, 1], out_p[v, u, 2] = px, py, pz
+            out_n[v, u, 0], out_n[v, u, 1], out_n[v, u, 2] = n0, n1, n2
+    return out_p, out_n
+
+
 # ---- small helpers --------------------------------------------------------------------------------
 
 

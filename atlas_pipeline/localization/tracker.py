@@ -397,34 +397,11 @@ def frame_view(frame: FramePyramid, T_world_cam: np.ndarray, level: int) -> kn.M
     the first visit never saw) still hold the camera relative to the last frame.
     """
     camera = frame.camera
-    z = frame.depth[level].astype(np.float64)  # [h, w]
+    z = np.ascontiguousarray(frame.depth[level], np.float64)  # [h, w]
     h, w = z.shape
-    P = _level_rays(camera, level) * z[..., None]  # [h, w, 3] camera frame
-    # Normals from central differences; a pixel next to a depth jump (an occluding edge) or an
-    # invalid reading has none.
-    n = np.full((h, w, 3), np.nan)
-    dx = P[1:-1, 2:] - P[1:-1, :-2]
-    dy = P[2:, 1:-1] - P[:-2, 1:-1]
-    c = np.cross(dx, dy)
-    norm = np.linalg.norm(c, axis=-1, keepdims=True)
-    zc = z[1:-1, 1:-1]
-    nb = np.stack([z[1:-1, 2:], z[1:-1, :-2], z[2:, 1:-1], z[:-2, 1:-1]])
-    jump = C.pyramid_max_depth_jump_m + C.pyramid_depth_jump_fraction * zc
-    ok = (zc > 0) & (nb > 0).all(axis=0) & (np.abs(nb - zc).max(axis=0) <= 2 * jump) & (norm[..., 0] > 0)
-    c = c / np.where(norm > 0, norm, 1.0)
-    c = np.where((np.einsum("ijk,ijk->ij", c, P[1:-1, 1:-1]) > 0)[..., None], -c, c)  # facing the camera
-    n[1:-1, 1:-1][ok] = c[ok]
-    pts, nrm = P[1:-1, 1:-1][ok], n[1:-1, 1:-1][ok]  # [M, 3]
     fx, fy, cx, cy = _level_K(camera, level)
-    u = np.rint(fx * pts[:, 0] / pts[:, 2] + cx).astype(np.int64)
-    v = np.rint(fy * pts[:, 1] / pts[:, 2] + cy).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    order = np.argsort(-pts[inside, 2], kind="stable")  # far first: the nearest is written last
-    u, v, pts, nrm = u[inside][order], v[inside][order], pts[inside][order], nrm[inside][order]
-    out_p = np.full((h, w, 3), np.nan)
-    out_n = np.full((h, w, 3), np.nan)
-    out_p[v, u] = pts
-    out_n[v, u] = nrm
+    out_p, out_n = kn.frame_surface(z, _level_rays(camera, level), (fx, fy, cx, cy), C.pyramid_max_depth_jump_m,
+                                    C.pyramid_depth_jump_fraction)
     empty = np.full((h, w, 3), np.nan)
     return kn.ModelView(out_p, out_n, np.ascontiguousarray(T_world_cam, np.float64), fx, fy, cx, cy, empty, empty)
 
