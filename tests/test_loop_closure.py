@@ -122,6 +122,58 @@ def test_a_return_along_another_path_is_a_covisible_candidate_and_a_hidden_wall_
     assert covisible_candidates(points, depth, T, 11, view, min_gap=12).tolist() == []
 
 
+def _corridor_depth(T_world_cam: np.ndarray, view: CovisibilityView, shape: tuple[int, int], half_width_m: float,
+                    max_depth_m: float) -> np.ndarray:
+    """Subsampled depth of the two walls ``y = +-half_width_m`` of an endless corridor (0 beyond
+    ``max_depth_m``)."""
+    h, w = shape
+    v, u = np.mgrid[0:h, 0:w] * view.stride
+    rays = np.stack([(u - view.cx) / view.fx, (v - view.cy) / view.fy, np.ones(u.shape)], -1) @ T_world_cam[:3, :3].T
+    y0, dy = T_world_cam[1, 3], rays[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(dy > 0, (half_width_m - y0) / dy, np.where(dy < 0, (-half_width_m - y0) / dy, np.inf))
+    return np.where(t <= max_depth_m, t, 0.0)  # t is the depth: the rays have z = 1 in the camera
+
+
+def test_covisible_candidates_look_only_at_keyframes_within_reach_and_find_the_same_ones():
+    """Keyframes along a 20 m corridor and back, facing anywhere: the search with each keyframe's
+    reach finds exactly what the search over every older keyframe finds."""
+    from atlas_pipeline.mapping.loop_closure import keyframe_reach_m
+
+    view = CovisibilityView(fx=50.0, fy=50.0, cx=40.0, cy=30.0, stride=4, depth_tolerance_m=0.1)
+    shape = (15, 20)
+    rng = np.random.default_rng(4)
+    T = []
+    for k in range(40):
+        Tk = np.eye(4)
+        yaw = rng.uniform(-np.pi, np.pi)
+        # camera z (forward) in the floor plane at the yaw, y (down) along -z of the world
+        Tk[:3, :3] = np.array([[-np.sin(yaw), 0.0, np.cos(yaw)], [np.cos(yaw), 0.0, np.sin(yaw)], [0.0, -1.0, 0.0]])
+        Tk[:3, 3] = [k if k < 20 else 39 - k, rng.uniform(-0.5, 0.5), 0.0]  # there and back, 1 m apart
+        T.append(Tk)
+    T = np.stack(T)
+    depth = np.stack([_corridor_depth(Tk, view, shape, 1.5, 4.0) for Tk in T])
+    points = []
+    for Tk, d in zip(T, depth):
+        v, u = np.nonzero(d > 0)
+        z = d[v, u]
+        p_cam = np.stack([(u * view.stride - view.cx) / view.fx * z, (v * view.stride - view.cy) / view.fy * z, z], 1)
+        points.append(p_cam @ Tk[:3, :3].T + Tk[:3, 3])
+    reach = keyframe_reach_m(points, T)
+    bound_m = 4.1 * np.sqrt(1 + (40 / 50) ** 2 + (30 / 50) ** 2)  # farthest depth + tolerance, widest ray
+    assert np.all(reach <= bound_m)
+    apart_m = np.linalg.norm(T[:, None, :3, 3] - T[None, :, :3, 3], axis=-1)
+    assert (apart_m > 2 * bound_m).mean() > 0.15  # many pairs are out of each other's reach
+    everything = np.full(len(T), np.inf)  # no keyframe left out
+    found = 0
+    for i in range(len(T)):
+        got = covisible_candidates(points, depth, T, i, view, min_gap=3, min_overlap=0.05, reach_m=reach)
+        want = covisible_candidates(points, depth, T, i, view, min_gap=3, min_overlap=0.05, reach_m=everything)
+        assert got.tolist() == want.tolist()
+        found += len(got)
+    assert found > 20  # the corridor is revisited: there is something to find
+
+
 def _point_to_plane_translation_block(normals: np.ndarray) -> np.ndarray:
     """``[6, 6]`` normal matrix of point-to-plane residuals with these unit normals (translation part)."""
     H = np.zeros((6, 6))

@@ -49,7 +49,7 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 logger = logging.getLogger(__name__)
 
 __all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "loop_candidates", "covisible_candidates",
-           "keyframe_thumbnail", "appearance_candidates",
+           "keyframe_reach_m", "keyframe_thumbnail", "appearance_candidates",
            "relative_poses", "optimize_pose_graph",
            "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
            "merge_keyframes_at_poses"]
@@ -206,10 +206,28 @@ def loop_candidates(T_kf: np.ndarray, i: int, min_gap: int, radius_m: float,
     return idx[np.argsort(d[idx], kind="stable")][:max_candidates].astype(np.int64)
 
 
+def keyframe_reach_m(points_world: list[np.ndarray], T_kf: np.ndarray) -> np.ndarray:
+    """``[K]`` the distance (m) from each keyframe's camera centre to the farthest of its points
+    ``points_world[k] [M_k, 3]`` (0 for none): a ball no surface it saw lies outside."""
+    return np.array([float(np.linalg.norm(p - T[:3, 3], axis=1).max()) if len(p) else 0.0
+                     for p, T in zip(points_world, T_kf)])
+
+
+def _view_reach_m(depth_small: np.ndarray, view: "CovisibilityView") -> float:
+    """How far (m) from the camera a point can lie and still land on a pixel of ``depth_small``
+    ``[h, w]`` within ``view.depth_tolerance_m`` of its depth: the farthest depth plus the
+    tolerance, along the widest ray of the image."""
+    h, w = depth_small.shape
+    tan_x = max(view.cx, w * view.stride - view.cx) / view.fx
+    tan_y = max(view.cy, h * view.stride - view.cy) / view.fy
+    return (float(depth_small.max()) + view.depth_tolerance_m) * float(np.sqrt(1.0 + tan_x ** 2 + tan_y ** 2))
+
+
 def covisible_candidates(points_world: list[np.ndarray], depth_small: np.ndarray, T_kf: np.ndarray, i: int,
                          view: "CovisibilityView", min_gap: int,
                          min_overlap: float = LOOP_MIN_COVISIBLE_SHARE,
-                         max_candidates: int = LOOP_MAX_CANDIDATES) -> np.ndarray:
+                         max_candidates: int = LOOP_MAX_CANDIDATES,
+                         reach_m: np.ndarray | None = None) -> np.ndarray:
     """Earlier keyframes that saw the surfaces keyframe ``i`` sees, most overlap first.
 
     A camera coming back to a mapped place seldom stands where it stood (and keyframes chosen by
@@ -225,6 +243,10 @@ def covisible_candidates(points_world: list[np.ndarray], depth_small: np.ndarray
         T_kf: ``[K, 4, 4]`` keyframe poses (camera-to-world).
         i: the keyframe searching; candidates are ``j <= i - min_gap``.
         min_overlap: least share of ``i``'s depth pixels that ``j``'s points land on.
+        reach_m: ``[K]`` :func:`keyframe_reach_m` of ``points_world`` (None: computed here). A
+            keyframe whose ball of points cannot meet the ball ``i``'s depth reaches is not
+            looked at: on a long path the search costs the keyframes nearby, not all of them,
+            and the result is the same.
     Returns:
         ``[C]`` int64 keyframe positions, ``C <= max_candidates``.
     """
@@ -236,9 +258,13 @@ def covisible_candidates(points_world: list[np.ndarray], depth_small: np.ndarray
     n_valid = int(np.count_nonzero(depth_i > 0))
     if n_valid == 0:
         return np.zeros(0, np.int64)
+    if reach_m is None:
+        reach_m = keyframe_reach_m(points_world[: last + 1], T_kf[: last + 1])
+    apart_m = np.linalg.norm(T_kf[: last + 1, :3, 3] - T_kf[i, :3, 3], axis=1)
+    near = np.flatnonzero(apart_m <= reach_m[: last + 1] + _view_reach_m(depth_i, view))
     T_cam_world = invert_se3(T_kf[i])
     share = np.zeros(last + 1)
-    for j in range(last + 1):
+    for j in near:
         p = points_world[j] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
         p = p[p[:, 2] > 0]
         u = np.floor((view.fx * p[:, 0] / p[:, 2] + view.cx) / view.stride).astype(np.int64)
@@ -473,6 +499,7 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
     points_world = [p.astype(np.float64) @ T[:3, :3].T + T[:3, 3] for p, T in zip(pts, T_kf)]
     cam = manifest.camera
     view = CovisibilityView(cam.fx, cam.fy, cam.cx, cam.cy, COVISIBILITY_STRIDE, COVISIBILITY_DEPTH_TOLERANCE_M)
+    reach_m = keyframe_reach_m(points_world, T_kf)
 
     def local_model(j: int, i: int):
         lo, hi = max(0, j - LOOP_MODEL_WINDOW), min(i - min_gap, j + LOOP_MODEL_WINDOW)
@@ -489,7 +516,7 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
             continue
         near = loop_candidates(T_kf, i, min_gap, radius_m)
         alike = appearance_candidates(thumbs, i, min_gap)
-        covisible = covisible_candidates(points_world, depth_small, T_kf, i, view, min_gap)
+        covisible = covisible_candidates(points_world, depth_small, T_kf, i, view, min_gap, reach_m=reach_m)
         cands = np.array(list(dict.fromkeys([*near.tolist(), *covisible.tolist(), *alike.tolist()])), np.int64)
         if len(cands) == 0:
             continue
