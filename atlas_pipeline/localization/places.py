@@ -41,10 +41,10 @@ VIEW_YAWS_DEG = (0.0, -15.0, 15.0, -30.0, 30.0, -45.0, 45.0)
 # Layouts are made at the coarsest pyramid level at least this wide (80 px at 640 or 320).
 DESCRIPTOR_MIN_WIDTH_PX = 64
 # Entries are rendered from the map with one surfel per cube of this many voxels a side
-# (SurfelModel.coarse): a layout's blocks average tens of pixels each, so the coarser surfaces
-# change a block's log depth by well under a percent, and the index of a large world builds in
-# half the time.
-LAYOUT_CELL_VOXELS = 2
+# (SurfelModel.coarse; 1: the map itself). 2 changes a block's log depth by well under a percent
+# and halves the index's build, but a second visit extended into a world with it has not yet been
+# shown as good as with the full map (docs/benchmarks.md), so the full map is used.
+LAYOUT_CELL_VOXELS = 1
 # Fewer blocks valid in both than this share of the grid: no comparison (blank wall, no depth).
 MIN_COMMON_BLOCKS_FRACTION = 0.3
 # Weight of the share of blocks valid in only one layout, against the RMS log-depth difference:
