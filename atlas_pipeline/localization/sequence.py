@@ -371,10 +371,8 @@ class SequenceTracker:
                 guess = prior = odo  # odometry runs only where the motion model holds the pose
             # In a saved world (along it, or extending it) the world's own colours are the
             # photometric reference: a keyframe of this session would move with the camera's error.
-            # The map's colours as the reference fit the exposure over the whole view: no far clip then.
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
-                                     motion_prior=prior, map_reference=self.hold_to_motion,
-                                     within_range=not self.hold_to_motion)
+                                     motion_prior=prior, map_reference=self.hold_to_motion, within_range=True)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the
                 # hybrid solve), held to the same prior: it must not slide where the first could not.

@@ -643,17 +643,20 @@ class RGBDTracker:
         of ``reference``, where the map has colours. ``within_range``: the model view holds only
         the map within reach of the frame's depth range (:meth:`tracking_far_m`), which changes
         no correspondence, only the count of points in front of the map beyond it
-        (:attr:`TrackResult.in_front`): for tracking, not for checks that weigh free space."""
+        (:attr:`TrackResult.in_front`): for tracking, not for checks that weigh free space.
+        Ignored where the map's colours are the reference (their exposure fit spans the view)."""
         cfg = self.cfg
         T = np.array(T_init, np.float64)
         fin = cfg.finest_level
         kernel_threads()  # this process's share of the cores now (a pool of runs may change it)
-        far_m = self.tracking_far_m if within_range else math.inf
+        map_colours = map_reference and cfg.map_photometric_weight > 0 and model.appearance() is not None
+        # The map's colours fit the exposure over every pixel of the view: the far ones stay in.
+        far_m = self.tracking_far_m if within_range and not map_colours else math.inf
         # One model view per frame, at the initial pose; every level projects into it.
         view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m)
         w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
         map_ref = None
-        if map_reference and cfg.map_photometric_weight > 0 and model.appearance() is not None:
+        if map_colours:
             map_ref = map_reference_image(view, model.appearance(), frame, self.model_level)
             if map_ref is not None:
                 w_photo = cfg.map_photometric_weight * C.photometric_scale
