@@ -78,10 +78,44 @@ def test_a_chunk_is_seen_when_one_surfel_of_it_lands_just_inside_the_image_edge(
     assert seen[grid.chunk_of].tolist() == [True, False, False]
 
 
-def test_a_huge_map_gets_coarser_chunks_not_millions_of_them():
-    centres = np.array([[0.0, 0.0, 0.0], [5000.0, 3000.0, 40.0]])
-    grid = ChunkGrid.build(centres, max_chunks=4096)
-    assert grid.n_chunks <= 4096 and len(grid.occupied) == 2
+def test_only_occupied_chunks_are_indexed_and_a_long_map_gets_coarser_ones():
+    far_apart = ChunkGrid.build(np.array([[0.0, 0.0, 0.0], [5000.0, 3000.0, 40.0]]))
+    assert far_apart.n_chunks == 2 and far_apart.chunk_of.tolist() == [0, 1]
+    corridor = np.stack([np.arange(0.0, 200.0, 0.25), np.zeros(800), np.zeros(800)], 1)  # 200 m
+    grid = ChunkGrid.build(corridor, max_chunks=64)
+    assert 32 < grid.n_chunks <= 64  # 4 m chunks: the first doubling that fits
+    lo, hi = grid.corners_w.min(axis=1), grid.corners_w.max(axis=1)  # [O, 3] each
+    inside = (corridor >= lo[grid.chunk_of]) & (corridor <= hi[grid.chunk_of])
+    assert inside.all()  # every surfel lies in its chunk's cube
+
+
+def test_a_growing_map_keeps_its_chunks_and_culls_as_a_fresh_grid_does():
+    """The surfel cache numbers the chunks of what each keyframe adds and keeps the rest: the
+    chunks it gives the model hold the same surfels as a grid built from the whole map."""
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+    from atlas_pipeline.localization.tracker import SurfelCache
+
+    centres, _ = _map(60_000, seed=9)
+    builder = VoxelGaussianBuilder(0.04)
+    cache = SurfelCache(builder)
+    order = np.argsort(centres[:, 0], kind="stable")  # a camera moving along x: the map grows
+    for part in np.array_split(order, 6):
+        builder.integrate(centres[part], np.zeros((len(part), 3)))
+        model = cache.model()
+    fresh = ChunkGrid.build(model.centres)
+    kept = model._chunks
+    assert kept is not None and len(kept.chunk_of) == len(model)
+    # the same partition of the surfels into chunks, under other numbers
+    pairs = np.unique(np.stack([kept.chunk_of, fresh.chunk_of], 1), axis=0)
+    assert len(pairs) == fresh.n_chunks == len(np.unique(kept.chunk_of))
+    params = _splat_params(model.radius_m)
+    for T in _poses(6, seed=10):
+        view = _level_view(T, CAMERA, 1)
+        culled = kn.splat_surfels(model.centres, model.normals, model.radius_m, view, params, False,
+                                  kn.SplatCulling(kept.chunk_of, kept.seen(view, params)))
+        whole = kn.splat_surfels(model.centres, model.normals, model.radius_m, view, params, False, kn.NO_CULLING)
+        for a, b in zip(culled, whole):
+            np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("n", [0, 1])

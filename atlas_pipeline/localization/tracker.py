@@ -45,7 +45,7 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad, so3_exp, so3
 from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization import _voxel_hash
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
-from atlas_pipeline.localization.culling import ChunkGrid
+from atlas_pipeline.localization.culling import CHUNK_M, MAX_CHUNKS, ChunkGrid, ChunkIndex
 from atlas_pipeline.perception.rgbd import _undistort_normalized
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -209,6 +209,9 @@ class SurfelCache:
         self._version: int | None = None
         self._ids = self._centres = self._normals = self._support = None
         self._model: SurfelModel | None = None
+        # The chunk of every voxel's surfel (culling), kept along with the surfels.
+        self._chunks: ChunkIndex | None = None
+        self._chunk_of: np.ndarray | None = None  # [N] int32
 
     def model(self) -> "SurfelModel":
         from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels_subset
@@ -221,6 +224,7 @@ class SurfelCache:
         n = len(ids)
         if n == 0:
             centres, normals, support = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+            self._chunks, chunk_of = ChunkIndex(), np.zeros(0, np.int32)
         else:
             stats = (ids, unpack_voxel_ids(ids), np.ascontiguousarray(b.count, np.float64),
                      np.ascontiguousarray(b.sum_xyz, np.float64), np.ascontiguousarray(b.sum_sq, np.float64),
@@ -233,17 +237,31 @@ class SurfelCache:
                 centres = np.insert(self._centres, at, 0.0, axis=0)
                 normals = np.insert(self._normals, at, 0.0, axis=0)
                 support = np.insert(self._support, at, 0, axis=0)
+                chunk_of = np.insert(self._chunk_of, at, 0)
                 redo = _near(ids, np.ascontiguousarray(b.last_touched_ids, np.uint64))
                 sub = np.flatnonzero(redo).astype(np.int64)
                 centres[sub], normals[sub], support[sub] = neighbourhood_surfels_subset(*stats, sub)
+                chunk_of[sub] = self._chunks.chunks_of(_as_stored(centres[sub]))
             else:
                 centres, normals, support = neighbourhood_surfels_subset(*stats, np.arange(n, dtype=np.int64))
+                chunk_of = None
+            if chunk_of is None or len(self._chunks) > MAX_CHUNKS:
+                self._chunks = ChunkIndex(CHUNK_M if chunk_of is None else 2.0 * self._chunks.chunk_m)
+                chunk_of = self._chunks.chunks_of(_as_stored(centres))
         self._ids, self._centres, self._normals, self._support = ids, centres, normals, support
+        self._chunk_of = chunk_of
         self._version = b.version
         keep = (np.asarray(b.count) >= self.min_points) & (support >= self.min_support)
         self._model = SurfelModel(np.ascontiguousarray(centres[keep]), np.ascontiguousarray(normals[keep]),
                                   C.surfel_radius_voxels * b.voxel_size_m, builder=b)
+        self._model._chunks = self._chunks.grid(chunk_of[keep])
         return self._model
+
+
+def _as_stored(centres: np.ndarray) -> np.ndarray:
+    """``centres [K, 3]`` rounded as :class:`SurfelModel` keeps them (float32), so their chunks are
+    those of the model's centres."""
+    return np.asarray(centres, np.float32).astype(np.float64)
 
 
 def _near(ids: np.ndarray, touched: np.ndarray) -> np.ndarray:
