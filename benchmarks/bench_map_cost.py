@@ -12,6 +12,15 @@ kernels compiled or loaded from numba's cache). Culled and whole renders are che
 and so are the poses aligned within range and against the whole view. The tracker's depth range
 is the default profile's (``fusion``).
 
+Keyframe integration on the same maps: the map's surfels are integrated into a voxel map (the
+tracker's ``VoxelGaussianBuilder`` and ``SurfelCache``), then ``KEYFRAMES`` keyframes seen from the
+first room, the camera turning ``KEYFRAME_YAW_DEG`` further each time, are integrated as SLAM
+integrates them (the frame's points at the default fusion stride, the voxel statistics merged,
+the surfel map brought up to date, the model's chunks binned); the median over the keyframes,
+after one warm-up. The reference in the same run is the surfel map made again from the whole
+voxel map (``SurfelModel.from_builder``, its chunks binned), what a keyframe would cost if the
+surfel map were not kept incrementally.
+
 Run: ``python benchmarks/bench_map_cost.py [--rooms 1 4 16 64] [--repeats 20] [--json out.json]``.
 """
 
@@ -40,6 +49,8 @@ VOXEL_M = 0.04
 NOISE_M = 0.003
 START_OFFSET_M = 0.02
 START_OFFSET_DEG = 1.0
+KEYFRAMES = 6
+KEYFRAME_YAW_DEG = 4.0
 
 
 class WholeMap(SurfelModel):
@@ -92,6 +103,51 @@ def median_s(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
+def keyframe_ms(centres: np.ndarray, camera_poses: list[np.ndarray], whole: SurfelModel) -> dict[str, float]:
+    """Median milliseconds per keyframe integrated into the voxel map of ``centres [N, 3]``:
+    ``integrate`` (the frame's points merged into the voxel statistics), ``surfels`` (the surfel
+    map and its chunks brought up to date) and ``rebuilt`` (the reference: the surfel map and its
+    chunks made again from the whole voxel map). The first of ``camera_poses`` is the warm-up."""
+    from atlas_pipeline.gaussian_world.builder import VoxelGaussianBuilder
+    from atlas_pipeline.perception.rgbd import backproject
+    from atlas_pipeline.localization.tracker import SurfelCache
+
+    fusion = load_profile("default").fusion
+    builder = VoxelGaussianBuilder(VOXEL_M)
+    builder.integrate(centres, np.zeros((len(centres), 3)))
+    cache = SurfelCache(builder)
+    cache.model()
+    integrate, surfels = [], []
+    for T in camera_poses:
+        pts, _ = whole.render(T, CAMERA, 0)
+        depth_m = np.nan_to_num(pts[..., 2], nan=0.0).astype(np.float32)
+        t0 = time.perf_counter()
+        pc, _ = backproject(depth_m, None, CAMERA, fusion.stride, fusion.min_depth_m, fusion.max_depth_m)
+        builder.integrate(pc.astype(np.float64) @ T[:3, :3].T + T[:3, 3], np.full((len(pc), 3), 128.0))
+        t1 = time.perf_counter()
+        model = cache.model()
+        model.culling(_level_view(T, CAMERA, 1), _splat_params(model.radius_m))
+        integrate.append(t1 - t0)
+        surfels.append(time.perf_counter() - t1)
+
+    def rebuilt() -> None:
+        model = SurfelModel.from_builder(builder)
+        model.culling(_level_view(camera_poses[0], CAMERA, 1), _splat_params(model.radius_m))
+
+    return {"integrate": 1e3 * float(np.median(integrate[1:])), "surfels": 1e3 * float(np.median(surfels[1:])),
+            "rebuilt": 1e3 * median_s(rebuilt, 3)}
+
+
+def turning(T: np.ndarray, n: int, step_deg: float) -> list[np.ndarray]:
+    """``n`` poses at ``T``'s position, turned ``step_deg`` further about the world z axis each."""
+    out = []
+    for k in range(n):
+        Tk = T.copy()
+        Tk[:3, :3] = so3_exp(np.radians([0.0, 0.0, k * step_deg])) @ T[:3, :3]
+        out.append(Tk)
+    return out
+
+
 def measure(n_rooms: int, repeats: int) -> dict:
     centres, normals = rooms_map(n_rooms)
     radius_m = C.surfel_radius_voxels * VOXEL_M
@@ -123,6 +179,8 @@ def measure(n_rooms: int, repeats: int) -> dict:
         seen = culled.culling(_level_view(T, CAMERA, level), _splat_params(radius_m, far))
         row[f"looked_at_pct{name}"] = 100.0 * float(seen.chunk_seen[seen.chunk_of].mean()) if len(seen.chunk_of) else 100.0
     row["align_error_mm"] = 1e3 * float(np.linalg.norm(ranged_pose[:3, 3] - T[:3, 3]))
+    row.update({f"keyframe_ms_{k}": v for k, v in keyframe_ms(
+        centres, turning(T, KEYFRAMES + 1, KEYFRAME_YAW_DEG), whole).items()})
     return row
 
 
@@ -134,12 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = [measure(n, args.repeats) for n in args.rooms]
     print("| rooms | surfels | looked at %: culled / within range | model view ms: whole / culled / within range "
-          "| align ms: whole / culled / within range | align error mm | identical |")
-    print("|---|---|---|---|---|---|---|")
+          "| align ms: whole / culled / within range | keyframe ms: surfel map rebuilt / kept up to date "
+          "| align error mm | identical |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['rooms']} | {r['surfels']:,} | {r['looked_at_pct']:.1f} / {r['looked_at_pct_range']:.1f} "
               f"| {r['view_ms_whole']:.2f} / {r['view_ms_culled']:.2f} / {r['view_ms_range']:.2f} "
               f"| {r['align_ms_whole']:.1f} / {r['align_ms_culled']:.1f} / {r['align_ms_range']:.1f} "
+              f"| {r['keyframe_ms_integrate']:.0f} + {r['keyframe_ms_rebuilt']:.0f} / {r['keyframe_ms_surfels']:.0f} "
               f"| {r['align_error_mm']:.2f} | {r['identical']} |")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))

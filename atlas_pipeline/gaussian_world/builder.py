@@ -188,17 +188,19 @@ class VoxelGaussianBuilder:
 
         Both id sets are sorted, so the merge is a search of ``uk`` in ``ids`` and an insertion of
         the new ones (O(N + M log N)), not a sort of both."""
+        from atlas_pipeline.gaussian_world._voxel_kernels import insert_rows
+
         n_old = len(self.ids)
         pos = np.searchsorted(self.ids, uk)
         exists = np.zeros(len(uk), bool)
         if n_old:
             exists = self.ids[np.minimum(pos, n_old - 1)] == uk
         at = pos[~exists]  # where each new id goes in the old order (before the voxel there)
-        all_ids = np.insert(self.ids, at, uk[~exists])
+        all_ids = insert_rows(self.ids, at, uk[~exists])
         new_idx = np.searchsorted(all_ids, uk)
 
         def merged(old: np.ndarray, new: np.ndarray) -> np.ndarray:
-            out = np.insert(old, at, 0, axis=0)  # the new voxels start from zero sums
+            out = insert_rows(old, at, 0)  # the new voxels start from zero sums
             out[new_idx] += new.astype(old.dtype)
             return out
 

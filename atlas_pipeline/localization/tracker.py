@@ -214,7 +214,7 @@ class SurfelCache:
         self._chunk_of: np.ndarray | None = None  # [N] int32
 
     def model(self) -> "SurfelModel":
-        from atlas_pipeline.gaussian_world._voxel_kernels import neighbourhood_surfels_subset
+        from atlas_pipeline.gaussian_world._voxel_kernels import insert_rows, neighbourhood_surfels_subset
         from atlas_pipeline.gaussian_world.builder import _BITS, _OFFSET, unpack_voxel_ids
 
         b = self.builder
@@ -226,24 +226,25 @@ class SurfelCache:
             centres, normals, support = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
             self._chunks, chunk_of = ChunkIndex(), np.zeros(0, np.int32)
         else:
-            stats = (ids, unpack_voxel_ids(ids), np.ascontiguousarray(b.count, np.float64),
-                     np.ascontiguousarray(b.sum_xyz, np.float64), np.ascontiguousarray(b.sum_sq, np.float64),
-                     _OFFSET, _BITS)
+            count = np.ascontiguousarray(b.count, np.float64)
+            sums = (np.ascontiguousarray(b.sum_xyz, np.float64), np.ascontiguousarray(b.sum_sq, np.float64), _OFFSET, _BITS)
             if self._ids is not None and self._version is not None and b.version == self._version + 1:
                 # The last merge inserted new voxels among the old ones (numpy.insert positions):
                 # the old surfels move along the same way. Redone: the voxels near the merge (the
                 # touched ones and their neighbours), the new ones among them.
                 at = b.last_inserted_at
-                centres = np.insert(self._centres, at, 0.0, axis=0)
-                normals = np.insert(self._normals, at, 0.0, axis=0)
-                support = np.insert(self._support, at, 0, axis=0)
-                chunk_of = np.insert(self._chunk_of, at, 0)
+                centres = insert_rows(self._centres, at, 0.0)
+                normals = insert_rows(self._normals, at, 0.0)
+                support = insert_rows(self._support, at, 0)
+                chunk_of = insert_rows(self._chunk_of, at, 0)
                 redo = _near(ids, np.ascontiguousarray(b.last_touched_ids, np.uint64))
                 sub = np.flatnonzero(redo).astype(np.int64)
-                centres[sub], normals[sub], support[sub] = neighbourhood_surfels_subset(*stats, sub)
+                centres[sub], normals[sub], support[sub] = neighbourhood_surfels_subset(
+                    ids, unpack_voxel_ids(ids[sub]), count, *sums, sub)
                 chunk_of[sub] = self._chunks.chunks_of(_as_stored(centres[sub]))
             else:
-                centres, normals, support = neighbourhood_surfels_subset(*stats, np.arange(n, dtype=np.int64))
+                centres, normals, support = neighbourhood_surfels_subset(
+                    ids, unpack_voxel_ids(ids), count, *sums, np.arange(n, dtype=np.int64))
                 chunk_of = None
             if chunk_of is None or len(self._chunks) > MAX_CHUNKS:
                 self._chunks = ChunkIndex(CHUNK_M if chunk_of is None else 2.0 * self._chunks.chunk_m)
