@@ -216,7 +216,9 @@ class Relocalizer:
             return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "none", 0)
         screened: list[tuple[float, str, TrackResult]] = []
         for src, T in hyps:
-            r = self._coarse.align(frame, self.model, T, None)
+            # The screening score weighs no free space: the map beyond the frame's reach is left out
+            # of the view (the same pose and score, a view of what the sensor reaches).
+            r = self._coarse.align(frame, self.model, T, None, within_range=True)
             if np.all(np.isfinite(r.T_world_cam)):
                 screened.append((geometric_score(r), src, r))
         screened.sort(key=lambda x: -x[0])
