@@ -42,8 +42,8 @@ VIEW_YAWS_DEG = (0.0, -15.0, 15.0, -30.0, 30.0, -45.0, 45.0)
 DESCRIPTOR_MIN_WIDTH_PX = 64
 # Entries are rendered from the map with one surfel per cube of this many voxels a side
 # (SurfelModel.coarse; 1: the map itself). 2 changes a block's log depth by well under a percent
-# and halves the index's build; the full map stays until a whole persistence run with 2 confirms
-# every session it serves (docs/benchmarks.md).
+# and halves the index's build, but the candidates it ranks first differ, and on the suite a
+# second visit localized in the world it extended placed fewer frames with it (docs/benchmarks.md).
 LAYOUT_CELL_VOXELS = 1
 # Fewer blocks valid in both than this share of the grid: no comparison (blank wall, no depth).
 MIN_COMMON_BLOCKS_FRACTION = 0.3
