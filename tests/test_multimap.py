@@ -77,12 +77,10 @@ class _Failures:
             state.current = index
             return real_process(tracker, index, *a, **k)
 
-        def align(tracker, frame, model, T_init, reference=None, surface_behind=False, motion_prior=None, map_reference=False,
-                  within_range=False):
+        def align(tracker, frame, model, T_init, *args, **kwargs):
             if state.current in state.window:
                 return TrackResult(np.asarray(T_init, np.float64), 0.0, float("nan"), 0, False)
-            return real_align(tracker, frame, model, T_init, reference, surface_behind, motion_prior,
-                              within_range=within_range)
+            return real_align(tracker, frame, model, T_init, *args, **kwargs)
 
         def relocalize(reloc, frame, extra=()):
             if state.current in state.window:

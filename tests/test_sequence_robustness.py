@@ -10,8 +10,7 @@ from atlas_pipeline.localization.relocalize import RelocalizationResult
 from atlas_pipeline.localization.tracker import TrackResult
 
 
-def _failing_align(frame, model, T_init, reference=None, surface_behind=False, motion_prior=None, map_reference=False,
-                   within_range=False):
+def _failing_align(frame, model, T_init, *args, **kwargs):
     return TrackResult(np.asarray(T_init, np.float64), 0.0, float("nan"), 0, False)
 
 
@@ -53,12 +52,11 @@ def test_mapping_tracks_frame_to_frame_where_the_map_ends(small_manifest, monkey
     real_align = st.tracker.align
     to_map = {"n": 0}
 
-    def align(frame, model, T_init, reference=None, surface_behind=False, motion_prior=None, map_reference=False,
-              within_range=False):
+    def align(frame, model, T_init, *args, **kwargs):
         if model is st.model:  # the map: pretend it does not cover the frame
             to_map["n"] += 1
             return _failing_align(frame, model, T_init)
-        return real_align(frame, model, T_init, reference, surface_behind, motion_prior)
+        return real_align(frame, model, T_init, *args, **kwargs)
 
     monkeypatch.setattr(st.tracker, "align", align)
     monkeypatch.setattr(st, "_new_surface", lambda fp, T: new_surface)
