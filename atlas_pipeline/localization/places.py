@@ -40,11 +40,6 @@ MIN_BLOCK_VALID_FRACTION = 0.5
 VIEW_YAWS_DEG = (0.0, -15.0, 15.0, -30.0, 30.0, -45.0, 45.0)
 # Layouts are made at the coarsest pyramid level at least this wide (80 px at 640 or 320).
 DESCRIPTOR_MIN_WIDTH_PX = 64
-# Entries are rendered from the map with one surfel per cube of this many voxels a side
-# (SurfelModel.coarse; 1: the map itself). 2 changes a block's log depth by well under a percent
-# and halves the index's build, but the candidates it ranks first differ, and on the suite a
-# second visit localized in the world it extended placed fewer frames with it (docs/benchmarks.md).
-LAYOUT_CELL_VOXELS = 1
 # Fewer blocks valid in both than this share of the grid: no comparison (blank wall, no depth).
 MIN_COMMON_BLOCKS_FRACTION = 0.3
 # Weight of the share of blocks valid in only one layout, against the RMS log-depth difference:
@@ -118,10 +113,12 @@ class PlaceIndex:
 
     def add_keyframe(self, model, T_world_cam: np.ndarray, keyframe: int) -> None:
         """Index the map ``model`` as seen from ``T_world_cam`` and its turned views."""
-        coarse = model.coarse(LAYOUT_CELL_VOXELS)
+        # The whole map, as far as it reaches: a coarser map or one clipped to the sensor's reach
+        # renders faster but reorders the candidates, and on the suite both made a second visit's
+        # extension worse (docs/benchmarks.md).
         for yaw in VIEW_YAWS_DEG:
             T = _turned(T_world_cam, yaw)
-            pts, _ = coarse.render(T, self.camera, self.level)
+            pts, _ = model.render(T, self.camera, self.level)
             code = depth_layout(pts[..., 2])
             if np.isfinite(code).sum() < MIN_COMMON_BLOCKS_FRACTION * code.size:
                 continue  # nothing to recognise (looking into empty space)

@@ -439,8 +439,6 @@ class SurfelModel:
     builder: object = field(default=None, repr=False, compare=False)
     # The surfels binned by chunk of space, for culling what a view cannot see (made when first needed).
     _chunks: ChunkGrid | None = field(default=None, init=False, repr=False, compare=False)
-    # Coarser copies of the map (:meth:`coarse`), by cell size in voxels (made when first needed).
-    _coarse: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def appearance(self) -> VoxelAppearance | None:
         """The map's voxel grey (:class:`VoxelAppearance`), or None when nothing is known of it."""
@@ -523,24 +521,6 @@ class SurfelModel:
         view, params = _level_view(T_world_cam, camera, level), _splat_params(self.radius_m, max_depth_m)
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, view, params, surface_behind,
                                 self.culling(view, params))
-
-    def coarse(self, cell_voxels: int) -> "SurfelModel":
-        """The map with one surfel per cube of ``cell_voxels`` voxels a side (the first of the
-        cube's surfels in map order, so the result is deterministic), disks that many times wider:
-        for low-resolution views, whose pixels are wider than a voxel at most depths, at a fraction
-        of the splatting cost. ``cell_voxels`` 1 is the map itself."""
-        if cell_voxels <= 1 or len(self.centres) == 0:
-            return self
-        if cell_voxels not in self._coarse:
-            voxel_m = self.radius_m / C.surfel_radius_voxels
-            ijk = np.floor(self.centres / (voxel_m * cell_voxels)).astype(np.int64)
-            ijk -= ijk.min(axis=0)
-            dims = ijk.max(axis=0) + 1
-            key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-            first = np.sort(np.unique(key, return_index=True)[1])
-            self._coarse[cell_voxels] = SurfelModel(self.centres[first], self.normals[first],
-                                                    self.radius_m * cell_voxels)
-        return self._coarse[cell_voxels]
 
     def culling(self, view: kn.PinholeView, params: kn.SplatParams) -> kn.SplatCulling:
         """What the splat of ``view`` may skip: the chunks of the map no surfel of which it can draw
