@@ -64,7 +64,13 @@ from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
 from atlas_pipeline.io_utils import discard_dir
-from atlas_pipeline.localization.localizer import LocalizationReport, localize, localize_visit, tracking_map
+from atlas_pipeline.localization.localizer import (
+    LocalizationReport,
+    localize,
+    localize_visit,
+    tracking_map,
+    world_place_index,
+)
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_world_with_visit, select_keyframes_stage
 from atlas_pipeline.memory_estimate import check_memory, shape_of_manifest
@@ -332,8 +338,10 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                 parent=None,  # the pipeline builds every partition's world from scratch
             )
             meta = bundle_metadata(context.partition_key, context.partition_key, gaussian_world, raw_dataset, cfg, info)
+            model = tracking_map(gaussian_world)
+            places = world_place_index(model, gaussian_world, raw_dataset.camera, cfg.localization)
             out = versioned(context, WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions,
-                                                         tracking_map(gaussian_world)),
+                                                         model, places),
                              {"n_gaussians": len(gaussian_world.field), "map_id": gaussian_world.map_id,
                               "upstream_data_versions": MetadataValue.json(
                                   {a: u["data_version"] for a, u in upstream.items()})})
@@ -380,7 +388,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                                   **lin, parent=parent)
             meta = bundle_metadata(name, name, world, raw_dataset, cfg, info)
             s = report.summary
-            out = versioned(context, WorldBundleArtifact(world.field, meta, report, table, tracking_map(world)), {
+            model = tracking_map(world)
+            places = world_place_index(model, world, raw_dataset.camera, cfg.localization)
+            out = versioned(context, WorldBundleArtifact(world.field, meta, report, table, model, places), {
                 "extends": first, "parent_map_id": first_visit_world.map_id, "map_id": world.map_id,
                 "n_gaussians": len(world.field), "n_new_keyframes": int(n_new),
                 "n_tracked": s["n_tracked"], "n_lost": s["n_lost"], "n_relocalized": s.get("n_relocalized", 0),

@@ -60,16 +60,16 @@ def main(argv: list[str] | None = None) -> int:
     v1, v2 = load_dataset(reg[args.pair[0]], cfg), load_dataset(reg[args.pair[1]], cfg)
     v2 = _slice(v2, 0, min(args.frames, v2.n_frames), args.pair[1])
     depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
-    slam, world, _ = build_first_world(v1, cfg)
+    slam, world, places, _ = build_first_world(v1, cfg)  # places: the index its bundle would store
     T_align = _gt_to_world(slam.T_world_cam, slam.valid, v1)
     if T_align is None:
         raise SystemExit(f"{args.pair[0]}: too few ground-truth poses to move visit 2 into the world's frame")
     truth = T_align @ v2.T_world_cam_gt  # [N, 4, 4]
     _, ext_poses, ext_status = extend_world_by_tracking(world, v2, cfg.mapping, cfg.localization, depth_range,
-                                                        cfg.fusion.stride)
+                                                        cfg.fusion.stride, places=places)
     model = tracking_map(world)
     loc = localize_sequence(v2, model, cfg.localization, None, map_id=world.map_id, depth_range_m=depth_range,
-                            prior_poses=world.T_world_cam_keyframes)
+                            prior_poses=world.T_world_cam_keyframes, places=places)
 
     def error_cm(poses: np.ndarray, status: list[str]) -> np.ndarray:
         e = 100 * np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)

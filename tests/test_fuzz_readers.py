@@ -367,6 +367,7 @@ def build_targets(root: Path) -> dict[str, FuzzTarget]:
     """Create valid seed files under ``root`` and return the 13 fuzz targets by name."""
     from atlas_pipeline.gaussian_world.builder import GaussianWorld
     from atlas_pipeline.gaussian_world.field import GaussianField
+    from atlas_pipeline.localization.places import PlaceIndex
     from atlas_pipeline.localization.tracker import SurfelModel
     from atlas_pipeline.mapping.keyframes import KeyframeSet
     from atlas_pipeline.perception.rgbd import FusedFrames
@@ -452,6 +453,12 @@ def build_targets(root: Path) -> dict[str, FuzzTarget]:
     surf_seed = surfels.save(tmp / "surfels.npz").read_bytes()
     add("surfels_npz", [FuzzFile("surfels.npz", [surf_seed], "npz", magic=npz_magic)],
         lambda d: lambda: SurfelModel.load(d / "surfels.npz"))
+    places = PlaceIndex(None, 2, "0" * 64)
+    places._codes = [np.full(192, 0.5, np.float32), np.full(192, np.nan, np.float32)]
+    places._poses, places._keyframe = [np.eye(4), np.eye(4)], [0, 1]
+    places_seed = places.save(tmp / "places.npz").read_bytes()
+    add("places_npz", [FuzzFile("places.npz", [places_seed], "npz", magic=npz_magic)],
+        lambda d: lambda: PlaceIndex.load(d / "places.npz", None))
 
     n_frames = 4
     T = np.tile(np.eye(4), (n_frames, 1, 1))
@@ -550,8 +557,8 @@ def targets(tmp_path_factory) -> dict[str, FuzzTarget]:
         return build_targets(tmp_path_factory.mktemp("fuzz"))
 
 
-TARGET_NAMES = ["ply", "atlasgs", "tum_list", "tum_groundtruth", "tum_sequence", "npz", "surfels_npz", "world_npz",
-                "keyframes_npz", "fused_npz", "bundle_metadata", "bundle_load", "registry_yaml", "profile_yaml",
+TARGET_NAMES = ["ply", "atlasgs", "tum_list", "tum_groundtruth", "tum_sequence", "npz", "surfels_npz", "places_npz",
+                "world_npz", "keyframes_npz", "fused_npz", "bundle_metadata", "bundle_load", "registry_yaml", "profile_yaml",
                 "7scenes_poses", "replica_traj", "scannet_text", "ros1_bag"]
 
 

@@ -209,7 +209,7 @@ def test_a_process_killed_between_the_renames_leaves_a_whole_folder(tmp_path):
 # ---- 3. verified bundles -------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["gaussians.ply", "gaussians.bin", "surfels.npz", "world.npz"])
+@pytest.mark.parametrize("name", ["gaussians.ply", "gaussians.bin", "surfels.npz", "places.npz", "world.npz"])
 def test_a_flipped_byte_is_reported_never_laundered(isolated, world, name, caplog):
     path = world / name
     data = bytearray(path.read_bytes())

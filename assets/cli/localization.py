@@ -42,7 +42,8 @@ def cmd_relocalize(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frame {bad[0]} is outside 0..{manifest.n_frames - 1}")
     model = bundle.tracking_model(tracking_voxel_m(bundle, cfg))
     rows = []
-    for i, r in relocalize_frames(manifest, model, bundle_keyframe_poses(bundle.metadata), cfg, frames):
+    for i, r in relocalize_frames(manifest, model, bundle_keyframe_poses(bundle.metadata), cfg, frames,
+                                  places=bundle.stored_places(manifest.camera)):
         row: dict[str, Any] = {"frame": i, "timestamp_s": float(manifest.timestamps_s[i]), "ok": bool(r.ok),
                                "confidence": round(r.confidence, 4), "source": r.source,
                                "inlier_fraction": round(r.inlier_fraction, 4)}

@@ -46,7 +46,8 @@ from atlas_pipeline.localization.sequence import (
     FrameEstimate,
     SequenceTracker,
 )
-from atlas_pipeline.localization.tracker import SurfelModel
+from atlas_pipeline.localization.places import PlaceIndex, place_index
+from atlas_pipeline.localization.tracker import SurfelModel, pyramid_levels
 from atlas_pipeline.perception.rgbd import read_ahead
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.tum import FrameManifest
@@ -273,6 +274,7 @@ def localize_sequence(
     prior_poses: np.ndarray | None = None,
     log: Callable[[str], None] | None = None,
     stop_on_mismatch: bool = True,
+    places: PlaceIndex | None = None,
 ) -> LocalizationReport:
     """Track every frame of ``manifest`` against a fixed map ``model``.
 
@@ -284,6 +286,7 @@ def localize_sequence(
         anchor_index: the frame tracking starts from (forward to the end, then backward).
         depth_range_m: depth readings used, ``(min, max)``; the fusion settings of the world.
         prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (the map's keyframe poses).
+        places: the world's stored place index over ``prior_poses`` (used where it still fits).
         stop_on_mismatch: stop early when the world evidently does not contain the frames
             (module docstring; :data:`MISMATCH_WINDOW_FRAMES`, :data:`MISMATCH_MAX_LOST_RUN_FRAMES`).
 
@@ -299,7 +302,7 @@ def localize_sequence(
         raise ValueError(f"anchor_index {anchor_index} outside 0..{n - 1}")
     if len(model) == 0:
         raise ValueError("cannot localize against an empty map")
-    st = SequenceTracker(manifest.camera, cfg, depth_range_m, model=model, prior_poses=prior_poses)
+    st = SequenceTracker(manifest.camera, cfg, depth_range_m, model=model, prior_poses=prior_poses, places=places)
     T_est = np.full((n, 4, 4), np.nan)
     fitness = np.full(n, np.nan)
     rmse = np.full(n, np.nan)
@@ -403,6 +406,12 @@ def tracking_map(world: GaussianWorld) -> SurfelModel:
     model.builder = None
     model.appearance_map = VoxelAppearance.from_field(world.field, world.tracking_voxels.voxel_size_m)
     return model
+
+
+def world_place_index(model: SurfelModel, world: GaussianWorld, camera, cfg: LocalizationConfig) -> PlaceIndex:
+    """The place index a world's bundle stores (``places.npz``): its tracking map ``model``
+    (:func:`tracking_map`) seen from its keyframes, at the level ``cfg``'s pyramids give."""
+    return place_index(model, camera, pyramid_levels(cfg), world.T_world_cam_keyframes)
 
 
 def localize_visit(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,

@@ -16,20 +16,33 @@ valid in only one); the nearest entries are the hypotheses.
 
 Entries come from the map itself, so any world with keyframe poses (built, extended, reloaded)
 has an index without storing images; the index grows by one keyframe's entries at a time while
-mapping. Shapes: ``T_*`` ``[4, 4]`` camera-to-world.
+mapping. A world bundle stores its index (``places.npz``, :meth:`PlaceIndex.save`) so a later session
+starts relocalizing at once instead of rendering every keyframe's views again; the stored index
+carries a key (:func:`map_key`) of the map, viewpoints, camera and layout it was made from, and is
+used only where the key matches (same entries, bit for bit, as an index built then).
+Shapes: ``T_*`` ``[4, 4]`` camera-to-world.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from atlas_pipeline.geometry import so3_exp
 
-__all__ = ["PlaceIndex", "PlaceMatch", "CoverageMap", "place_index", "depth_layout", "DESCRIPTOR_GRID",
-           "VIEW_YAWS_DEG"]
+__all__ = ["PlaceIndex", "PlaceMatch", "CoverageMap", "place_index", "depth_layout", "map_key", "DESCRIPTOR_GRID",
+           "VIEW_YAWS_DEG", "PLACES_FILE"]
+
+PLACES_FILE = "places.npz"  # a world bundle's stored place index
+# Bumped whenever what an entry holds changes (layout, views, rendering): an index of another
+# version has another key and is rebuilt, never misread.
+PLACES_VERSION = 1
+_PLACES_MEMBERS = {"codes": ("f", 2), "T_world_cam": ("f", 3), "keyframe": ("iu", 1), "level": ("iu", 0),
+                   "key": (np.uint8, 1)}
 
 # Blocks of a depth layout (rows, columns): 192 numbers, coarse enough that a viewpoint 20 cm or
 # 10 degrees away still matches, fine enough to tell the walls of one room from another's.
@@ -100,19 +113,70 @@ class PlaceIndex:
             rendered from; ``camera`` and ``level`` fix the view they are rendered at.
     """
 
-    def __init__(self, camera, level: int):
+    def __init__(self, camera, level: int, key: str | None = None):
         self.camera = camera
         self.level = level
+        self.key = key  # map_key of what the entries were made from (None: not recorded)
         self._codes: list[np.ndarray] = []  # [B] each
         self._poses: list[np.ndarray] = []
         self._keyframe: list[int] = []
         self._stack: np.ndarray | None = None
 
+    def save(self, path: str | Path) -> Path:
+        """``places.npz``: ``codes [E, B]`` float32 (NaN = no depth), ``T_world_cam [E, 4, 4]``,
+        ``keyframe [E]`` int32, ``level`` and the 32-byte ``key``; no pickled objects, and equal
+        indexes give equal bytes."""
+        from atlas_pipeline.io_utils import atomic_path
+        from atlas_pipeline.safe_arrays import save_npz_deterministic
+
+        if self.key is None:
+            raise ValueError("a place index is saved with the key of the map it was made from")
+        n_blocks = DESCRIPTOR_GRID[0] * DESCRIPTOR_GRID[1]
+        codes = np.stack(self._codes).astype(np.float32) if self._codes else np.zeros((0, n_blocks), np.float32)
+        poses = np.stack(self._poses) if self._poses else np.zeros((0, 4, 4))
+        with atomic_path(Path(path)) as tmp:
+            with open(tmp, "wb") as fh:
+                save_npz_deterministic(fh, codes=codes, T_world_cam=np.asarray(poses, np.float64),
+                                       keyframe=np.asarray(self._keyframe, np.int32), level=np.int64(self.level),
+                                       key=np.frombuffer(bytes.fromhex(self.key), np.uint8))
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path, camera) -> "PlaceIndex":
+        """Read :meth:`save`'s file (entries to be rendered later use ``camera``); a malformed one
+        raises ``BundleFormatError`` naming the file and the member. Whether it fits a map is
+        :func:`map_key`'s to say."""
+        from atlas_pipeline.errors import BundleFormatError
+        from atlas_pipeline.safe_arrays import load_npz_checked
+
+        path = Path(path)
+        z = load_npz_checked(path, _PLACES_MEMBERS)
+        codes, poses, keyframe, key = z["codes"], z["T_world_cam"], z["keyframe"], z["key"]
+        n = len(codes)
+        n_blocks = DESCRIPTOR_GRID[0] * DESCRIPTOR_GRID[1]
+        if codes.shape[1:] != (n_blocks,):
+            raise BundleFormatError(path, f"codes is {list(codes.shape)}, expected [E, {n_blocks}]")
+        if poses.shape != (n, 4, 4) or not np.isfinite(poses).all():
+            raise BundleFormatError(path, f"T_world_cam must be [{n}, 4, 4] finite (one per entry), got {list(poses.shape)}")
+        if keyframe.shape != (n,) or (n and keyframe.min() < 0):
+            raise BundleFormatError(path, f"keyframe must be [{n}] non-negative numbers, got {list(keyframe.shape)}")
+        if key.shape != (32,):
+            raise BundleFormatError(path, f"key must be 32 bytes, got {list(key.shape)}")
+        if np.isinf(codes).any():
+            raise BundleFormatError(path, "codes hold infinite log depths (NaN marks a block without depth)")
+        index = cls(camera, int(z["level"]), bytes(key.tobytes()).hex())
+        index._codes = list(np.asarray(codes, np.float32))
+        index._poses = list(np.asarray(poses, np.float64))
+        index._keyframe = [int(k) for k in keyframe]
+        return index
+
     def __len__(self) -> int:
         return len(self._codes)
 
     def add_keyframe(self, model, T_world_cam: np.ndarray, keyframe: int) -> None:
-        """Index the map ``model`` as seen from ``T_world_cam`` and its turned views."""
+        """Index the map ``model`` as seen from ``T_world_cam`` and its turned views. The index no
+        longer is what its key describes (:func:`place_index` keys it once it is complete)."""
+        self.key = None
         # The whole map, as far as it reaches: a coarser map or one clipped to the sensor's reach
         # renders faster but reorders the candidates, and on the suite both made a second visit's
         # extension worse (docs/benchmarks.md).
@@ -159,12 +223,30 @@ class PlaceIndex:
         return out
 
 
-def place_index(model, camera, tracker, poses: np.ndarray) -> PlaceIndex:
+def map_key(model, poses: np.ndarray, camera, level: int) -> str:
+    """SHA-256 (hex) of what a place index over ``model`` seen from ``poses [K, 4, 4]`` depends on:
+    the surfels as stored (float32), the poses, the camera's intrinsics, the pyramid level and this
+    module's layout (grid, turned views, :data:`PLACES_VERSION`)."""
+    h = hashlib.sha256()
+    h.update(f"atlas-gs places v{PLACES_VERSION} grid {DESCRIPTOR_GRID} yaws {VIEW_YAWS_DEG} "
+             f"min width {DESCRIPTOR_MIN_WIDTH_PX} level {int(level)};".encode())
+    h.update(np.array([camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+                       *camera.distortion], np.float64).tobytes())
+    h.update(np.float64(model.radius_m).tobytes())
+    for a in (model.centres, model.normals):
+        h.update(np.ascontiguousarray(a, np.float32).tobytes())
+    h.update(np.ascontiguousarray(np.asarray(poses, np.float64).reshape(-1, 4, 4)).tobytes())
+    return h.hexdigest()
+
+
+def place_index(model, camera, n_levels: int, poses: np.ndarray) -> PlaceIndex:
     """A :class:`PlaceIndex` of ``model`` seen from ``poses [K, 4, 4]`` (a world's keyframes), at
-    the level ``tracker``'s pyramids give."""
-    index = PlaceIndex(camera, descriptor_level(camera.width, tracker.n_levels))
+    the level pyramids of ``n_levels`` give, keyed by :func:`map_key`."""
+    level = descriptor_level(camera.width, n_levels)
+    index = PlaceIndex(camera, level)
     for k, T in enumerate(np.asarray(poses, np.float64).reshape(-1, 4, 4)):
         index.add_keyframe(model, T, k)
+    index.key = map_key(model, poses, camera, level)
     return index
 
 

@@ -279,14 +279,18 @@ class Relocalizer:
 
 
 def relocalize_frames(manifest: FrameManifest, model: SurfelModel, prior_poses: np.ndarray, cfg: PipelineConfig,
-                      frames: Iterable[int]) -> Iterator[tuple[int, RelocalizationResult]]:
+                      frames: Iterable[int], places: PlaceIndex | None = None) -> Iterator[tuple[int, RelocalizationResult]]:
     """Each of ``frames`` of a recording placed in the map ``model`` with no initial pose, one at a
     time: the place index over ``prior_poses`` (``[K, 4, 4]``, the map's keyframes) first, in
-    milliseconds; the full search (seconds) only where it finds nothing."""
-    from atlas_pipeline.localization.places import place_index
+    milliseconds; the full search (seconds) only where it finds nothing. ``places``: a stored
+    index, used where its key matches the map, priors and camera (else one is rendered)."""
+    from atlas_pipeline.localization.places import descriptor_level, map_key, place_index
 
     tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
-    reloc = Relocalizer(tracker, model, prior_poses, places=place_index(model, manifest.camera, tracker, prior_poses))
+    level = descriptor_level(manifest.camera.width, tracker.n_levels)
+    if places is None or places.key != map_key(model, prior_poses, manifest.camera, level):
+        places = place_index(model, manifest.camera, tracker.n_levels, prior_poses)
+    reloc = Relocalizer(tracker, model, prior_poses, places=places)
     for i in frames:
         frame = tracker.prepare(manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True))
         result = reloc.relocalize_fast(frame)

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
-from atlas_pipeline.localization.places import CoverageMap, PlaceIndex, descriptor_level
+from atlas_pipeline.localization.places import CoverageMap, PlaceIndex, descriptor_level, map_key
 from atlas_pipeline.localization.relocalize import Relocalizer
 from atlas_pipeline.localization.tracker import (
     RGBDTracker,
@@ -188,6 +188,10 @@ class SequenceTracker:
         keyframe_translation_m, keyframe_rotation_deg: motion between keyframes (mapping).
         fusion_stride: pixel stride of the points merged per keyframe (as the fused frames use).
         prior_poses: ``[K, 4, 4]`` viewpoints for relocalization (e.g. the map's keyframe poses).
+        places: a stored place index of ``model`` (or the builder's map) seen from ``prior_poses``
+            (a world bundle's ``places.npz``); used only while its key still matches the map, the
+            priors and the camera (:func:`~atlas_pipeline.localization.places.map_key`), else the
+            index is rendered from the map when first needed.
         new_map_after_lost_frames: mapping only; after this many lost frames in a row (with depth)
             a new map is started; 0 = never (a session inside a saved world keeps to that world).
         one_surface: mapping only; a keyframe's points that contradict a surface already in the
@@ -203,7 +207,7 @@ class SequenceTracker:
                  model: SurfelModel | None = None, builder=None, keyframe_translation_m: float = 0.08,
                  keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None,
                  new_map_after_lost_frames: int = 0, one_surface: bool = False,
-                 hold_to_motion: bool = False):
+                 hold_to_motion: bool = False, places: PlaceIndex | None = None):
         if model is None and builder is None:
             raise ValueError("SequenceTracker needs a model (localization) or a builder (mapping)")
         self.camera = camera
@@ -224,6 +228,7 @@ class SequenceTracker:
         self.keyframe_poses: list[np.ndarray] = []
         self._relocalizer: Relocalizer | None = None
         self._places: PlaceIndex | None = None  # built lazily; grows with the keyframes
+        self._stored_places = places  # adopted by the first use of the index if it still fits
         self._coverage: CoverageMap | None = None  # mapping: cells with surface (covisibility)
         self._n_places = 0  # viewpoints (priors, then keyframes) indexed so far
         self.new_map_after_lost_frames = int(new_map_after_lost_frames)
@@ -260,6 +265,8 @@ class SequenceTracker:
         """The place index of the active map's viewpoints (priors, then keyframes), brought up
         to date: only viewpoints not indexed yet are rendered."""
         if self._places is None:
+            self._places, self._n_places = self._adopt_stored_places(), len(self.priors)
+        if self._places is None:
             self._places = PlaceIndex(self.camera, descriptor_level(self.camera.width, self.tracker.n_levels))
             self._n_places = 0
         views = self.priors + self.keyframe_poses
@@ -267,6 +274,20 @@ class SequenceTracker:
             self._places.add_keyframe(self.model, views[k], k)
         self._n_places = len(views)
         return self._places
+
+    def _adopt_stored_places(self) -> PlaceIndex | None:
+        """The stored place index, when it was made from this very map, priors and camera (no
+        keyframe mapped since); None otherwise (then it is never looked at again)."""
+        stored, self._stored_places = self._stored_places, None
+        if stored is None or self.keyframe_poses:
+            return None
+        level = descriptor_level(self.camera.width, self.tracker.n_levels)
+        if stored.key != map_key(self.model, np.array(self.priors).reshape(-1, 4, 4), self.camera, level):
+            logger.info("the stored place index is of another map, camera or layout: indexing the map's "
+                        "%d viewpoints again", len(self.priors))
+            return None
+        stored.camera, stored.level = self.camera, level
+        return stored
 
     def _velocity_poses(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
         """``(T_last, T_prev)``, the last two placed frames, when the constant-velocity model

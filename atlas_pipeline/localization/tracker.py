@@ -52,7 +52,12 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 logger = logging.getLogger(__name__)
 
 __all__ = ["FramePyramid", "SurfelModel", "TrackResult", "RGBDTracker", "surfels_from_voxels",
-           "solve_update", "apply_update", "converged"]
+           "solve_update", "apply_update", "converged", "pyramid_levels"]
+
+
+def pyramid_levels(cfg: LocalizationConfig) -> int:
+    """Pyramid levels a tracker with settings ``cfg`` builds (finest level skipped included)."""
+    return len(cfg.iterations) + cfg.finest_level
 
 
 @functools.lru_cache(maxsize=32)
@@ -586,7 +591,7 @@ class RGBDTracker:
         self.camera = camera
         self.cfg = cfg
         self.depth_range_m = depth_range_m
-        self.n_levels = len(cfg.iterations) + cfg.finest_level
+        self.n_levels = pyramid_levels(cfg)
         self.dist = _dist5(camera)
         coarser = cfg.finest_level + C.model_level_offset
         self.model_level = coarser if camera.width // 2 ** coarser >= C.model_min_width_px else cfg.finest_level

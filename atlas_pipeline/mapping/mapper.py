@@ -230,11 +230,12 @@ def build_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: MappingConfig,
 
 def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingConfig, localization,
                              depth_range_m: tuple[float, float], fusion_stride: int,
-                             log: Callable[[str], None] | None = None):
+                             log: Callable[[str], None] | None = None, places=None):
     """A second session inside a saved world: the first frame is relocalized in ``world`` (no
     initial pose), then every frame is tracked against the world and keyframes are merged into a
     copy of its voxel statistics (ids of surfaces seen before are kept). As along a fixed world,
-    the motion model holds the camera where the surfaces leave a direction free.
+    the motion model holds the camera where the surfaces leave a direction free. ``places``: the
+    world's stored place index (used while it fits the map, :class:`SequenceTracker`).
 
     Returns ``(extended world, T_world_cam [N, 4, 4], status [N])``; ``world`` is not modified.
     Raises :class:`DatasetError` when no frame of the sequence can be placed in the world.
@@ -252,7 +253,8 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=tracking,
                          keyframe_translation_m=mapping.keyframe_translation_m,
                          keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
-                         prior_poses=world.T_world_cam_keyframes, one_surface=True, hold_to_motion=True)
+                         prior_poses=world.T_world_cam_keyframes, one_surface=True, hold_to_motion=True,
+                         places=places)
     n = manifest.n_frames
     poses = np.full((n, 4, 4), np.nan)
     status: list[str] = []
@@ -378,19 +380,21 @@ def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: F
     has no voxel statistics to extend.
     """
     from atlas_pipeline.errors import AtlasError, ConfigError
+    from atlas_pipeline.scene_memory.bundle import read_place_index
 
     try:
         previous = GaussianWorld.load(Path(bundle_dir))
     except AtlasError as exc:
         raise ConfigError(f"{bundle_dir}: cannot extend this bundle, it has no voxel statistics "
                           f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
-    return extend_world_with_visit(previous, manifest, fused, cfg, log)
+    return extend_world_with_visit(previous, manifest, fused, cfg, log, read_place_index(bundle_dir, manifest.camera))
 
 
 def extend_world_with_visit(previous: GaussianWorld, manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
-                            log: LogFn | None = None) -> tuple[GaussianWorld, int]:
+                            log: LogFn | None = None, places=None) -> tuple[GaussianWorld, int]:
     """Keep mapping a new sequence into ``previous`` (not modified), as :func:`extend_saved_world`
-    does for a saved bundle: ``(extended world, number of new keyframes)``."""
+    does for a saved bundle: ``(extended world, number of new keyframes)``. ``places``: the
+    stored place index of ``previous`` (None: made when first needed)."""
     if cfg.mapping.pose_source == "ground_truth":
         # Ground-truth poses of the new sequence are taken to share the parent's frame.
         keyframes = select_keyframes_stage(manifest, fused, cfg, log)
@@ -399,5 +403,5 @@ def extend_world_with_visit(previous: GaussianWorld, manifest: FrameManifest, fu
         # A second session: relocalize in the saved world, then track and map into it.
         world, _, _ = extend_world_by_tracking(
             previous, manifest, cfg.mapping, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-            cfg.fusion.stride, log)
+            cfg.fusion.stride, log, places)
     return world, len(world.keyframe_indices) - len(previous.keyframe_indices)

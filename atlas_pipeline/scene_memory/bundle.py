@@ -8,6 +8,8 @@
       gaussians.bin        ATLASGS1 (isotropic) or ATLASGS2 binary for fast reload
       surfels.npz          the tracking map (surfel centres and normals from the voxel statistics;
                            the Gaussians are fitted to images and no longer mark the surface exactly)
+      places.npz           the place index over the keyframes (relocalization with no start pose),
+                           used by a later session whose map, keyframes and camera it was made for
       localization.json    per-frame poses and errors (optional)
       transitions.parquet  state-action-state log (optional)
 
@@ -61,6 +63,7 @@ from atlas_pipeline.io_utils import (
     write_json_atomic,
 )
 from atlas_pipeline.localization.localizer import LocalizationReport
+from atlas_pipeline.localization.places import PLACES_FILE
 from atlas_pipeline.localization.metrics import write_tum_trajectory
 from atlas_pipeline.scene_memory.binary import (
     BYTES_PER_GAUSSIAN,
@@ -79,7 +82,7 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
-    "read_metadata", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
+    "read_metadata", "read_place_index", "verified_file", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
     "verify_bundle_files", "check_bundle_update", "BundleMetadataSchema", "BUNDLE_KIND",
     "VOXEL_BYTES_PER_VOXEL", "bundle_disk_bytes", "world_memory_bytes", "save_peak_bytes", "load_peak_bytes",
 ]
@@ -245,11 +248,13 @@ def write_bundle_files(
     transitions: pa.Table | None = None,
     extras: tuple[Any, ...] = (),
     surfels: Any = None,
+    places: Any = None,
 ) -> list[Path]:
     """Write a bundle's files into an existing (empty, temporary) folder; returns the paths.
 
     ``surfels`` (a ``SurfelModel``) is the map localization tracks against; without it a reader
-    derives one from the Gaussian centres.
+    derives one from the Gaussian centres. ``places`` (a ``PlaceIndex`` of ``surfels`` seen from
+    the keyframes) spares a later session indexing them again.
 
     ``extras`` are objects with ``save(directory)`` stored beside the Gaussians (e.g. the
     ``GaussianWorld`` with its voxel statistics, so the world can be extended later).
@@ -264,6 +269,8 @@ def write_bundle_files(
     _write_parts(directory, localization, transitions)
     if surfels is not None:
         surfels.save(directory / "surfels.npz")
+    if places is not None:
+        places.save(directory / PLACES_FILE)
     for extra in extras:
         extra.save(directory)
     meta = {
@@ -287,6 +294,7 @@ def write_world_bundle(
     transitions: pa.Table | None = None,
     extras: tuple[Any, ...] = (),
     surfels: Any = None,
+    places: Any = None,
     inputs: Iterable[str | Path] = (),
     force: bool = False,
 ) -> Path:
@@ -300,7 +308,7 @@ def write_world_bundle(
     directory = Path(directory)
     check_output_dir(directory, BUNDLE_KIND, inputs, force)
     with atomic_dir(directory, kind=BUNDLE_KIND) as tmp:
-        write_bundle_files(tmp, field, metadata, localization, transitions, extras, surfels)
+        write_bundle_files(tmp, field, metadata, localization, transitions, extras, surfels, places)
     return directory
 
 
@@ -317,7 +325,7 @@ def verify_bundle_files(directory: str | Path, meta: dict[str, Any] | None = Non
     directory = Path(directory)
     meta = read_metadata(directory) if meta is None else meta
     for name in meta["files"]:
-        _verified_file(directory, meta, name)
+        verified_file(directory, meta, name)
     return meta
 
 
@@ -533,12 +541,30 @@ class WorldBundle:
 
         voxel = voxel_size_m or float(self.metadata.get("gaussians", {}).get("voxel_size_m", 0.02))
         if "surfels.npz" in self.metadata.get("files", {}):
-            model = SurfelModel.load(_verified_file(self.directory, self.metadata, "surfels.npz"))
+            model = SurfelModel.load(verified_file(self.directory, self.metadata, "surfels.npz"))
         else:
             model = SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
         # the Gaussians' colours: what relocalization checks a pose's appearance against
         model.appearance_map = VoxelAppearance.from_field(self.field, voxel)
         return model
+
+
+    def stored_places(self, camera):
+        """The bundle's place index (:func:`read_place_index`)."""
+        return read_place_index(self.directory, camera, self.metadata)
+
+
+def read_place_index(directory: str | Path, camera, meta: dict[str, Any] | None = None):
+    """The place index the bundle at ``directory`` stores (``places.npz``, checksum verified and
+    checked), entries to be rendered later at ``camera``; None when the bundle has none. Whether it
+    fits a session's map and camera is decided where it is used (its key)."""
+    from atlas_pipeline.localization.places import PlaceIndex
+
+    directory = Path(directory)
+    meta = read_metadata(directory) if meta is None else meta
+    if PLACES_FILE not in meta.get("files", {}):
+        return None
+    return PlaceIndex.load(verified_file(directory, meta, PLACES_FILE), camera)
 
 
 def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
@@ -553,7 +579,7 @@ def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
     return poses
 
 
-def _verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
+def verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
     """``directory / name`` after checking it is listed in metadata.json, present, and unchanged."""
     rec = meta.get("files", {}).get(name)
     if rec is None:

@@ -57,7 +57,8 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
     own = bundle.metadata.get("dataset", {}).get("name") == entry.name
     report = localize_sequence(manifest, bundle.tracking_model(tracking_voxel_m(bundle, cfg)), cfg.localization,
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-                               prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own)
+                               prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own,
+                               places=bundle.stored_places(manifest.camera))
     update_world_bundle(world, localization=report, drop_transitions=drop_transitions)
     return report
 

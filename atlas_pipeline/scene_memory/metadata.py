@@ -118,10 +118,11 @@ class WorldBundleArtifact:
     localization: LocalizationReport | None = None
     transitions: pa.Table | None = None
     surfels: Any = None  # SurfelModel: the tracking map saved beside the Gaussians
+    places: Any = None  # PlaceIndex of the tracking map seen from the keyframes
 
     def save(self, directory: Path) -> list[Path]:
         return write_bundle_files(directory, self.field, self.metadata, self.localization, self.transitions,
-                                  surfels=self.surfels)
+                                  surfels=self.surfels, places=self.places)
 
     @classmethod
     def load(cls, directory: Path) -> "WorldBundleArtifact":
