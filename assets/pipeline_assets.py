@@ -318,8 +318,9 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
             md["preview"] = MetadataValue.md(markdown_image(rep.preview_png, "real | rendered | depth error (cm)"))
         return versioned(context, rep, md)
 
-    @stage("world_bundle", "7", "World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, surfels.npz "
-                                "(tracking map), localization.json, transitions.parquet.", check=BUNDLE_ROUNDTRIP)
+    @stage("world_bundle", "8", "World bundle (paper 8.3): metadata.json, gaussians.ply, gaussians.bin, surfels.npz "
+                                "(tracking map), places.npz (place index), localization.json, transitions.parquet.",
+           check=BUNDLE_ROUNDTRIP)
     def world_bundle(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                      gaussian_world: GaussianWorld, localization_report: LocalizationReport, transitions: pa.Table):
         cfg = atlas.load()
@@ -355,7 +356,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
     for second, first in first_visit_of.items():
         seconds_of.setdefault(first, set()).add(second)
 
-    @asset(name=REVISIT_STAGE, code_version="1", partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP,
+    @asset(name=REVISIT_STAGE, code_version="2", partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP,
            deps=[settings_key(REVISIT_STAGE)], output_required=False,
            ins={"first_visit_world": AssetIn(
                FIRST_VISIT_WORLD.path[-1], dagster_type=Optional[GaussianWorld],

@@ -40,7 +40,7 @@ from atlas_pipeline.config import load_profile  # noqa: E402
 from atlas_pipeline.geometry import so3_exp  # noqa: E402
 from atlas_pipeline.localization import _kernels as kn  # noqa: E402
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C  # noqa: E402
-from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, _level_view, _splat_params  # noqa: E402
+from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, _level_view, splat_params  # noqa: E402
 from atlas_pipeline.sensors.camera import CameraIntrinsics  # noqa: E402
 
 CAMERA = CameraIntrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
@@ -126,13 +126,13 @@ def keyframe_ms(centres: np.ndarray, camera_poses: list[np.ndarray], whole: Surf
         builder.integrate(pc.astype(np.float64) @ T[:3, :3].T + T[:3, 3], np.full((len(pc), 3), 128.0))
         t1 = time.perf_counter()
         model = cache.model()
-        model.culling(_level_view(T, CAMERA, 1), _splat_params(model.radius_m))
+        model.culling(_level_view(T, CAMERA, 1), splat_params(model.radius_m))
         integrate.append(t1 - t0)
         surfels.append(time.perf_counter() - t1)
 
     def rebuilt() -> None:
         model = SurfelModel.from_builder(builder)
-        model.culling(_level_view(camera_poses[0], CAMERA, 1), _splat_params(model.radius_m))
+        model.culling(_level_view(camera_poses[0], CAMERA, 1), splat_params(model.radius_m))
 
     return {"integrate": 1e3 * float(np.median(integrate[1:])), "surfels": 1e3 * float(np.median(surfels[1:])),
             "rebuilt": 1e3 * median_s(rebuilt, 3)}
@@ -176,7 +176,7 @@ def measure(n_rooms: int, repeats: int) -> dict:
     row["view_ms_range"] = 1e3 * median_s(lambda: culled.model_view(T, CAMERA, level, max_depth_m=far_m), repeats)
     row["align_ms_range"] = 1e3 * median_s(lambda: tracker.align(frame, culled, T0, within_range=True), repeats)
     for name, far in (("", np.inf), ("_range", far_m)):
-        seen = culled.culling(_level_view(T, CAMERA, level), _splat_params(radius_m, far))
+        seen = culled.culling(_level_view(T, CAMERA, level), splat_params(radius_m, far))
         row[f"looked_at_pct{name}"] = 100.0 * float(seen.chunk_seen[seen.chunk_of].mean()) if len(seen.chunk_of) else 100.0
     row["align_error_mm"] = 1e3 * float(np.linalg.norm(ranged_pose[:3, 3] - T[:3, 3]))
     row.update({f"keyframe_ms_{k}": v for k, v in keyframe_ms(

@@ -9,7 +9,7 @@ from atlas_pipeline.geometry import so3_exp
 from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
 from atlas_pipeline.localization.culling import ChunkGrid
-from atlas_pipeline.localization.tracker import SurfelModel, _level_view, _splat_params
+from atlas_pipeline.localization.tracker import SurfelModel, _level_view, splat_params
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
 CAMERA = CameraIntrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
@@ -45,13 +45,13 @@ def _poses(n: int, seed: int = 1) -> list[np.ndarray]:
 
 
 def _splat(centres, normals, view, culling):
-    return kn.splat_surfels(centres, normals, RADIUS_M, view, _splat_params(RADIUS_M), True, culling)
+    return kn.splat_surfels(centres, normals, RADIUS_M, view, splat_params(RADIUS_M), True, culling)
 
 
 def test_culled_splat_is_the_same_image_and_skips_most_of_a_large_map():
     centres, normals = _map(40_000)
     grid = ChunkGrid.build(centres)
-    params = _splat_params(RADIUS_M)
+    params = splat_params(RADIUS_M)
     seen_share = []
     for level in (0, 1):
         for T in _poses(12):
@@ -74,7 +74,7 @@ def test_a_chunk_is_seen_when_one_surfel_of_it_lands_just_inside_the_image_edge(
     x = (u - view.cx) * z / view.fx
     centres = np.array([[x, 0.0, z], [x - 5.0, 0.0, z], [0.0, 0.0, -3.0]])  # + one far left, one behind
     grid = ChunkGrid.build(centres, chunk_m=0.5)
-    seen = grid.seen(view, _splat_params(RADIUS_M))
+    seen = grid.seen(view, splat_params(RADIUS_M))
     assert seen[grid.chunk_of].tolist() == [True, False, False]
 
 
@@ -108,7 +108,7 @@ def test_a_growing_map_keeps_its_chunks_and_culls_as_a_fresh_grid_does():
     # the same partition of the surfels into chunks, under other numbers
     pairs = np.unique(np.stack([kept.chunk_of, fresh.chunk_of], 1), axis=0)
     assert len(pairs) == fresh.n_chunks == len(np.unique(kept.chunk_of))
-    params = _splat_params(model.radius_m)
+    params = splat_params(model.radius_m)
     for T in _poses(6, seed=10):
         view = _level_view(T, CAMERA, 1)
         culled = kn.splat_surfels(model.centres, model.normals, model.radius_m, view, params, False,
@@ -122,7 +122,7 @@ def test_a_growing_map_keeps_its_chunks_and_culls_as_a_fresh_grid_does():
 def test_an_empty_or_one_surfel_map_culls_without_error(n):
     centres = np.zeros((n, 3))
     grid = ChunkGrid.build(centres)
-    seen = grid.seen(_level_view(np.eye(4), CAMERA, 0), _splat_params(RADIUS_M))
+    seen = grid.seen(_level_view(np.eye(4), CAMERA, 0), splat_params(RADIUS_M))
     assert len(grid.chunk_of) == n and seen.shape == (grid.n_chunks,)
 
 
@@ -168,7 +168,7 @@ def test_a_far_clip_drops_only_what_lies_beyond_it_and_culls_those_chunks_too():
     centres, normals = _map(40_000, seed=5)
     grid = ChunkGrid.build(centres)
     far_m = 3.0
-    clipped_params = _splat_params(RADIUS_M, far_m)
+    clipped_params = splat_params(RADIUS_M, far_m)
     n_seen, n_seen_clipped = 0, 0
     for T in _poses(8, seed=6):
         view = _level_view(T, CAMERA, 1)
@@ -183,7 +183,7 @@ def test_a_far_clip_drops_only_what_lies_beyond_it_and_culls_those_chunks_too():
         assert not (z > far_m + RADIUS_M).any()  # nothing drawn beyond the clip (a disk's edge at most)
         near = np.isfinite(z_all) & (z_all < far_m - 0.5)  # well inside: the same surface, bit for bit
         np.testing.assert_array_equal(z[near], z_all[near])
-        n_seen += int(grid.seen(view, _splat_params(RADIUS_M)).sum())
+        n_seen += int(grid.seen(view, splat_params(RADIUS_M)).sum())
         n_seen_clipped += int(seen.sum())
     assert n_seen_clipped < 0.8 * n_seen  # the clip also skips whole chunks
 

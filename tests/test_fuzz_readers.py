@@ -364,7 +364,7 @@ def _make_folder(root: Path, name: str) -> Path:
 
 
 def build_targets(root: Path) -> dict[str, FuzzTarget]:
-    """Create valid seed files under ``root`` and return the 13 fuzz targets by name."""
+    """Create valid seed files under ``root`` and return the fuzz targets by name (:data:`TARGET_NAMES`)."""
     from atlas_pipeline.gaussian_world.builder import GaussianWorld
     from atlas_pipeline.gaussian_world.field import GaussianField
     from atlas_pipeline.localization.places import PlaceIndex

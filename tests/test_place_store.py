@@ -97,7 +97,7 @@ def test_an_index_made_for_another_camera_is_not_used(built, monkeypatch, caplog
 
     st = SequenceTracker(other, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m), model=model,
                          prior_poses=poses, places=stored)
-    with caplog.at_level(logging.INFO, logger="atlas_pipeline.localization.sequence"):
+    with caplog.at_level(logging.INFO, logger="atlas_pipeline.localization.places"):
         index = st.places
     assert index is not stored and len(index) > 0
     assert "stored place index is of another map, camera or layout" in caplog.text
@@ -120,8 +120,14 @@ def test_both_routes_store_the_same_index(isolated):
 
 @pytest.mark.parametrize("member, value, message", [
     ("codes", np.zeros((3, 5), np.float32), "codes"),
+    ("codes", np.full((3, 192), np.inf, np.float32), "codes"),
     ("T_world_cam", np.full((3, 4, 4), np.nan), "T_world_cam"),
+    ("T_world_cam", np.tile(np.eye(4), (2, 1, 1)), "T_world_cam"),
+    ("T_world_cam", np.tile(2 * np.eye(4), (3, 1, 1)), "T_world_cam"),
     ("keyframe", np.array([0, -1, 2], np.int32), "keyframe"),
+    ("keyframe", np.array([0, 1], np.int32), "keyframe"),
+    ("level", np.int64(-1), "level"),
+    ("level", np.int64(40), "level"),
     ("key", np.zeros(5, np.uint8), "key"),
 ])
 def test_a_malformed_index_is_refused_naming_file_and_member(tmp_path, member, value, message):
@@ -172,8 +178,43 @@ def test_extending_a_bundle_starts_from_its_stored_index(built, project, monkeyp
 def test_an_index_grown_by_mapping_loses_its_key(built):
     """A stored index adopted by a mapping session grows with its keyframes: it no longer is what
     its key describes, so handing the same object to another session renders a fresh one."""
+    from atlas_pipeline.localization.places import adopt_stored
+
     cfg, bundle, manifest, model, poses = _session(built)
     stored = bundle.stored_places(manifest.camera)
-    assert stored.key is not None
+    n_levels = pyramid_levels(cfg.localization)
+    assert adopt_stored(stored, model, poses, manifest.camera, n_levels) is stored
     stored.add_keyframe(model, poses[0], len(poses))
     assert stored.key is None
+    assert adopt_stored(stored, model, poses, manifest.camera, n_levels) is None
+
+
+def test_the_key_covers_the_splat_limits(built, monkeypatch):
+    """Retuning how the map is splatted makes an older index another index (rendered again)."""
+    import atlas_pipeline.localization.tracker as tracker_module
+
+    cfg, bundle, manifest, model, poses = _session(built)
+    stored = bundle.stored_places(manifest.camera)
+    assert map_key(model, poses, manifest.camera, stored.level) == stored.key
+    tuned = dataclasses.replace(tracker_module.C, splat_max_radius_px=tracker_module.C.splat_max_radius_px + 1)
+    monkeypatch.setattr(tracker_module, "C", tuned)
+    assert map_key(model, poses, manifest.camera, stored.level) != stored.key
+
+
+def test_relocalize_uses_the_stored_index(built, monkeypatch):
+    """``atlas-gs relocalize``'s frames placed with the bundle's index, as with one rendered then."""
+    from atlas_pipeline.localization.relocalize import relocalize_frames
+
+    cfg, bundle, manifest, model, poses = _session(built)
+    rendered: list[int] = []
+    original = PlaceIndex.add_keyframe
+    monkeypatch.setattr(PlaceIndex, "add_keyframe", lambda self, *a: rendered.append(1) or original(self, *a))
+    frames = [0, 6, 11]
+    stored = list(relocalize_frames(manifest, model, poses, cfg, frames, places=bundle.stored_places(manifest.camera)))
+    assert rendered == []
+    fresh = list(relocalize_frames(manifest, model, poses, cfg, frames))
+    assert len(rendered) == len(poses)
+    assert [i for i, _ in stored] == frames and any(r.ok for _, r in stored)
+    for (_, a), (_, b) in zip(stored, fresh):
+        assert a.ok == b.ok
+        np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)

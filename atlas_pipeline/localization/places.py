@@ -26,6 +26,7 @@ Shapes: ``T_*`` ``[4, 4]`` camera-to-world.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 from pathlib import Path
 from typing import NamedTuple
@@ -34,13 +35,16 @@ import numpy as np
 
 from atlas_pipeline.geometry import so3_exp
 
-__all__ = ["PlaceIndex", "PlaceMatch", "CoverageMap", "place_index", "depth_layout", "map_key", "DESCRIPTOR_GRID",
+__all__ = ["PlaceIndex", "PlaceMatch", "CoverageMap", "place_index", "depth_layout", "map_key", "adopt_stored", "DESCRIPTOR_GRID",
            "VIEW_YAWS_DEG", "PLACES_FILE"]
+
+logger = logging.getLogger(__name__)
 
 PLACES_FILE = "places.npz"  # a world bundle's stored place index
 # Bumped whenever what an entry holds changes (layout, views, rendering): an index of another
 # version has another key and is rebuilt, never misread.
 PLACES_VERSION = 1
+MAX_LEVEL = 16  # pyramid levels a stored index may name (a 640 px image has 10)
 _PLACES_MEMBERS = {"codes": ("f", 2), "T_world_cam": ("f", 3), "keyframe": ("iu", 1), "level": ("iu", 0),
                    "key": (np.uint8, 1)}
 
@@ -162,9 +166,14 @@ class PlaceIndex:
             raise BundleFormatError(path, f"keyframe must be [{n}] non-negative numbers, got {list(keyframe.shape)}")
         if key.shape != (32,):
             raise BundleFormatError(path, f"key must be 32 bytes, got {list(key.shape)}")
+        if n and not np.allclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0]):
+            raise BundleFormatError(path, "T_world_cam rows must end in [0, 0, 0, 1] (camera-to-world 4x4)")
         if np.isinf(codes).any():
             raise BundleFormatError(path, "codes hold infinite log depths (NaN marks a block without depth)")
-        index = cls(camera, int(z["level"]), bytes(key.tobytes()).hex())
+        level = int(z["level"])
+        if not 0 <= level < MAX_LEVEL:
+            raise BundleFormatError(path, f"level {level} is not a pyramid level (0..{MAX_LEVEL - 1})")
+        index = cls(camera, level, bytes(key.tobytes()).hex())
         index._codes = list(np.asarray(codes, np.float32))
         index._poses = list(np.asarray(poses, np.float64))
         index._keyframe = [int(k) for k in keyframe]
@@ -223,19 +232,40 @@ class PlaceIndex:
         return out
 
 
+def adopt_stored(stored: PlaceIndex | None, model, poses: np.ndarray, camera, n_levels: int) -> PlaceIndex | None:
+    """``stored`` (a bundle's index) made ready for a session with this map ``model``, viewpoints
+    ``poses [K, 4, 4]``, ``camera`` and pyramid of ``n_levels``, when its key says it was made from
+    exactly these; None otherwise (logged), and the session renders its own."""
+    if stored is None:
+        return None
+    level = descriptor_level(camera.width, n_levels)
+    if stored.key is None or stored.key != map_key(model, poses, camera, level):
+        logger.info("the stored place index is of another map, camera or layout: indexing the map's "
+                    "%d viewpoints again", len(np.asarray(poses).reshape(-1, 4, 4)))
+        return None
+    stored.camera, stored.level = camera, level
+    return stored
+
+
 def map_key(model, poses: np.ndarray, camera, level: int) -> str:
     """SHA-256 (hex) of what a place index over ``model`` seen from ``poses [K, 4, 4]`` depends on:
-    the surfels as stored (float32), the poses, the camera's intrinsics, the pyramid level and this
-    module's layout (grid, turned views, :data:`PLACES_VERSION`)."""
+    the surfels as stored (float32), the poses, the camera's pinhole, the pyramid level, the splat's
+    limits (:meth:`SurfelModel.render`'s) and this module's layout and thresholds (grid, turned
+    views, block and comparison shares, :data:`PLACES_VERSION`)."""
+    from atlas_pipeline.localization.tracker import splat_params
+
+    poses = np.ascontiguousarray(np.asarray(poses, np.float64).reshape(-1, 4, 4))
+    centres = np.ascontiguousarray(model.centres, np.float32)
+    normals = np.ascontiguousarray(model.normals, np.float32)
     h = hashlib.sha256()
     h.update(f"atlas-gs places v{PLACES_VERSION} grid {DESCRIPTOR_GRID} yaws {VIEW_YAWS_DEG} "
-             f"min width {DESCRIPTOR_MIN_WIDTH_PX} level {int(level)};".encode())
-    h.update(np.array([camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
-                       *camera.distortion], np.float64).tobytes())
+             f"min width {DESCRIPTOR_MIN_WIDTH_PX} level {int(level)} block {MIN_BLOCK_VALID_FRACTION} "
+             f"common {MIN_COMMON_BLOCKS_FRACTION} splat {tuple(splat_params(model.radius_m))} "
+             f"surfels {len(centres)} poses {len(poses)};".encode())
+    h.update(np.array([camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy], np.float64).tobytes())
     h.update(np.float64(model.radius_m).tobytes())
-    for a in (model.centres, model.normals):
-        h.update(np.ascontiguousarray(a, np.float32).tobytes())
-    h.update(np.ascontiguousarray(np.asarray(poses, np.float64).reshape(-1, 4, 4)).tobytes())
+    for a in (centres, normals, poses):
+        h.update(a.tobytes())
     return h.hexdigest()
 
 

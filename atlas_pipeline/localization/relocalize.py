@@ -284,11 +284,11 @@ def relocalize_frames(manifest: FrameManifest, model: SurfelModel, prior_poses: 
     time: the place index over ``prior_poses`` (``[K, 4, 4]``, the map's keyframes) first, in
     milliseconds; the full search (seconds) only where it finds nothing. ``places``: a stored
     index, used where its key matches the map, priors and camera (else one is rendered)."""
-    from atlas_pipeline.localization.places import descriptor_level, map_key, place_index
+    from atlas_pipeline.localization.places import adopt_stored, place_index
 
     tracker = RGBDTracker(manifest.camera, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m))
-    level = descriptor_level(manifest.camera.width, tracker.n_levels)
-    if places is None or places.key != map_key(model, prior_poses, manifest.camera, level):
+    places = adopt_stored(places, model, prior_poses, manifest.camera, tracker.n_levels)
+    if places is None:
         places = place_index(model, manifest.camera, tracker.n_levels, prior_poses)
     reloc = Relocalizer(tracker, model, prior_poses, places=places)
     for i in frames:

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
-from atlas_pipeline.localization.places import CoverageMap, PlaceIndex, descriptor_level, map_key
+from atlas_pipeline.localization.places import CoverageMap, PlaceIndex, adopt_stored, descriptor_level
 from atlas_pipeline.localization.relocalize import Relocalizer
 from atlas_pipeline.localization.tracker import (
     RGBDTracker,
@@ -279,15 +279,10 @@ class SequenceTracker:
         """The stored place index, when it was made from this very map, priors and camera (no
         keyframe mapped since); None otherwise (then it is never looked at again)."""
         stored, self._stored_places = self._stored_places, None
-        if stored is None or self.keyframe_poses:
+        if self.keyframe_poses:
             return None
-        level = descriptor_level(self.camera.width, self.tracker.n_levels)
-        if stored.key != map_key(self.model, np.array(self.priors).reshape(-1, 4, 4), self.camera, level):
-            logger.info("the stored place index is of another map, camera or layout: indexing the map's "
-                        "%d viewpoints again", len(self.priors))
-            return None
-        stored.camera, stored.level = self.camera, level
-        return stored
+        return adopt_stored(stored, self.model, np.array(self.priors).reshape(-1, 4, 4), self.camera,
+                            self.tracker.n_levels)
 
     def _velocity_poses(self, index: int) -> tuple[np.ndarray, np.ndarray] | None:
         """``(T_last, T_prev)``, the last two placed frames, when the constant-velocity model

@@ -52,7 +52,7 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 logger = logging.getLogger(__name__)
 
 __all__ = ["FramePyramid", "SurfelModel", "TrackResult", "RGBDTracker", "surfels_from_voxels",
-           "solve_update", "apply_update", "converged", "pyramid_levels"]
+           "solve_update", "apply_update", "converged", "pyramid_levels", "splat_params"]
 
 
 def pyramid_levels(cfg: LocalizationConfig) -> int:
@@ -99,7 +99,7 @@ def _level_view(T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int) -
                           camera.width // s, camera.height // s)
 
 
-def _splat_params(radius_m: float, max_depth_m: float = math.inf) -> kn.SplatParams:
+def splat_params(radius_m: float, max_depth_m: float = math.inf) -> kn.SplatParams:
     """Splatting limits for disks of ``radius_m`` (``surfel_radius_voxels`` voxels), drawn up to
     ``max_depth_m`` from the camera (inf: all)."""
     voxel_m = radius_m / C.surfel_radius_voxels
@@ -523,7 +523,7 @@ class SurfelModel:
 
     def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
                surface_behind: bool, max_depth_m: float = math.inf) -> tuple[np.ndarray, ...]:
-        view, params = _level_view(T_world_cam, camera, level), _splat_params(self.radius_m, max_depth_m)
+        view, params = _level_view(T_world_cam, camera, level), splat_params(self.radius_m, max_depth_m)
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, view, params, surface_behind,
                                 self.culling(view, params))
 
