@@ -64,13 +64,7 @@ from atlas_pipeline.config import PipelineConfig
 from atlas_pipeline.gaussian_world.builder import GaussianWorld
 from atlas_pipeline.gaussian_world.evaluation import evaluate_rendering
 from atlas_pipeline.io_utils import discard_dir
-from atlas_pipeline.localization.localizer import (
-    LocalizationReport,
-    localize,
-    localize_visit,
-    tracking_map,
-    world_place_index,
-)
+from atlas_pipeline.localization.localizer import LocalizationReport, bundle_tracking_files, localize, localize_visit
 from atlas_pipeline.mapping.keyframes import KeyframeSet
 from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_world_with_visit, select_keyframes_stage
 from atlas_pipeline.memory_estimate import check_memory, shape_of_manifest
@@ -339,8 +333,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                 parent=None,  # the pipeline builds every partition's world from scratch
             )
             meta = bundle_metadata(context.partition_key, context.partition_key, gaussian_world, raw_dataset, cfg, info)
-            model = tracking_map(gaussian_world)
-            places = world_place_index(model, gaussian_world, raw_dataset.camera, cfg.localization)
+            model, places = bundle_tracking_files(gaussian_world, raw_dataset.camera, cfg.localization)
             out = versioned(context, WorldBundleArtifact(gaussian_world.field, meta, localization_report, transitions,
                                                          model, places),
                              {"n_gaussians": len(gaussian_world.field), "map_id": gaussian_world.map_id,
@@ -389,8 +382,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                                   **lin, parent=parent)
             meta = bundle_metadata(name, name, world, raw_dataset, cfg, info)
             s = report.summary
-            model = tracking_map(world)
-            places = world_place_index(model, world, raw_dataset.camera, cfg.localization)
+            model, places = bundle_tracking_files(world, raw_dataset.camera, cfg.localization)
             out = versioned(context, WorldBundleArtifact(world.field, meta, report, table, model, places), {
                 "extends": first, "parent_map_id": first_visit_world.map_id, "map_id": world.map_id,
                 "n_gaussians": len(world.field), "n_new_keyframes": int(n_new),

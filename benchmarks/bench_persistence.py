@@ -186,7 +186,7 @@ def build_first_world(v1, cfg) -> tuple[object, object, object, dict[str, float]
     """Visit 1 fused, tracked and mapped (loop closure included), then merged into a world from
     its keyframes, and its place index: ``(slam_poses result, world, place index, seconds per
     step: fuse_s, slam_s, world_s, places_s)``."""
-    from atlas_pipeline.localization.localizer import tracking_map, world_place_index
+    from atlas_pipeline.localization.localizer import bundle_tracking_files
     from atlas_pipeline.mapping.keyframes import KeyframeSet, slam_poses
     from atlas_pipeline.mapping.mapper import build_world
     from atlas_pipeline.perception.rgbd import fuse_frames
@@ -200,7 +200,7 @@ def build_first_world(v1, cfg) -> tuple[object, object, object, dict[str, float]
     t2 = time.perf_counter()
     world = build_world(fused, kf, cfg.mapping, manifest=v1)
     t3 = time.perf_counter()
-    places = world_place_index(tracking_map(world), world, v1.camera, cfg.localization)
+    _, places = bundle_tracking_files(world, v1.camera, cfg.localization)
     return slam, world, places, {"fuse_s": t1 - t0, "slam_s": t2 - t1, "world_s": t3 - t2,
                                  "places_s": time.perf_counter() - t3}
 
@@ -242,7 +242,7 @@ def sessions_in_world(slam, world, places, v1, v2, cfg) -> dict:
     """Visit 1's own frames, then visit 2, localized in ``world`` (with ``places``, its stored
     place index); visit 2 mapped into it (extension) and localized in the extended world. The
     row's figures of these steps."""
-    from atlas_pipeline.localization.localizer import localize, localize_sequence, tracking_map, world_place_index
+    from atlas_pipeline.localization.localizer import bundle_tracking_files, localize, localize_sequence, tracking_map
     from atlas_pipeline.mapping.mapper import extend_world_by_tracking
     from benchmarks.common import grade
 
@@ -277,8 +277,7 @@ def sessions_in_world(slam, world, places, v1, v2, cfg) -> dict:
     t0 = time.perf_counter()
     extended, ext_poses, status = extend_world_by_tracking(world, v2, cfg.mapping, cfg.localization, depth_range,
                                                            cfg.fusion.stride, places=_stored(places, v2.camera)[0])
-    ext_model = tracking_map(extended)
-    ext_places = world_place_index(ext_model, extended, v2.camera, cfg.localization)
+    ext_model, ext_places = bundle_tracking_files(extended, v2.camera, cfg.localization)
     ext_placed = _placed(status)
     row.update({"extend_placed_pct": 100 * ext_placed.mean(),
                 "extend_ate_m": grade(v2, np.where(ext_placed[:, None, None], ext_poses, np.nan)).get("ate_rmse_m"),

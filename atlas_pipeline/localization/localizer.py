@@ -408,10 +408,12 @@ def tracking_map(world: GaussianWorld) -> SurfelModel:
     return model
 
 
-def world_place_index(model: SurfelModel, world: GaussianWorld, camera, cfg: LocalizationConfig) -> PlaceIndex:
-    """The place index a world's bundle stores (``places.npz``): its tracking map ``model``
-    (:func:`tracking_map`) seen from its keyframes, at the level ``cfg``'s pyramids give."""
-    return place_index(model, camera, pyramid_levels(cfg), world.T_world_cam_keyframes)
+def bundle_tracking_files(world: GaussianWorld, camera, cfg: LocalizationConfig) -> tuple[SurfelModel, PlaceIndex]:
+    """What a world's bundle stores for later sessions: its tracking map (:func:`tracking_map`,
+    ``surfels.npz``) and that map's place index seen from its keyframes (``places.npz``) at the
+    level ``cfg``'s pyramids give for ``camera``."""
+    model = tracking_map(world)
+    return model, place_index(model, camera, pyramid_levels(cfg), world.T_world_cam_keyframes)
 
 
 def localize_visit(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,

@@ -265,10 +265,12 @@ class SequenceTracker:
         """The place index of the active map's viewpoints (priors, then keyframes), brought up
         to date: only viewpoints not indexed yet are rendered."""
         if self._places is None:
-            self._places, self._n_places = self._adopt_stored_places(), len(self.priors)
-        if self._places is None:
-            self._places = PlaceIndex(self.camera, descriptor_level(self.camera.width, self.tracker.n_levels))
-            self._n_places = 0
+            stored = self._adopt_stored_places()
+            if stored is not None:  # holds every prior's views already
+                self._places, self._n_places = stored, len(self.priors)
+            else:
+                self._places = PlaceIndex(self.camera, descriptor_level(self.camera.width, self.tracker.n_levels))
+                self._n_places = 0
         views = self.priors + self.keyframe_poses
         for k in range(self._n_places, len(views)):
             self._places.add_keyframe(self.model, views[k], k)

@@ -33,7 +33,7 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     file of ``extend`` are checked before any frame is read; ``overrides`` and ``command`` go into
     the lineage."""
     from atlas_pipeline.io_utils import prepare_output_dir
-    from atlas_pipeline.localization.localizer import tracking_map, world_place_index
+    from atlas_pipeline.localization.localizer import bundle_tracking_files
     from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, select_keyframes_stage
     from atlas_pipeline.perception.rgbd import fuse
     from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
@@ -59,7 +59,6 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     lineage = bundle_lineage(command, partition=entry.name, run_id=None, profile=cfg.profile,
                              config_overrides=overrides or {}, parent=parent)
     meta = bundle_metadata(entry.name, entry.name, world, manifest, cfg, lineage)
-    model = tracking_map(world)
-    places = world_place_index(model, world, manifest.camera, cfg.localization)
+    model, places = bundle_tracking_files(world, manifest.camera, cfg.localization)
     write_world_bundle(out, world.field, meta, extras=(world,), surfels=model, places=places, inputs=inputs)
     return BuiltWorld(out, len(world.field), int(n_keyframes), world.map_id, parent)

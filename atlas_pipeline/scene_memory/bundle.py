@@ -548,7 +548,6 @@ class WorldBundle:
         model.appearance_map = VoxelAppearance.from_field(self.field, voxel)
         return model
 
-
     def stored_places(self, camera):
         """The bundle's place index (:func:`read_place_index`)."""
         return read_place_index(self.directory, camera, self.metadata)
