@@ -35,7 +35,7 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "fuse", "iter_rgbd", "read_ahead"]
+__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "fuse", "read_ahead"]
 
 
 def _undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iters: int = 10):
@@ -95,9 +95,10 @@ def backproject(
     return pts.astype(np.float32, copy=False), cols
 
 
-# Frames decoded ahead of the one being tracked. PNG decoding (a third of a 640x480 frame's
-# tracking time) releases the GIL, so one reader thread overlaps it with tracking; two frames in
-# flight bound the memory to a few MB whatever the sequence length.
+# Frames decoded ahead of the one being worked on. PNG decoding (a third of a 640x480 frame's
+# tracking time, most of its fusion time) releases the GIL, so one reader thread overlaps it with
+# tracking or back-projection; two frames in flight bound the memory to a few MB whatever the
+# sequence length.
 READ_AHEAD_FRAMES = 2
 
 
@@ -126,16 +127,6 @@ def read_ahead(manifest: FrameManifest, indices) -> "Iterator[tuple[int, np.ndar
         finally:
             for _, fut in pending:
                 fut.cancel()
-
-
-def iter_rgbd(manifest: FrameManifest, indices=None):
-    """Yield ``(frame_index, rgb [H, W, 3] uint8, depth_m [H, W] float32)``, one frame in memory at
-    a time. Depth may be all zero: a sensor covered, too close or facing a window gives such frames
-    inside a recording, and they are lost frames, not a broken recording (:func:`check_usable_depth`)."""
-    for i in range(manifest.n_frames) if indices is None else indices:
-        rgb = manifest.read_rgb(i)
-        depth = manifest.read_depth_m(i, allow_empty=True)
-        yield i, rgb, depth
 
 
 # A recording is refused only when fewer of its frames than this have any depth pixel (fewer than
@@ -360,15 +351,17 @@ class _ChunkSpool:
 def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
                 log: Callable[[str], None] | None = None, chunk_frames: int = FUSED_CHUNK_FRAMES) -> FusedFrames:
     """Back-project every frame of ``manifest`` with the settings of ``cfg``, streaming: frames
-    are read one at a time and their points written in chunks of ``chunk_frames`` frames to a
-    temporary folder, so memory holds one chunk whatever the sequence length."""
+    are decoded ahead by a reader thread (:func:`read_ahead`) and their points written in chunks
+    of ``chunk_frames`` frames to a temporary folder, so memory holds one chunk whatever the
+    sequence length. Frames with no depth at all are points-free frames, not errors, unless too
+    many are (:func:`check_usable_depth`)."""
     progress = Progress("fusing frames", manifest.n_frames, log)
     spool = _ChunkSpool(chunk_frames)
     counts, valid = [], []
     n_sampled = len(range(0, manifest.camera.height, cfg.stride)) * len(range(0, manifest.camera.width, cfg.stride))
     try:
         no_depth: list[int] = []
-        for i, rgb, depth in iter_rgbd(manifest):
+        for i, rgb, depth in read_ahead(manifest, range(manifest.n_frames)):
             if not np.any(depth > 0):
                 no_depth.append(i)
             pts, cols = backproject(depth, rgb, manifest.camera, cfg.stride, cfg.min_depth_m, cfg.max_depth_m)
