@@ -150,3 +150,36 @@ def test_read_ahead_raises_a_read_error_at_its_frame():
         for i, _, _ in read_ahead(_CountingManifest(10, bad=4), range(10)):
             got.append(i)
     assert got == [0, 1, 2, 3]
+
+
+def test_fusion_in_the_tracking_pass_equals_the_two_stages(small_manifest, tmp_path):
+    """`atlas-gs build` fuses each frame as the tracker reads it: the same fused bytes and the
+    same keyframes as fusion, then SLAM, each reading the frames."""
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.mapping.mapper import fuse_and_select_keyframes, select_keyframes_stage
+
+    cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated"})
+    fused, kf = fuse_and_select_keyframes(small_manifest, cfg)
+    ref_fused = fuse_frames(small_manifest, cfg.fusion)
+    ref_kf = select_keyframes_stage(small_manifest, ref_fused, cfg)
+    for a, b in zip(sorted(fused.save(tmp_path / "one")), sorted(ref_fused.save(tmp_path / "two"))):
+        assert a.name == b.name and a.read_bytes() == b.read_bytes(), a.name
+    np.testing.assert_array_equal(kf.indices, ref_kf.indices)
+    np.testing.assert_array_equal(kf.T_world_cam, ref_kf.T_world_cam)
+    np.testing.assert_array_equal(kf.valid, ref_kf.valid)
+    assert kf.pose_source == "estimated" and kf.maps == ref_kf.maps
+
+
+def test_frame_fuser_takes_frames_in_order_and_cleans_up_on_failure(small_manifest):
+    from atlas_pipeline.perception.rgbd import FrameFuser
+
+    rgb, depth = small_manifest.read_rgb(0), small_manifest.read_depth_m(0)
+    with pytest.raises(ValueError, match="frame 1 given where frame 0 was due"):
+        with FrameFuser(small_manifest, FusionConfig()) as fuser:
+            spool = fuser._spool.dir
+            fuser.add(1, rgb, depth)
+    assert not spool.exists()  # the temporary chunks of a failed pass go
+    with FrameFuser(small_manifest, FusionConfig()) as fuser:
+        fuser.add(0, rgb, depth)
+        with pytest.raises(ValueError, match=f"1 of {small_manifest.n_frames} frames given"):
+            fuser.finish()

@@ -20,7 +20,8 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["KeyframeSet", "SlamResult", "select_keyframes", "slam_poses", "uses_ground_truth", "build_keyframes"]
+__all__ = ["KeyframeSet", "SlamResult", "select_keyframes", "slam_poses", "uses_ground_truth", "build_keyframes",
+           "slam_keyframes"]
 
 
 # Where mapping poses come from (KeyframeSet.pose_source, GaussianWorld.pose_source).
@@ -83,7 +84,8 @@ class SlamResult:
 
 def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: LocalizationConfig,
                depth_range_m: tuple[float, float], fusion_stride: int,
-               log: Callable[[str], None] | None = None, frames=None, budget_s: float | None = None) -> SlamResult:
+               log: Callable[[str], None] | None = None, frames=None, budget_s: float | None = None,
+               on_frame: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> SlamResult:
     """Track and map the sequence with no ground truth: frame-to-model RGB-D tracking against the
     keyframes merged so far (:class:`SequenceTracker`). The first frame with depth defines the
     world. After ``mapping.new_map_after_lost_frames`` lost frames a new map starts and is merged
@@ -95,6 +97,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
         frames: optional ``[(rgb, depth_m)]`` already in memory (benchmarks: decoding not timed),
             the first frames of the sequence; by default frames are read one at a time.
         budget_s: stop tracking after this many seconds (benchmarks); ``n_attempted`` says where.
+        on_frame: called with ``(index, rgb [H, W, 3], depth_m [H, W])`` of every frame before it
+            is tracked, for work that needs the decoded frames too (:class:`FrameFuser`).
     """
     import time
 
@@ -117,6 +121,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     source = (((i, *f) for i, f in enumerate(frames[:n])) if frames is not None
               else read_ahead(manifest, range(n)))
     for i, rgb, depth in source:
+        if on_frame is not None:
+            on_frame(i, rgb, depth)
         # The first frame with depth anchors the world at the identity.
         anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
         est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]),
@@ -243,6 +249,11 @@ def build_keyframes(manifest: FrameManifest, fused: FusedFrames, cfg: MappingCon
         if len(idx) == 0:
             raise DatasetError(manifest.root, "no frame has a pose to map with")
         return KeyframeSet(poses, valid, idx, "ground_truth")
-    slam = slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m), fused.stride, log)
-    # The corrected poses (loop closure) are the mapping poses: build_world re-fuses the map from them.
+    return slam_keyframes(slam_poses(manifest, cfg, localization, (fused.min_depth_m, fused.max_depth_m),
+                                      fused.stride, log))
+
+
+def slam_keyframes(slam: SlamResult) -> KeyframeSet:
+    """The keyframe set of a SLAM run. The corrected poses (loop closure) are the mapping poses:
+    build_world re-fuses the map from them."""
     return KeyframeSet(slam.T_world_cam, slam.valid, slam.keyframe_indices, "estimated", slam.loop_closure, slam.maps)

@@ -1,6 +1,7 @@
 """Incremental mapping: merge keyframes one by one into a voxel Gaussian world.
 
-Also the pipeline's mapping stages (:func:`select_keyframes_stage`, :func:`build_gaussian_world`:
+Also the pipeline's mapping stages (:func:`select_keyframes_stage`, :func:`fuse_and_select_keyframes`
+when fusion and keyframes run in one pass, :func:`build_gaussian_world`:
 voxel Gaussians, then fitted to the keyframe images) and the policy of extending a saved world
 (:func:`extend_saved_world`).
 
@@ -29,8 +30,8 @@ from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld, VoxelGaussianBuilder
 from atlas_pipeline.localization.tracker import SurfelCache
 from atlas_pipeline.mapping import consistency
-from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes
-from atlas_pipeline.perception.rgbd import FusedFrames, read_ahead
+from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes, slam_keyframes, slam_poses, uses_ground_truth
+from atlas_pipeline.perception.rgbd import FrameFuser, FusedFrames, fuse, read_ahead
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
@@ -43,7 +44,7 @@ logger = logging.getLogger(__name__)
 LogFn = Callable[[str], None]
 
 __all__ = ["build_world", "extend_world", "extend_world_by_tracking", "extend_world_with_visit", "select_keyframes_stage",
-           "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight",
+           "fuse_and_select_keyframes", "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight",
            "coverage_band_m"]
 
 def depth_weight(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -296,6 +297,29 @@ def select_keyframes_stage(manifest: FrameManifest, fused: FusedFrames, cfg: Pip
                            log: LogFn | None = None) -> KeyframeSet:
     """The keyframes stage: mapping poses (ground truth or SLAM) and the keyframes among them."""
     return build_keyframes(manifest, fused, cfg.mapping, cfg.localization, log)
+
+
+def fuse_and_select_keyframes(manifest: FrameManifest, cfg: PipelineConfig,
+                              log: LogFn | None = None) -> tuple[FusedFrames, KeyframeSet]:
+    """The fusion and keyframes stages (:func:`atlas_pipeline.perception.rgbd.fuse`, then
+    :func:`select_keyframes_stage`) with each frame decoded once: when the poses come from SLAM,
+    every frame is back-projected as the tracker reads it; with ground truth, fusion alone reads
+    the frames. The same artifacts as the two stages run one after the other."""
+    from atlas_pipeline.errors import DatasetError
+
+    if uses_ground_truth(manifest, cfg.mapping):
+        fused = fuse(manifest, cfg, log)
+        return fused, select_keyframes_stage(manifest, fused, cfg, log)
+    fusion = cfg.fusion
+    with FrameFuser(manifest, fusion) as fuser:
+        try:
+            slam = slam_poses(manifest, cfg.mapping, cfg.localization, (fusion.min_depth_m, fusion.max_depth_m),
+                              fusion.stride, log, on_frame=fuser.add)
+        except DatasetError:
+            fuser.check_depth()  # a recording short of depth: that error names its images
+            raise
+        fused = fuser.finish()
+    return fused, slam_keyframes(slam)
 
 
 # Full-resolution fit inputs per pixel: RGB uint8 (3 B), depth, its loss weight and coverage band (float32 each).

@@ -35,7 +35,7 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["pixel_rays", "backproject", "FusedFrames", "fuse_frames", "fuse", "read_ahead"]
+__all__ = ["pixel_rays", "backproject", "FusedFrames", "FrameFuser", "fuse_frames", "fuse", "read_ahead"]
 
 
 def _undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iters: int = 10):
@@ -348,6 +348,63 @@ class _ChunkSpool:
         self.n_chunks += 1
 
 
+class FrameFuser:
+    """Back-projects the frames of ``manifest``, given one at a time in order, into the chunk
+    files of a :class:`FusedFrames` (settings of ``cfg``): the work of :func:`fuse_frames` per
+    frame, for a pass that decodes the frames anyway (tracking) so each is decoded once. Used as a
+    context manager: the temporary chunks go when the block fails."""
+
+    def __init__(self, manifest: FrameManifest, cfg: FusionConfig, chunk_frames: int = FUSED_CHUNK_FRAMES):
+        self.manifest, self.cfg = manifest, cfg
+        cam = manifest.camera
+        self._n_sampled = len(range(0, cam.height, cfg.stride)) * len(range(0, cam.width, cfg.stride))
+        self._spool = _ChunkSpool(chunk_frames)
+        self._counts: list[int] = []
+        self._valid: list[float] = []
+        self._no_depth: list[int] = []
+
+    def __enter__(self) -> "FrameFuser":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            shutil.rmtree(self._spool.dir, ignore_errors=True)
+
+    def add(self, i: int, rgb: np.ndarray, depth_m: np.ndarray) -> None:
+        """Frame ``i`` (the next one: frames come in order), ``rgb [H, W, 3]`` uint8, ``depth_m [H, W]``."""
+        if i != len(self._counts):
+            raise ValueError(f"FrameFuser: frame {i} given where frame {len(self._counts)} was due")
+        if not np.any(depth_m > 0):
+            self._no_depth.append(i)
+        pts, cols = backproject(depth_m, rgb, self.manifest.camera, self.cfg.stride, self.cfg.min_depth_m,
+                                self.cfg.max_depth_m)
+        self._spool.add(pts, cols)
+        self._counts.append(len(pts))
+        self._valid.append(len(pts) / self._n_sampled)
+
+    def check_depth(self) -> None:
+        """:func:`check_usable_depth` of the frames given so far."""
+        check_usable_depth(self.manifest, self._no_depth)
+
+    def finish(self) -> FusedFrames:
+        """The artifact of every frame of the sequence (all given); refused when too few have depth."""
+        if len(self._counts) != self.manifest.n_frames:
+            raise ValueError(f"FrameFuser: {len(self._counts)} of {self.manifest.n_frames} frames given")
+        self._spool.flush()
+        self.check_depth()
+        offsets = np.zeros(len(self._counts) + 1, dtype=np.int64)
+        np.cumsum(self._counts, out=offsets[1:])
+        cfg = self.cfg
+        out = FusedFrames(
+            points_cam=None, colors=None, offsets=offsets, valid_fraction=np.asarray(self._valid, dtype=np.float32),
+            stride=cfg.stride, min_depth_m=cfg.min_depth_m, max_depth_m=cfg.max_depth_m,
+            chunk_dir=self._spool.dir, chunk_frames=self._spool.chunk_frames,
+        )
+        # The spool is ours (made here): it goes when the artifact object does, or when save() hands it over.
+        out._spool_finalizer = weakref.finalize(out, shutil.rmtree, str(self._spool.dir), True)
+        return out
+
+
 def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
                 log: Callable[[str], None] | None = None, chunk_frames: int = FUSED_CHUNK_FRAMES) -> FusedFrames:
     """Back-project every frame of ``manifest`` with the settings of ``cfg``, streaming: frames
@@ -356,34 +413,11 @@ def fuse_frames(manifest: FrameManifest, cfg: FusionConfig,
     sequence length. Frames with no depth at all are points-free frames, not errors, unless too
     many are (:func:`check_usable_depth`)."""
     progress = Progress("fusing frames", manifest.n_frames, log)
-    spool = _ChunkSpool(chunk_frames)
-    counts, valid = [], []
-    n_sampled = len(range(0, manifest.camera.height, cfg.stride)) * len(range(0, manifest.camera.width, cfg.stride))
-    try:
-        no_depth: list[int] = []
+    with FrameFuser(manifest, cfg, chunk_frames) as fuser:
         for i, rgb, depth in read_ahead(manifest, range(manifest.n_frames)):
-            if not np.any(depth > 0):
-                no_depth.append(i)
-            pts, cols = backproject(depth, rgb, manifest.camera, cfg.stride, cfg.min_depth_m, cfg.max_depth_m)
-            spool.add(pts, cols)
-            counts.append(len(pts))
-            valid.append(len(pts) / n_sampled)
+            fuser.add(i, rgb, depth)
             progress.update()
-        spool.flush()
-        check_usable_depth(manifest, no_depth)
-    except BaseException:
-        shutil.rmtree(spool.dir, ignore_errors=True)
-        raise
-    offsets = np.zeros(len(counts) + 1, dtype=np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    out = FusedFrames(
-        points_cam=None, colors=None, offsets=offsets, valid_fraction=np.asarray(valid, dtype=np.float32),
-        stride=cfg.stride, min_depth_m=cfg.min_depth_m, max_depth_m=cfg.max_depth_m,
-        chunk_dir=spool.dir, chunk_frames=chunk_frames,
-    )
-    # The spool is ours (made above): it goes when the artifact object does, or when save() hands it over.
-    out._spool_finalizer = weakref.finalize(out, shutil.rmtree, str(spool.dir), True)
-    return out
+        return fuser.finish()
 
 
 def fuse(manifest: FrameManifest, cfg: PipelineConfig, log: Callable[[str], None] | None = None) -> FusedFrames:

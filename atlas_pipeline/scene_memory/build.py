@@ -34,7 +34,7 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     the lineage."""
     from atlas_pipeline.io_utils import prepare_output_dir
     from atlas_pipeline.localization.localizer import bundle_tracking_files
-    from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, select_keyframes_stage
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, fuse_and_select_keyframes
     from atlas_pipeline.perception.rgbd import fuse
     from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
     from atlas_pipeline.scene_memory.metadata import bundle_lineage, bundle_metadata
@@ -47,13 +47,12 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     if extend:
         load_world_bundle(extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
     manifest = load_dataset(entry, cfg)
-    fused = fuse(manifest, cfg)
     parent = None
     if extend:
         parent = parent_reference(extend)
-        world, n_keyframes = extend_saved_world(extend, manifest, fused, cfg)
+        world, n_keyframes = extend_saved_world(extend, manifest, fuse(manifest, cfg), cfg)
     else:
-        keyframes = select_keyframes_stage(manifest, fused, cfg)
+        fused, keyframes = fuse_and_select_keyframes(manifest, cfg)  # each frame decoded once
         world = build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
         n_keyframes = len(keyframes.indices)
     lineage = bundle_lineage(command, partition=entry.name, run_id=None, profile=cfg.profile,
