@@ -587,3 +587,22 @@ def test_rotation_error_is_reported_only_where_the_alignment_fixes_the_rotation(
         assert math.isnan(a["rot_rmse_deg"]) and math.isnan(summary["ate_rot_rmse_deg"]) and np.isnan(err_r).all()
         for word in ("near straight", "uncertain by", "unaligned rotation error"):
             assert word in summary["ate_rot_note"], summary["ate_rot_note"]
+
+
+def test_extending_with_a_recording_short_of_depth_names_its_images(isolated, small_synthetic, capsys):
+    """``build --extend`` tracks into the saved world without a fusion pass of its own; a recording
+    whose depth images are mostly empty is still refused, naming the first of them."""
+    rec = isolated / "dropout"
+    shutil.copytree(small_synthetic, rec)
+    zeroed = _zero_depth(rec, [1, 2, 3, 4, 5, 6, 7])
+    camera = ["--intrinsics", "131.25 131.25 79.5 59.5", "--width", "160", "--height", "120"]
+    assert main(["dataset", "add", "dropout", str(rec), "--kind", "tum", *camera]) == 0
+    world = isolated / "world"
+    estimated = ["--set", "mapping.pose_source=estimated"]
+    assert main(["build", "--input", "synth-small", "--output", str(world), *FAST, *estimated]) == 0
+    capsys.readouterr()
+    out = isolated / "extended"
+    code = main(["build", "--input", "dropout", "--output", str(out), "--extend", str(world), *FAST, *estimated])
+    err = capsys.readouterr().err
+    assert code == 2 and zeroed[0].name in err and "no valid pixel" in err and "too few" in err, err
+    assert not out.exists()

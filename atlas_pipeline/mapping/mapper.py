@@ -31,7 +31,7 @@ from atlas_pipeline.gaussian_world.builder import MAX_CELL_VOXELS, GaussianWorld
 from atlas_pipeline.localization.tracker import SurfelCache
 from atlas_pipeline.mapping import consistency
 from atlas_pipeline.mapping.keyframes import KeyframeSet, build_keyframes, slam_keyframes, slam_poses, uses_ground_truth
-from atlas_pipeline.perception.rgbd import FrameFuser, FusedFrames, fuse, read_ahead
+from atlas_pipeline.perception.rgbd import FrameFuser, FusedFrames, check_usable_depth, fuse, read_ahead
 from atlas_pipeline.progress import Progress
 from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
@@ -261,12 +261,16 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     status: list[str] = []
     history = list(world.history)
     progress = Progress("tracking into the saved world", n, log)
+    no_depth: list[int] = []
     for i, rgb, depth in read_ahead(manifest, range(n)):
+        if not np.any(depth > 0):
+            no_depth.append(i)
         est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]),
                          colour_delay_s=manifest.colour_delay_s(i))
         poses[i] = est.T_world_cam
         status.append(est.status)
         progress.update(extra=est.status)
+    check_usable_depth(manifest, no_depth)  # a recording short of depth: that error names its images
     if status.count(STATUS_LOST) == n:
         raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
                                           "everywhere): is it a world of the same place?")
@@ -392,10 +396,11 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     return world
 
 
-def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
+def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: FusedFrames | None, cfg: PipelineConfig,
                        log: LogFn | None = None) -> tuple[GaussianWorld, int]:
     """Keep mapping a new sequence into the world saved in the bundle at ``bundle_dir`` (its
-    ``world.npz`` voxel statistics): ``(extended world, number of new keyframes)``.
+    ``world.npz`` voxel statistics): ``(extended world, number of new keyframes)``. ``fused``:
+    the sequence's fused frames, or None (fused here when the ground-truth branch needs them).
 
     With ``mapping.pose_source`` ``ground_truth`` the new sequence's ground-truth poses are taken
     to share the saved world's frame and its keyframes are merged at them; otherwise (a second
@@ -414,13 +419,16 @@ def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: F
     return extend_world_with_visit(previous, manifest, fused, cfg, log, read_place_index(bundle_dir, manifest.camera))
 
 
-def extend_world_with_visit(previous: GaussianWorld, manifest: FrameManifest, fused: FusedFrames, cfg: PipelineConfig,
-                            log: LogFn | None = None, places=None) -> tuple[GaussianWorld, int]:
+def extend_world_with_visit(previous: GaussianWorld, manifest: FrameManifest, fused: FusedFrames | None,
+                            cfg: PipelineConfig, log: LogFn | None = None, places=None) -> tuple[GaussianWorld, int]:
     """Keep mapping a new sequence into ``previous`` (not modified), as :func:`extend_saved_world`
-    does for a saved bundle: ``(extended world, number of new keyframes)``. ``places``: the
-    stored place index of ``previous`` (None: made when first needed)."""
+    does for a saved bundle: ``(extended world, number of new keyframes)``. ``fused``: the
+    sequence's fused frames, or None: only merging at ground-truth poses reads them (fused here
+    then); tracking into the world reads the frames itself. ``places``: the stored place index
+    of ``previous`` (None: made when first needed)."""
     if cfg.mapping.pose_source == "ground_truth":
         # Ground-truth poses of the new sequence are taken to share the parent's frame.
+        fused = fuse(manifest, cfg, log) if fused is None else fused
         keyframes = select_keyframes_stage(manifest, fused, cfg, log)
         world = extend_world(previous, fused, keyframes, cfg.mapping, log, manifest)
     else:

@@ -35,7 +35,8 @@ from atlas_pipeline.sensors.tum import FrameManifest
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["pixel_rays", "backproject", "FusedFrames", "FrameFuser", "fuse_frames", "fuse", "read_ahead"]
+__all__ = ["pixel_rays", "backproject", "FusedFrames", "FrameFuser", "fuse_frames", "fuse", "read_ahead",
+           "check_usable_depth"]
 
 
 def _undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: tuple[float, ...], iters: int = 10):

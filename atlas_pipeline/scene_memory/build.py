@@ -35,7 +35,6 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     from atlas_pipeline.io_utils import prepare_output_dir
     from atlas_pipeline.localization.localizer import bundle_tracking_files
     from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_saved_world, fuse_and_select_keyframes
-    from atlas_pipeline.perception.rgbd import fuse
     from atlas_pipeline.scene_memory.bundle import BUNDLE_KIND, load_world_bundle, parent_reference, write_world_bundle
     from atlas_pipeline.scene_memory.metadata import bundle_lineage, bundle_metadata
     from atlas_pipeline.memory_estimate import check_entry_memory
@@ -50,7 +49,7 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     parent = None
     if extend:
         parent = parent_reference(extend)
-        world, n_keyframes = extend_saved_world(extend, manifest, fuse(manifest, cfg), cfg)
+        world, n_keyframes = extend_saved_world(extend, manifest, None, cfg)  # fuses only if it needs to
     else:
         fused, keyframes = fuse_and_select_keyframes(manifest, cfg)  # each frame decoded once
         world = build_gaussian_world(fused, keyframes, cfg, manifest=manifest)
