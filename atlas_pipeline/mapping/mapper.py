@@ -44,8 +44,8 @@ logger = logging.getLogger(__name__)
 LogFn = Callable[[str], None]
 
 __all__ = ["build_world", "extend_world", "extend_world_by_tracking", "extend_world_with_visit", "select_keyframes_stage",
-           "fuse_and_select_keyframes", "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight", "depth_loss_weight",
-           "coverage_band_m"]
+           "fuse_and_select_keyframes", "build_gaussian_world", "extend_saved_world", "depth_sigma_m", "depth_weight",
+           "depth_loss_weight", "coverage_band_m"]
 
 def depth_weight(depth_m: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """Inverse-variance weight in (0, 1] of points at ``depth_m`` (any shape) for the voxel merge:
