@@ -16,6 +16,7 @@ Runs, in this order:
 
     python benchmarks/bench_main_job.py                 # a table
     python benchmarks/bench_main_job.py --json out.json
+    python benchmarks/bench_main_job.py --no-cold --no-reference --set localization.map_photometric_weight=0
 
 Exit status 1 when the warm run is above ``--target-cpu-s`` (100 CPU-s on 2 cores).
 """
@@ -82,7 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-cold", action="store_true", help="skip the empty-JIT-cache run")
     ap.add_argument("--target-cpu-s", type=float, default=TARGET_CPU_S)
     ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override passed to every run (as atlas-gs run --set)")
     args = ap.parse_args(argv)
+    extra = [a for kv in args.set for a in ("--set", kv)]
 
     sys.path.insert(0, str(ROOT))
     from atlas_pipeline.sensors.registry import ensure_dataset_files, load_registry
@@ -94,15 +98,15 @@ def main(argv: list[str] | None = None) -> int:
         ensure_dataset_files(load_registry()[args.partition])  # generated before any timing
         cache_p = Path(cache)
         if not args.no_cold:
-            rows["cold"] = run_job(args.partition, Path(data), cache_p, {}, [])
+            rows["cold"] = run_job(args.partition, Path(data), cache_p, {}, extra)
         else:  # fill the cache untimed
-            run_job(args.partition, Path(data), cache_p, {}, [])
-        rows["warm"] = run_job(args.partition, Path(data), cache_p, {}, [])
+            run_job(args.partition, Path(data), cache_p, {}, extra)
+        rows["warm"] = run_job(args.partition, Path(data), cache_p, {}, extra)
         if not args.no_reference:
-            rows["reference"] = run_job(args.partition, Path(data), cache_p, LEGACY_FIT, [])
+            rows["reference"] = run_job(args.partition, Path(data), cache_p, LEGACY_FIT, extra)
 
     load = os.getloadavg()[0]
-    print(f"atlas-gs run {args.partition}: {os.cpu_count()} CPUs, load average {load:.2f} at the end")
+    print(f"atlas-gs run {args.partition} {' '.join(extra)}: {os.cpu_count()} CPUs, load average {load:.2f} at the end")
     print(f"{'run':<10} {'wall s':>8} {'CPU s':>8} {'fit steps':>10} {'PSNR dB':>8} {'masked dB':>10} {'stderr':>7}")
     for name, r in rows.items():
         f = lambda v: f"{v:.2f}" if isinstance(v, float) else str(v)  # noqa: E731
