@@ -34,7 +34,8 @@ def _inline(manifest, indices):
 def main(argv: list[str] | None = None) -> int:
     from atlas_pipeline.config import load_profile
     from atlas_pipeline.mapping import keyframes as kf_module
-    from atlas_pipeline.perception.rgbd import FrameFuser, fuse_frames, read_ahead
+    from atlas_pipeline.mapping.mapper import fuse_and_select_keyframes
+    from atlas_pipeline.perception.rgbd import fuse_frames, read_ahead
     from atlas_pipeline.sensors.registry import load_dataset, load_registry
     from benchmarks.bench_persistence import _slice
 
@@ -50,20 +51,17 @@ def main(argv: list[str] | None = None) -> int:
     depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
     in_memory = [(m.read_rgb(i), m.read_depth_m(i, allow_empty=True)) for i in range(m.n_frames)]
 
-    def slam(reader, frames=None, on_frame=None):
+    def slam(reader, frames=None):
         kf_module.read_ahead = reader
-        return kf_module.slam_poses(m, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride, frames=frames,
-                                    on_frame=on_frame)
+        return kf_module.slam_poses(m, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride, frames=frames)
 
     def fuse_then_slam():
         fuse_frames(m, cfg.fusion)
         return slam(read_ahead)
 
     def one_pass():
-        with FrameFuser(m, cfg.fusion) as fuser:
-            out = slam(read_ahead, on_frame=fuser.add)
-            fuser.finish()
-        return out
+        kf_module.read_ahead = read_ahead
+        return fuse_and_select_keyframes(m, cfg)[1]  # its KeyframeSet holds SLAM's poses
 
     runs = {"inline (reference)": lambda: slam(_inline), "read ahead": lambda: slam(read_ahead),
             "held in memory (decoded before the clock)": lambda: slam(read_ahead, frames=in_memory),
