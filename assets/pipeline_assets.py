@@ -197,7 +197,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         return versioned(context, fused, {"n_points": fused.n_points,
                                           "mean_valid_fraction": _num(fused.valid_fraction.mean())})
 
-    @stage("keyframes", "10", "Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
+    @stage("keyframes", "11", "Mapping poses and keyframes: ground truth selected by motion, or (pose_source estimated / "
                              "no ground truth) the RGB-D tracker's own trajectory and keyframes.")
     def keyframes(context: AssetExecutionContext, atlas: AtlasConfig, raw_dataset: FrameManifest,
                   fused_frames: FusedFrames):
@@ -372,7 +372,8 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         dep_partitions = {FIRST_VISIT_WORLD: first}
         if (out := reuse(context, cfg, dep_partitions=dep_partitions)) is None:
             world, n_new = extend_world_with_visit(first_visit_world, raw_dataset, fused_frames, cfg, context.log.info)
-            report = localize_visit(raw_dataset, world, cfg, log=context.log.info)
+            model, places = bundle_tracking_files(world, raw_dataset.camera, cfg.localization)
+            report = localize_visit(raw_dataset, world, cfg, log=context.log.info, tracking=(model, places))
             table = log_transitions(report, name, len(world.field), cfg)
             lin = lineage(context, dep_partitions)
             parent = {"partition": first, "map_id": first_visit_world.map_id,
@@ -382,7 +383,6 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
                                   **lin, parent=parent)
             meta = bundle_metadata(name, name, world, raw_dataset, cfg, info)
             s = report.summary
-            model, places = bundle_tracking_files(world, raw_dataset.camera, cfg.localization)
             out = versioned(context, WorldBundleArtifact(world.field, meta, report, table, model, places), {
                 "extends": first, "parent_map_id": first_visit_world.map_id, "map_id": world.map_id,
                 "n_gaussians": len(world.field), "n_new_keyframes": int(n_new),

@@ -209,6 +209,9 @@ class MappingConfig(Section):
         "estimated poses: loops to earlier keyframes verified by the tracker, then a pose graph"))
     loop_min_keyframe_gap: int = Field(10, ge=1, le=MAX_FRAMES, description="a loop joins keyframes at least this many apart")
     loop_search_radius_m: float = Field(0.3, gt=0, description="loop candidates: camera centres within this distance (m)")
+    loop_probes: bool = Field(False, description=(
+        "loop search also from tracked frames where the map took no keyframe (a return over mapped "
+        "surfaces); off: on the synthetic suite it verified two wrong loops (docs/tracking.md)"))
     new_map_after_lost_frames: int = Field(5, ge=0, le=MAX_FRAMES, description=(
         "estimated poses: after this many lost frames in a row a new map is started and merged when the "
         "place is recognised; 0 = stay lost until relocalized"))

@@ -35,7 +35,8 @@ _CHECK_THRESHOLDS = ("localization.max_ate_m",)  # a blocking check's bound: it 
 # The tracker (SLAM) reads the localization settings; the map's own range and the fit are not its.
 _TRACKING = ("mapping.pose_source", "mapping.voxel_size_m", "mapping.keyframe_translation_m",
              "mapping.keyframe_rotation_deg", "mapping.loop_closure", "mapping.loop_min_keyframe_gap",
-             "mapping.loop_search_radius_m", "mapping.new_map_after_lost_frames", "localization")
+             "mapping.loop_search_radius_m", "mapping.loop_probes", "mapping.new_map_after_lost_frames",
+             "localization")
 # Keyframes chosen by motion along ground-truth poses: no tracker.
 _GROUND_TRUTH_KEYFRAMES = ("mapping.pose_source", "mapping.keyframe_translation_m", "mapping.keyframe_rotation_deg")
 _WHOLE_CONFIG = ("dataset", "fusion", "mapping", "localization", "transitions", "video", "evaluation")

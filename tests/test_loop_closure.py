@@ -12,6 +12,7 @@ from atlas_pipeline.mapping.loop_closure import (
     CovisibilityView,
     covisible_candidates,
     loop_candidates,
+    loop_probe_frames,
     optimize_pose_graph,
     propagate_correction,
     relative_poses,
@@ -209,6 +210,23 @@ def test_a_loop_the_geometry_cannot_pin_is_not_verified():
     assert verify_loop(Tracker(0.5 * LOOP_MIN_TRANSLATION_CONSTRAINT), None, None, [np.eye(4)]) is None
 
 
+def test_a_frame_that_fits_two_poses_from_two_guesses_is_no_loop():
+    """Aligned from the drifted pose and from the candidate's, a frame that lands in two good fits
+    30 cm apart (a room's planes fit it from both) verifies no loop; two fits that agree do."""
+    from atlas_pipeline.localization.tracker import TrackResult
+    from atlas_pipeline.mapping.loop_closure import LOOP_AMBIGUITY_M, verify_loop
+
+    class Tracker:  # a good fit where it starts: the guess itself
+        def align(self, frame, model, T_init, reference):
+            return TrackResult(np.array(T_init), 0.7, 0.005, 1000, True, translation_constraint=0.2)
+
+    here, there = np.eye(4), _pose(0.3, 0.0, 0.0)
+    assert verify_loop(Tracker(), None, None, [here, there]) is None
+    near = _pose(0.5 * LOOP_AMBIGUITY_M, 0.0, 0.0)
+    found = verify_loop(Tracker(), None, None, [here, near])
+    assert found is not None and found[3] == "tracker"
+
+
 def test_correction_propagates_from_the_nearest_earlier_keyframe():
     T = np.stack([_pose(0.1 * k, 0.0, 0.0) for k in range(6)])
     kf = np.array([0, 3])
@@ -225,6 +243,25 @@ def test_correction_propagates_from_the_nearest_earlier_keyframe():
     mx, mean = trajectory_change(T, out, valid)
     assert mx == pytest.approx(np.linalg.norm(out[4, :3, 3] - T[4, :3, 3]))
     assert 0 < mean < mx
+
+
+def test_probes_stand_in_for_keyframes_where_the_map_took_none():
+    """A straight walk of 1 cm a frame with keyframes only over its first half: probes every
+    16 cm (more than 0.155 m from the last node) over the second half, none among the keyframes,
+    and the last frame; a turn on the spot counts as motion too."""
+    T = np.stack([_pose(0.01 * k, 0.0, 0.0) for k in range(100)])
+    valid = np.ones(100, bool)
+    valid[97] = False
+    kf = np.arange(0, 50, 8)  # 0, 8, ... 48
+    probes = loop_probe_frames(T, valid, kf, 0.155, 22.5)
+    np.testing.assert_array_equal(probes, [64, 80, 96, 99])  # 16 frames = 16 cm past the last node
+    assert not np.isin(probes, kf).any()
+    # no keyframe, nothing to hang probes on; every frame a keyframe, no probe
+    assert len(loop_probe_frames(T, valid, np.zeros(0, np.int64), 0.15, 22.5)) == 0
+    assert len(loop_probe_frames(T, valid, np.flatnonzero(valid), 0.15, 22.5)) == 0
+    turning = np.stack([_pose(0.0, 0.0, np.radians(k)) for k in range(60)])
+    np.testing.assert_array_equal(loop_probe_frames(turning, np.ones(60, bool), np.array([0]), 0.15, 22.5),
+                                  [23, 46, 59])
 
 
 @pytest.fixture(scope="module")
@@ -263,7 +300,7 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     drifted = _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
     kf = select_keyframes(drifted, valid, 0.08, 8.0)
     res = close_loops(m, drifted, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02, min_gap=10, radius_m=0.3)
-    rec = res.record(kf)
+    rec = res.record()
     assert rec["n_loops"] >= 1 and all(lp["frame"] - lp["matched_frame"] >= 10 for lp in rec["loops"])
 
     def end_error(P):
@@ -282,6 +319,45 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     # The map re-fused from the corrected keyframe poses.
     builder = merge_keyframes_at_poses(m, kf[:5], res.T_keyframes_after[:5], (0.1, 4.0), 2, 0.02)
     assert len(builder) > 0
+
+
+@pytest.mark.slow
+def test_a_return_that_adds_no_keyframes_closes_its_loop_through_probes(loop_sequence):
+    """The same drifted loop with keyframes only over its first 60 % (the return runs over mapped
+    surfaces, so the map takes none there): over keyframes alone no loop reaches back to the
+    start; probes find the return and close it, and the record names the probe."""
+    from atlas_pipeline.config import LocalizationConfig
+    from atlas_pipeline.mapping.keyframes import select_keyframes
+    from atlas_pipeline.mapping.loop_closure import close_loops
+
+    m = loop_sequence
+    gt = m.T_world_cam_gt
+    valid = m.has_gt.copy()
+    err = np.eye(4)
+    err[:3, :3] = so3_exp(np.radians([0.0, 0.08, 0.0]))
+    err[:3, 3] = (0.0, 0.0, 0.001)
+    drifted = _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
+    kf = select_keyframes(drifted, valid, 0.08, 8.0)
+    start, returned = int(0.1 * m.n_frames), int(0.6 * m.n_frames)
+    kf = kf[kf < returned]
+    args = (m, drifted, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02)
+    without = close_loops(*args, min_gap=10, radius_m=0.3)
+    assert without.record()["n_probes"] == 0
+    assert not any(lp["matched_frame"] < start for lp in without.record()["loops"])
+    res = close_loops(*args, min_gap=10, radius_m=0.3, probes=True)
+    rec = res.record()
+    assert rec["n_probes"] > 0
+    home = [lp for lp in rec["loops"] if lp["kept"] and lp["matched_frame"] < start]
+    assert home and all(lp["keyframe"] is None and lp["frame"] >= returned for lp in home)
+
+    def end_error(P):
+        return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
+
+    print(f"end-point error: drifted {100 * end_error(drifted):.1f} cm, keyframes only "
+          f"{100 * end_error(without.T_world_cam):.1f} cm, with probes {100 * end_error(res.T_world_cam):.1f} cm")
+    assert end_error(res.T_world_cam) < 0.5 * end_error(without.T_world_cam)
+    # the keyframes' corrected poses are the keyframes' own (the map is re-fused from them)
+    np.testing.assert_array_equal(res.T_keyframes_after, res.T_world_cam[kf])
 
 
 @pytest.mark.slow
@@ -322,7 +398,7 @@ def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
     radius = 0.005
     assert not any(len(loop_candidates(drifted[kf], i, 10, radius)) for i in range(len(kf)))
     res = close_loops(m, drifted, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02, min_gap=10, radius_m=radius)
-    rec = res.record(kf)
+    rec = res.record()
     assert rec["n_loops"] >= 1
 
     def end_error(P):
@@ -351,5 +427,5 @@ def test_a_loop_that_would_move_the_camera_further_than_drift_can_is_refused(loo
 
     monkeypatch.setattr(lc, "verify_loop", far_match)
     res = lc.close_loops(m, gt, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02, min_gap=10, radius_m=0.3)
-    assert res.record(kf)["n_loops"] == 0
+    assert res.record()["n_loops"] == 0
     np.testing.assert_array_equal(res.T_world_cam, gt)

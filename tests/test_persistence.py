@@ -192,12 +192,21 @@ def _wall_depth(camera, rng) -> np.ndarray:
 
 
 @pytest.mark.parametrize("hold", [False, True])
-def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free(hold):
+def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free(hold, monkeypatch):
     """Passing along a flat wall of a saved world, nothing in the depth says how far the camera
-    moved along it: with the motion model holding the free directions (as a session extending a
-    world does), the pose stays within the distance travelled; without, depth noise slides it
-    further than the camera went."""
+    moved along it: with the motion model holding the free directions (and, with no velocity yet,
+    the last pose: a session extending a world), the pose stays within the distance travelled;
+    with the hold turned off (no prior share, no odometry), depth noise slides it further than
+    the camera went."""
     import copy
+    import dataclasses
+
+    from atlas_pipeline.localization import constants, tracker
+
+    cfg = LocalizationConfig()
+    if not hold:
+        monkeypatch.setattr(tracker, "C", dataclasses.replace(constants.TRACKER_CONSTANTS, motion_prior_share=0.0))
+        cfg = cfg.model_copy(update={"odometry_prediction": False})
 
     spec = syn.SyntheticSpec(n_frames=1, **QVGA)
     cam, rng = spec.camera(), np.random.default_rng(0)
@@ -205,8 +214,7 @@ def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free
     pts, _ = backproject(_wall_depth(cam, rng), None, cam, 2, *DEPTH_RANGE)
     for x in np.linspace(-1.0, 1.5, 11):  # a wall 2.5 m wide, mapped
         saved.integrate(pts.astype(np.float64) + [x, 0.0, 0.0], np.full((len(pts), 3), 128, np.uint8))
-    st = SequenceTracker(cam, LocalizationConfig(), DEPTH_RANGE, builder=copy.deepcopy(saved), one_surface=True,
-                         hold_to_motion=hold)
+    st = SequenceTracker(cam, cfg, DEPTH_RANGE, builder=copy.deepcopy(saved), one_surface=True, saved_world=True)
     n = 40
     for i in range(n):
         T_true = np.eye(4)

@@ -135,3 +135,29 @@ def test_a_second_visit_run_before_its_first_visit_names_the_run_to_do_first(two
     assert any(f"gaussian_world of partition {FIRST}, an input of partition {SECOND}" in f
                and f"run `atlas-gs run {FIRST}` first" in f for f in failures), failures
     assert not (two_visits / "artifacts" / "revisit_bundle" / SECOND).exists()
+
+
+def test_a_visit_localized_with_its_bundles_tracking_files_renders_no_place_index_again(small_manifest, monkeypatch):
+    """The revisit asset makes the bundle's tracking map and place index first and localizes with
+    them: the same report as a session that indexes the world itself, no view rendered twice."""
+    import numpy as np
+
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.localization.localizer import bundle_tracking_files, localize_visit
+    from atlas_pipeline.localization.places import PlaceIndex
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
+
+    cfg = load_profile("default").with_overrides({"mapping.fit.epochs": 0})
+    fused = fuse(small_manifest, cfg)
+    world = build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg)
+    expected = localize_visit(small_manifest, world, cfg)
+    tracking = bundle_tracking_files(world, small_manifest.camera, cfg.localization)
+
+    def rendered_again(*_args, **_kwargs):
+        raise AssertionError("a view of the place index was rendered again")
+
+    monkeypatch.setattr(PlaceIndex, "add_keyframe", rendered_again)
+    got = localize_visit(small_manifest, world, cfg, tracking=tracking)
+    assert got.summary["n_lost"] == expected.summary["n_lost"] == 0
+    np.testing.assert_array_equal(got.T_world_cam, expected.T_world_cam)

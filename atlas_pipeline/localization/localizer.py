@@ -417,14 +417,19 @@ def bundle_tracking_files(world: GaussianWorld, camera, cfg: LocalizationConfig)
 
 
 def localize_visit(manifest: FrameManifest, world: GaussianWorld, cfg: PipelineConfig,
-                   log: Callable[[str], None] | None = None) -> LocalizationReport:
+                   log: Callable[[str], None] | None = None,
+                   tracking: tuple[SurfelModel, PlaceIndex] | None = None) -> LocalizationReport:
     """A recording localized in a world it was not the first to build (a second visit): no start
     pose, its first frame relocalized, the world's keyframe poses as relocalization priors.
-    Never stopped as a mismatch: the world was extended with these frames."""
+    Never stopped as a mismatch: the world was extended with these frames.
+
+    ``tracking``: the world's :func:`bundle_tracking_files` when the caller already made them (a
+    bundle about to be written), so the place index is rendered once."""
+    model, places = tracking if tracking is not None else (tracking_map(world), None)
     return localize_sequence(
-        manifest, tracking_map(world), cfg.localization, T_world_cam_start=None, anchor_index=0,
+        manifest, model, cfg.localization, T_world_cam_start=None, anchor_index=0,
         map_id=world.map_id, depth_range_m=(cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-        prior_poses=world.T_world_cam_keyframes, log=log, stop_on_mismatch=False,
+        prior_poses=world.T_world_cam_keyframes, log=log, stop_on_mismatch=False, places=places,
     )
 
 

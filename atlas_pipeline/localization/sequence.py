@@ -10,8 +10,9 @@ Per frame the status is one of:
 
 * ``anchor``: the pose was given (where the session starts);
 * ``tracked``: aligned to the map from the motion-model guess (or, failing that, the last pose);
-  in a saved world the guess is the frame aligned to the previous one (odometry), so a direction
-  the map leaves free follows that frame's surfaces, not a velocity that carries any error on;
+  the guess is the frame aligned to the previous one (odometry), and the camera centre is held to
+  it where the map's surfaces leave it free (a wall and the floor), so a free direction follows
+  that frame's surfaces, not a velocity that carries any error on, nor a slide;
   when mapping, a frame the map does not explain is aligned to the previous frame instead (note
   ``frame-to-frame``); it becomes a keyframe only when enough of it is surface the map lacks (a
   pan into unmapped space), never when it sees mapped surface the map disagrees with (drift on a
@@ -197,17 +198,16 @@ class SequenceTracker:
         one_surface: mapping only; a keyframe's points that contradict a surface already in the
             map are left out (:func:`~atlas_pipeline.mapping.consistency.disagreeing_points`), as
             the world build does, so a session extending a saved world does not double it.
-        hold_to_motion: mapping only; the motion model's prediction holds the camera centre where
-            the map's surfaces leave it free, as it does along a fixed world (localization always
-            does). For a session inside a saved world: the map it tracks against is mostly the
-            saved one, and a pose slid along a wall would merge its surfaces into that world.
+        saved_world: mapping only; a session inside a saved world (an extension): the world's own
+            colours are the photometric reference, and a stale pose is relocalized, not tracked,
+            as along a fixed world (localization always is).
     """
 
     def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
                  model: SurfelModel | None = None, builder=None, keyframe_translation_m: float = 0.08,
                  keyframe_rotation_deg: float = 8.0, fusion_stride: int = 2, prior_poses: np.ndarray | None = None,
                  new_map_after_lost_frames: int = 0, one_surface: bool = False,
-                 hold_to_motion: bool = False, places: PlaceIndex | None = None):
+                 saved_world: bool = False, places: PlaceIndex | None = None):
         if model is None and builder is None:
             raise ValueError("SequenceTracker needs a model (localization) or a builder (mapping)")
         self.camera = camera
@@ -218,7 +218,7 @@ class SequenceTracker:
         self.kf_t, self.kf_r = keyframe_translation_m, keyframe_rotation_deg
         self.fusion_stride = fusion_stride
         self.one_surface = bool(one_surface)
-        self.hold_to_motion = bool(hold_to_motion) or builder is None
+        self.saved_world = bool(saved_world) or builder is None
         self.n_refused_points = 0  # keyframe points left out by the one-surface check
         # Mapping: the surfel map follows the builder incrementally (cost per keyframe, not per map).
         self._surfels = None if builder is None else SurfelCache(builder)
@@ -366,7 +366,7 @@ class SequenceTracker:
             est = FrameEstimate(index, T, STATUS_LOST, 0.0, nan, 0.0, note=NOTE_NO_DEPTH)
         elif self._last is None or len(self.model) == 0:
             est = self._relocalize(index, fp, [])
-        elif self.hold_to_motion and self.cfg.relocalize and abs(index - self._last[0]) > STALE_POSE_AFTER_FRAMES:
+        elif self.saved_world and self.cfg.relocalize and abs(index - self._last[0]) > STALE_POSE_AFTER_FRAMES:
             est = self._relocalize(index, fp, [self._last[1]])
             if not np.isfinite(est.T_world_cam).all():
                 est.T_world_cam = self._last[1].copy()  # lost: the last pose, as a prediction
@@ -378,19 +378,17 @@ class SequenceTracker:
             # first: a world can hold two copies of a wall that drift left a few cm apart.
             behind = self.builder is None
             # ... and where its surfaces leave a direction free, the motion model decides it. With
-            # no velocity (the first frame after a start, a loss or a gap) a fixed world's frame
-            # is left free, as the last pose is no prediction of motion; a session mapping into a
-            # saved world holds it there instead, since a pose slid along a wall would be merged.
-            prior = None
-            if self.hold_to_motion:
-                prior = moved if moved is not None or self.builder is None else guess
+            # no velocity (the first frame after a start, a loss or a gap) the frame is left free,
+            # as the last pose is no prediction of motion; a session mapping into a saved world
+            # holds it there instead, since a pose slid along a wall would be merged into that world.
+            prior = guess if moved is None and self.builder is not None and self.saved_world else moved
             odo = self._odometry(index, fp, guess, prior)
             if odo is not None:
                 guess = prior = odo  # odometry runs only where the motion model holds the pose
             # In a saved world (along it, or extending it) the world's own colours are the
             # photometric reference: a keyframe of this session would move with the camera's error.
             res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
-                                     motion_prior=prior, map_reference=self.hold_to_motion, within_range=True)
+                                     motion_prior=prior, map_reference=self.saved_world, within_range=True)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the
                 # hybrid solve), held to the same prior: it must not slide where the first could not.
@@ -558,8 +556,8 @@ class SequenceTracker:
                              note="relocalization failed")
 
     def _odometry(self, index: int, fp, guess: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
-        """Along a saved world (:attr:`hold_to_motion`): frame ``index`` aligned from ``guess`` to
-        the frame before it (either direction) when that one was tracked
+        """Frame ``index`` aligned from ``guess`` to the frame before it (either direction) when
+        that one was tracked
         (:meth:`RGBDTracker.odometry`), as the motion model's prediction; else None.
 
         Where the map leaves a direction free (a wall whose floor the first visit never saw), the
@@ -568,7 +566,7 @@ class SequenceTracker:
         the camera relative to it instead, so an error there grows no faster than odometry drifts;
         ``prior`` (the motion model's prediction) holds what neither frame pins (a bare wall).
         """
-        if not (self.hold_to_motion and self.cfg.odometry_prediction) or self._last_frame is None or self._last is None:
+        if not self.cfg.odometry_prediction or self._last_frame is None or self._last is None:
             return None
         if abs(index - self._last[0]) != 1 or self._prev is None:  # _prev: the last frame was tracked
             return None

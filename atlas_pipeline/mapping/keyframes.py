@@ -161,9 +161,10 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
         from atlas_pipeline.mapping.loop_closure import close_loops
 
         lc = close_loops(manifest, poses, valid, idx, localization, depth_range_m, fusion_stride, mapping.voxel_size_m,
-                         mapping.loop_min_keyframe_gap, mapping.loop_search_radius_m, log=log)
+                         mapping.loop_min_keyframe_gap, mapping.loop_search_radius_m, probes=mapping.loop_probes,
+                         log=log)
         poses = np.where(valid[:, None, None], lc.T_world_cam, poses)
-        loops = lc.record(idx)
+        loops = lc.record()
     return SlamResult(poses, status, valid, idx, loops, record, n_done, time.perf_counter() - t0, st)
 
 

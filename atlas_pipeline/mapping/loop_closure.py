@@ -5,10 +5,12 @@ slowly over a long sequence: when the camera returns to a place it mapped long a
 keyframes sit a few centimetres (or degrees) away from the old ones. This module runs after
 tracking and mapping:
 
-1. **Detection**: for each keyframe ``i``, earlier keyframes ``j`` at least ``min_gap`` keyframes
-   back whose poses are near (:func:`loop_candidates`: camera centres within ``radius_m``, optical
-   axes within :data:`LOOP_MAX_VIEW_ANGLE_DEG`; the views overlap if the drift is smaller than the
-   radius); those whose surfaces keyframe ``i`` sees again from elsewhere
+1. **Detection**: for each keyframe ``i`` (and each loop probe, :func:`loop_probe_frames`: the
+   frames that stand in for keyframes where a return over mapped surfaces adds none), earlier
+   keyframes ``j`` at least ``min_gap`` keyframes back whose poses are near
+   (:func:`loop_candidates`: camera centres within ``radius_m``, optical axes within
+   :data:`LOOP_MAX_VIEW_ANGLE_DEG`; the views overlap if the drift is smaller than the radius);
+   those whose surfaces keyframe ``i`` sees again from elsewhere
    (:func:`covisible_candidates`: old points landing on ``i``'s depth image, the case of a camera
    returning along another path); and, whatever the drift, those that *look* alike
    (:func:`appearance_candidates`: place recognition by the "small blurry image" of PTAM's
@@ -19,13 +21,17 @@ tracking and mapping:
    :class:`Relocalizer` (no initial pose needed) searches that local map. A loop is accepted only
    when the tracker judges the fit good (``ok``: inlier fraction, agreement, residual) and the
    inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION`, and only when the matched surfaces
-   pin the camera in every direction (:data:`LOOP_MIN_TRANSLATION_CONSTRAINT`).
+   pin the camera in every direction (:data:`LOOP_MIN_TRANSLATION_CONSTRAINT`) and the two
+   guesses do not end in two good fits apart (:data:`LOOP_AMBIGUITY_M`).
 3. **Pose graph** (:func:`optimize_pose_graph`): Open3D's ``PoseGraph`` with one odometry edge
    between consecutive keyframes (the tracked relative pose) and one uncertain edge per verified
    loop, solved by ``global_optimization`` (Levenberg-Marquardt with a line process that prunes
    loops inconsistent with the rest, Choi et al. 2015); keyframe 0 stays fixed.
 4. **Propagation** (:func:`propagate_correction`): every other frame moves with its nearest earlier
-   keyframe (``T_new = T_kf_new @ inv(T_kf_old) @ T_old``).
+   keyframe or probe (``T_new = T_kf_new @ inv(T_kf_old) @ T_old``).
+
+Probes are nodes of the graph like keyframes (searched, verified, corrected) but never merged into
+the map; "keyframe" below means either.
 
 The map is then re-fused from the corrected keyframe poses (:func:`merge_keyframes_at_poses`;
 ``gaussian_world`` does the same from the corrected :class:`KeyframeSet`).
@@ -48,8 +54,8 @@ from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "loop_candidates", "covisible_candidates",
-           "keyframe_reach_m", "keyframe_thumbnail", "appearance_candidates",
+__all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "loop_probe_frames", "loop_candidates",
+           "covisible_candidates", "keyframe_reach_m", "keyframe_thumbnail", "appearance_candidates",
            "relative_poses", "optimize_pose_graph",
            "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
            "merge_keyframes_at_poses"]
@@ -103,6 +109,15 @@ POSE_GRAPH_EDGE_PRUNE_THRESHOLD = 0.25
 # ... and the distance the line process tolerates is at least this times the largest drift a
 # verified loop measured (loops found by appearance may exceed the search radius).
 LOOP_DRIFT_TOLERANCE_FACTOR = 1.25
+# A frame aligned from two guesses that lands in two good fits further apart than this is
+# ambiguous (a room's planes fit the frame from more than one pose): no loop. Two fits of one
+# well-pinned frame agree to a few millimetres.
+LOOP_AMBIGUITY_M = 0.03
+LOOP_AMBIGUITY_DEG = 2.0
+# Loop probes (loop_probe_frames): a tracked frame this share of the search radius (or of the
+# view-angle limit) away from the last keyframe or probe becomes a probe, so a camera coming back
+# over mapped surfaces passes within the search radius of some probe.
+LOOP_PROBE_SPACING_FRACTION = 0.5
 # Points per keyframe used for the information matrices (Open3D counts correspondences): voxel
 # downsampling at twice the map voxel keeps them cheap.
 INFO_VOXEL_FACTOR = 2.0
@@ -126,7 +141,8 @@ class LoopEdge:
     """A verified loop: keyframe ``source`` (later) seen again from keyframe ``target`` (earlier).
 
     Attributes:
-        source, target: positions in the keyframe list (not frame indices).
+        source, target: positions in the list of graph nodes (keyframes and probes, in frame
+            order; not frame indices).
         T_target_source: ``[4, 4]`` measured relative pose ``inv(T_target) @ T_source``.
         inlier_fraction, residual_m: the verifying alignment's quality.
         method: ``tracker`` (aligned from a pose guess) or ``relocalizer`` (found with no prior).
@@ -148,7 +164,9 @@ class LoopClosureResult:
 
     Attributes:
         T_world_cam: ``[N, 4, 4]`` corrected poses of all frames (rows not valid left as given).
-        T_keyframes_before, T_keyframes_after: ``[K, 4, 4]``.
+        T_keyframes_before, T_keyframes_after: ``[K, 4, 4]`` (keyframes only, not probes).
+        node_frames: ``[M]`` frame index of each graph node (keyframes and probes, increasing);
+            is_keyframe ``[M]`` bool.
         loops: the verified loops (``kept`` says which the graph kept).
         max_translation_change_m, mean_translation_change_m: how far the correction moved the
             frames' camera centres (valid frames).
@@ -158,20 +176,29 @@ class LoopClosureResult:
     T_world_cam: np.ndarray
     T_keyframes_before: np.ndarray
     T_keyframes_after: np.ndarray
+    node_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    is_keyframe: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     loops: list[LoopEdge] = field(default_factory=list)
     max_translation_change_m: float = 0.0
     mean_translation_change_m: float = 0.0
     n_candidates: int = 0
     time_s: float = 0.0
 
-    def record(self, keyframe_indices: np.ndarray) -> dict:
-        """A JSON-able summary (frame indices, not keyframe positions) for artifacts and reports."""
-        kf = np.asarray(keyframe_indices)
+    def record(self) -> dict:
+        """A JSON-able summary (frame indices; ``keyframe`` / ``matched_keyframe`` the positions in
+        the keyframe list, None for a probe) for artifacts and reports."""
+        frames = np.asarray(self.node_frames)
+        kf_pos = np.cumsum(self.is_keyframe) - 1
+
+        def keyframe(node: int) -> int | None:
+            return int(kf_pos[node]) if self.is_keyframe[node] else None
+
         return {
             "n_candidates": int(self.n_candidates),
+            "n_probes": int(np.count_nonzero(~np.asarray(self.is_keyframe, bool))),
             "n_loops": int(sum(lp.kept for lp in self.loops)),
-            "loops": [{"frame": int(kf[lp.source]), "matched_frame": int(kf[lp.target]),
-                       "keyframe": int(lp.source), "matched_keyframe": int(lp.target),
+            "loops": [{"frame": int(frames[lp.source]), "matched_frame": int(frames[lp.target]),
+                       "keyframe": keyframe(lp.source), "matched_keyframe": keyframe(lp.target),
                        "inlier_fraction": round(float(lp.inlier_fraction), 4),
                        "residual_m": round(float(lp.residual_m), 5), "method": lp.method, "kept": bool(lp.kept)}
                       for lp in self.loops],
@@ -181,6 +208,45 @@ class LoopClosureResult:
 
 
 # -- pure math ---------------------------------------------------------------------------------------
+
+def loop_probe_frames(T_world_cam: np.ndarray, valid: np.ndarray, kf_indices: np.ndarray, spacing_m: float,
+                      spacing_deg: float) -> np.ndarray:
+    """Frames that stand in for keyframes in the loop search where the map took none.
+
+    Keyframes are chosen by new surface, so a camera coming back over mapped surfaces (the very
+    place a loop closes) adds none, and a search over keyframes alone never sees that return.
+    Walking the valid frames in order, a frame that moved more than ``spacing_m`` or turned more
+    than ``spacing_deg`` from the last keyframe or probe becomes a probe, and so does the last
+    valid frame after the last keyframe (a recording often ends where it started).
+
+    Args:
+        T_world_cam: ``[N, 4, 4]`` tracked poses; valid ``[N]`` bool; kf_indices ``[K]`` increasing.
+    Returns:
+        ``[P]`` int64 frame indices, increasing, none of them a keyframe, none before the first.
+    """
+    from atlas_pipeline.localization.tracker import pose_change
+
+    kf = np.asarray(kf_indices, np.int64)
+    idx = np.flatnonzero(np.asarray(valid, bool))
+    if len(kf) == 0 or len(idx) == 0:
+        return np.zeros(0, np.int64)
+    is_kf = np.zeros(len(T_world_cam), bool)
+    is_kf[kf] = True
+    probes: list[int] = []
+    last = int(kf[0])
+    for i in idx[idx > kf[0]]:
+        if is_kf[i]:
+            last = int(i)
+            continue
+        moved_m, turned_deg = pose_change(T_world_cam[last], T_world_cam[i])
+        if moved_m > spacing_m or turned_deg > spacing_deg:
+            probes.append(int(i))
+            last = int(i)
+    end = int(idx[-1])
+    if end > kf[-1] and end not in probes:
+        probes.append(end)
+    return np.asarray(probes, np.int64)
+
 
 def loop_candidates(T_kf: np.ndarray, i: int, min_gap: int, radius_m: float,
                     max_view_angle_deg: float = LOOP_MAX_VIEW_ANGLE_DEG,
@@ -442,10 +508,16 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
                 and r.translation_constraint >= LOOP_MIN_TRANSLATION_CONSTRAINT)
 
     best = None
+    fits = []
     for g in guesses:
         r = tracker.align(frame, model, g, None)
-        if good(r) and (best is None or r.inlier_fraction > best.inlier_fraction):
-            best = r
+        if good(r):
+            fits.append(r.T_world_cam)
+            if best is None or r.inlier_fraction > best.inlier_fraction:
+                best = r
+    if any(_apart(T, fits[0]) for T in fits[1:]):
+        # Two starts, two good fits in different places: the geometry fits more than one pose.
+        return None
     if best is not None:
         return best.T_world_cam, best.inlier_fraction, best.residual_m, "tracker"
     if relocalizer_factory is not None:
@@ -455,32 +527,56 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
     return None
 
 
+def _apart(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Whether two fits of one frame are different poses (beyond :data:`LOOP_AMBIGUITY_M` or
+    :data:`LOOP_AMBIGUITY_DEG`)."""
+    rel = invert_se3(T_a) @ T_b
+    return bool(np.linalg.norm(rel[:3, 3]) > LOOP_AMBIGUITY_M
+                or np.degrees(rotation_angle_rad(rel[:3, :3])) > LOOP_AMBIGUITY_DEG)
+
+
 # -- the whole step (reads frames) -------------------------------------------------------------------
 
 def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices: np.ndarray, localization,
                 depth_range_m: tuple[float, float], fusion_stride: int, voxel_size_m: float, min_gap: int,
-                radius_m: float, use_relocalizer: bool = True,
+                radius_m: float, use_relocalizer: bool = True, probes: bool = False,
                 log: Callable[[str], None] | None = None) -> LoopClosureResult:
     """Detect and verify loops between the keyframes, optimise the pose graph, correct all frames.
 
     Args:
-        manifest: the sequence (:class:`FrameManifest`; frames are read again, keyframes only).
+        manifest: the sequence (:class:`FrameManifest`; frames are read again, graph nodes only).
         T_world_cam: ``[N, 4, 4]`` tracked poses; valid ``[N]`` bool; kf_indices ``[K]`` increasing.
         localization: :class:`LocalizationConfig` (the tracker that verifies loops).
         min_gap: candidates are at least this many keyframes older; radius_m: search radius.
+        probes: add :func:`loop_probe_frames` to the graph (half the search radius and view-angle
+            limit apart), so returns over mapped surfaces are searched too
+            (``mapping.loop_probes``).
     """
     from atlas_pipeline.localization.relocalize import Relocalizer
     from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel
     from atlas_pipeline.perception.rgbd import backproject
 
     t0 = time.perf_counter()
-    kf = np.asarray(kf_indices, np.int64)
-    T_kf = np.array(T_world_cam[kf], np.float64)
-    K = len(kf)
-    result = LoopClosureResult(np.array(T_world_cam, np.float64), T_kf.copy(), T_kf.copy())
-    if K < min_gap + 1:
+    keyframes = np.asarray(kf_indices, np.int64)
+    T_keyframes = np.array(T_world_cam[keyframes], np.float64)
+    result = LoopClosureResult(np.array(T_world_cam, np.float64), T_keyframes.copy(), T_keyframes.copy(),
+                               keyframes.copy(), np.ones(len(keyframes), bool))
+    if len(keyframes) < min_gap + 1:
         result.time_s = time.perf_counter() - t0
         return result
+    extra = (loop_probe_frames(T_world_cam, valid, keyframes, LOOP_PROBE_SPACING_FRACTION * radius_m,
+                               LOOP_PROBE_SPACING_FRACTION * LOOP_MAX_VIEW_ANGLE_DEG)
+             if probes else np.zeros(0, np.int64))
+    # The graph's nodes: keyframes and probes in frame order ("keyframe" from here on means either).
+    kf = np.union1d(keyframes, extra)
+    is_kf = np.isin(kf, keyframes)
+    result.node_frames, result.is_keyframe = kf, is_kf
+    T_kf = np.array(T_world_cam[kf], np.float64)
+    K = len(kf)
+    # The last node each node may close a loop with: at least min_gap keyframes older.
+    kf_rank = np.cumsum(is_kf)
+    last_allowed = np.searchsorted(kf_rank, kf_rank - min_gap, side="right") - 1
+    gap = np.arange(K) - last_allowed  # in nodes, as the candidate searches count
     tracker = RGBDTracker(manifest.camera, localization, depth_range_m)
     # Camera-frame points of every keyframe, one per map voxel: the local maps and the information
     # matrices are made from these (each a few thousand points; frames are not kept).
@@ -502,7 +598,7 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
     reach_m = keyframe_reach_m(points_world, T_kf)
 
     def local_model(j: int, i: int):
-        lo, hi = max(0, j - LOOP_MODEL_WINDOW), min(i - min_gap, j + LOOP_MODEL_WINDOW)
+        lo, hi = max(0, j - LOOP_MODEL_WINDOW), min(int(last_allowed[i]), j + LOOP_MODEL_WINDOW)
         world = [pts[m].astype(np.float64) @ T_kf[m, :3, :3].T + T_kf[m, :3, 3] for m in range(lo, hi + 1)]
         return SurfelModel.from_field(np.concatenate(world), voxel_size_m), T_kf[lo:hi + 1]
 
@@ -514,9 +610,12 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
         if cooldown > 0:
             cooldown -= 1
             continue
-        near = loop_candidates(T_kf, i, min_gap, radius_m)
-        alike = appearance_candidates(thumbs, i, min_gap)
-        covisible = covisible_candidates(points_world, depth_small, T_kf, i, view, min_gap, reach_m=reach_m)
+        if last_allowed[i] < 0:
+            continue
+        g = int(gap[i])
+        near = loop_candidates(T_kf, i, g, radius_m)
+        alike = appearance_candidates(thumbs, i, g)
+        covisible = covisible_candidates(points_world, depth_small, T_kf, i, view, g, reach_m=reach_m)
         cands = np.array(list(dict.fromkeys([*near.tolist(), *covisible.tolist(), *alike.tolist()])), np.int64)
         if len(cands) == 0:
             continue
@@ -576,7 +675,7 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
                                                                POSE_GRAPH_MAX_CORRESPONDENCE_M))
     for lp, k in zip(loops, kept):
         lp.kept = bool(k)
-    result.T_keyframes_after = T_new
+    result.T_keyframes_after = T_new[is_kf]
     result.T_world_cam = propagate_correction(T_world_cam, valid, kf, T_kf, T_new)
     result.max_translation_change_m, result.mean_translation_change_m = trajectory_change(
         T_world_cam, result.T_world_cam, valid)

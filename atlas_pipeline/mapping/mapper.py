@@ -254,7 +254,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     st = SequenceTracker(manifest.camera, localization, depth_range_m, builder=tracking,
                          keyframe_translation_m=mapping.keyframe_translation_m,
                          keyframe_rotation_deg=mapping.keyframe_rotation_deg, fusion_stride=fusion_stride,
-                         prior_poses=world.T_world_cam_keyframes, one_surface=True, hold_to_motion=True,
+                         prior_poses=world.T_world_cam_keyframes, one_surface=True, saved_world=True,
                          places=places)
     n = manifest.n_frames
     poses = np.full((n, 4, 4), np.nan)
