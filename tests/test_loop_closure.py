@@ -199,15 +199,35 @@ def test_a_loop_the_geometry_cannot_pin_is_not_verified():
     from atlas_pipeline.localization.tracker import TrackResult
     from atlas_pipeline.mapping.loop_closure import verify_loop
 
-    class Tracker:  # aligns every frame with a good fit; only its constraint differs
-        def __init__(self, constraint):
-            self.constraint = constraint
+    class Tracker:  # aligns every frame with a good fit; only its constraint and agreement differ
+        def __init__(self, constraint, agreement=0.9):
+            self.constraint, self.agreement = constraint, agreement
 
         def align(self, frame, model, T_init, reference):
-            return TrackResult(np.eye(4), 0.6, 0.005, 1000, True, translation_constraint=self.constraint)
+            return TrackResult(np.eye(4), 0.6, 0.005, 1000, True, agreement=self.agreement,
+                               translation_constraint=self.constraint)
 
     assert verify_loop(Tracker(0.2), None, None, [np.eye(4)]) is not None
     assert verify_loop(Tracker(0.5 * LOOP_MIN_TRANSLATION_CONSTRAINT), None, None, [np.eye(4)]) is None
+
+
+def test_a_loop_whose_frame_mostly_disagrees_with_the_old_geometry_is_not_verified():
+    """A tracked frame may pass at 60 % agreement; a loop, with no motion prior to vouch for it,
+    needs LOOP_MIN_AGREEMENT of what lands on the old geometry to fit (a frame slid along old
+    surfaces fits a third of its points and disagrees with much of the rest)."""
+    from atlas_pipeline.localization.tracker import TrackResult
+    from atlas_pipeline.mapping.loop_closure import LOOP_MIN_AGREEMENT, verify_loop
+
+    class Tracker:
+        def __init__(self, agreement):
+            self.agreement = agreement
+
+        def align(self, frame, model, T_init, reference):
+            return TrackResult(np.eye(4), 0.35, 0.006, 1000, True, agreement=self.agreement,
+                               translation_constraint=0.2)
+
+    assert verify_loop(Tracker(LOOP_MIN_AGREEMENT + 0.05), None, None, [np.eye(4)]) is not None
+    assert verify_loop(Tracker(0.67), None, None, [np.eye(4)]) is None
 
 
 def test_a_frame_that_fits_two_poses_from_two_guesses_is_no_loop():
@@ -218,7 +238,7 @@ def test_a_frame_that_fits_two_poses_from_two_guesses_is_no_loop():
 
     class Tracker:  # a good fit where it starts: the guess itself
         def align(self, frame, model, T_init, reference):
-            return TrackResult(np.array(T_init), 0.7, 0.005, 1000, True, translation_constraint=0.2)
+            return TrackResult(np.array(T_init), 0.7, 0.005, 1000, True, agreement=0.9, translation_constraint=0.2)
 
     here, there = np.eye(4), _pose(0.3, 0.0, 0.0)
     assert verify_loop(Tracker(), None, None, [here, there]) is None

@@ -62,6 +62,7 @@ class RelocalizationResult:
     n_hypotheses: int
     ambiguous: bool = False  # a distinct pose explains the frame almost as well (FAST_MAX_RUNNER_UP_SCORE)
     translation_constraint: float = 0.0  # of the best hypothesis (tracker.translation_constraint)
+    agreement: float = float("nan")  # of the best hypothesis (TrackResult.agreement)
 
 
 def geometric_score(r: TrackResult) -> float:
@@ -249,7 +250,7 @@ class Relocalizer:
         # No motion prior vouches for the pose: points in front of the map count against it too.
         ok = best.ok and best.strict_agreement >= self.tracker.cfg.min_agreement
         return RelocalizationResult(best.T_world_cam, ok, float(conf), best.inlier_fraction, best.residual_m,
-                                    src, len(hyps), ambiguous, best.translation_constraint)
+                                    src, len(hyps), ambiguous, best.translation_constraint, best.agreement)
 
     def _global_hypotheses(self, frame: FramePyramid) -> list[np.ndarray]:
         """Poses from FPFH matches and RANSAC (:mod:`.global_registration`): the best and its

@@ -20,7 +20,8 @@ tracking and mapping:
    their own points), from the drifted pose and from the candidate's pose; when both fail, the
    :class:`Relocalizer` (no initial pose needed) searches that local map. A loop is accepted only
    when the tracker judges the fit good (``ok``: inlier fraction, agreement, residual) and the
-   inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION`, and only when the matched surfaces
+   inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION` with :data:`LOOP_MIN_AGREEMENT` of
+   what lands on the old geometry fitting it, and only when the matched surfaces
    pin the camera in every direction (:data:`LOOP_MIN_TRANSLATION_CONSTRAINT`) and the two
    guesses do not end in two good fits apart (:data:`LOOP_AMBIGUITY_M`).
 3. **Pose graph** (:func:`optimize_pose_graph`): Open3D's ``PoseGraph`` with one odometry edge
@@ -71,6 +72,11 @@ LOOP_MODEL_WINDOW = 2
 # A loop edge is added to the graph only when this share of the keyframe's points fit the old
 # geometry: stricter than tracking's ``min_fitness`` (a wrong loop bends the whole trajectory).
 LOOP_MIN_INLIER_FRACTION = 0.3
+# ... and this share of the frame's points that land on the old geometry must fit it: no motion
+# prior vouches for a loop, so it must agree better than a tracked frame (min_agreement, 0.6). A
+# frame slid along the old surfaces by a few dozen cm still fits with a third of its points, but
+# the rest of what lands there disagrees.
+LOOP_MIN_AGREEMENT = 0.8
 # A loop is verified by geometry alone, so the matched surfaces must pin the camera in every
 # direction: a wall and the floor seen through a door let the alignment slide along them with a
 # good fit. The least over the largest eigenvalue of the translation block of the point-to-plane
@@ -504,7 +510,7 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
     Returns ``(TrackResult-like with T_world_cam, inlier_fraction, residual_m, method)`` or None.
     """
     def good(r) -> bool:
-        return (r.ok and r.inlier_fraction >= min_inlier_fraction
+        return (r.ok and r.inlier_fraction >= min_inlier_fraction and r.agreement >= LOOP_MIN_AGREEMENT
                 and r.translation_constraint >= LOOP_MIN_TRANSLATION_CONSTRAINT)
 
     best = None
