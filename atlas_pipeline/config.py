@@ -211,7 +211,7 @@ class MappingConfig(Section):
     loop_search_radius_m: float = Field(0.3, gt=0, description="loop candidates: camera centres within this distance (m)")
     loop_probes: bool = Field(False, description=(
         "loop search also from tracked frames where the map took no keyframe (a return over mapped "
-        "surfaces); off: on the synthetic suite it verified two wrong loops (docs/tracking.md)"))
+        "surfaces); off: on the synthetic presets it let wrong loops through (docs/tracking.md)"))
     new_map_after_lost_frames: int = Field(5, ge=0, le=MAX_FRAMES, description=(
         "estimated poses: after this many lost frames in a row a new map is started and merged when the "
         "place is recognised; 0 = stay lost until relocalized"))
@@ -235,7 +235,7 @@ class LocalizationConfig(Section):
     motion_model: Literal["constant_velocity", "none"] = Field("constant_velocity", description=(
         "initial guess: constant velocity, or the previous pose"))
     odometry_prediction: bool = Field(True, description=(
-        "in a saved world, each frame first aligned to the previous frame's own surface: the guess, and the pose "
+        "each tracked frame first aligned to the previous frame's own surface: the guess, and the pose "
         "where the map leaves the camera free"))
     min_fitness: float = Field(0.15, ge=0, le=1, description="share of frame points with a map correspondence; below: lost")
     min_agreement: float = Field(0.6, ge=0, le=1, description="share of the points landing on the map that fit it; below: lost")

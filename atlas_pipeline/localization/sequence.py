@@ -557,8 +557,8 @@ class SequenceTracker:
 
     def _odometry(self, index: int, fp, guess: np.ndarray, prior: np.ndarray | None) -> np.ndarray | None:
         """Frame ``index`` aligned from ``guess`` to the frame before it (either direction) when
-        that one was tracked
-        (:meth:`RGBDTracker.odometry`), as the motion model's prediction; else None.
+        that one was tracked (:meth:`RGBDTracker.odometry`), as the motion model's prediction;
+        else None.
 
         Where the map leaves a direction free (a wall whose floor the first visit never saw), the
         pose there is the prediction's; a velocity taken from the last two such poses would carry
