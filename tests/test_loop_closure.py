@@ -284,6 +284,20 @@ def test_probes_stand_in_for_keyframes_where_the_map_took_none():
                                   [23, 46, 59])
 
 
+def _drifted(gt: np.ndarray) -> np.ndarray:
+    """``gt [N, 4, 4]`` with tracking drift injected per frame, as a frame-to-model tracker
+    accumulates it: a small yaw (camera y is the world's vertical here) and a forward error."""
+    err = np.eye(4)
+    err[:3, :3] = so3_exp(np.radians([0.0, 0.08, 0.0]))
+    err[:3, 3] = (0.0, 0.0, 0.001)
+    return _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
+
+
+def _end_error(P: np.ndarray, gt: np.ndarray) -> float:
+    """How far (m) the end of trajectory ``P [N, 4, 4]``, seen from its start, is from the truth's."""
+    return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
+
+
 @pytest.fixture(scope="module")
 def loop_sequence(tmp_path_factory):
     """80 frames at 160x120 once around the room with the Kinect v1 sensor model, ending 3 mm
@@ -314,23 +328,17 @@ def test_drifted_loop_on_rendered_frames_is_detected_closed_and_refused(loop_seq
     gt = m.T_world_cam_gt
     valid = m.has_gt.copy()
     assert valid.all()
-    err = np.eye(4)
-    err[:3, :3] = so3_exp(np.radians([0.0, 0.08, 0.0]))  # camera y is the world's vertical here
-    err[:3, 3] = (0.0, 0.0, 0.001)
-    drifted = _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
+    drifted = _drifted(gt)
     kf = select_keyframes(drifted, valid, 0.08, 8.0)
     res = close_loops(m, drifted, valid, kf, LocalizationConfig(), (0.1, 4.0), 2, 0.02, min_gap=10, radius_m=0.3)
     rec = res.record()
     assert rec["n_loops"] >= 1 and all(lp["frame"] - lp["matched_frame"] >= 10 for lp in rec["loops"])
 
-    def end_error(P):
-        return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
-
     ate_before, ate_after = ate(drifted, gt)["rmse_m"], ate(res.T_world_cam, gt)["rmse_m"]
-    print(f"end-point error {100 * end_error(drifted):.1f} -> {100 * end_error(res.T_world_cam):.1f} cm, "
+    print(f"end-point error {100 * _end_error(drifted, gt):.1f} -> {100 * _end_error(res.T_world_cam, gt):.1f} cm, "
           f"ATE {100 * ate_before:.1f} -> {100 * ate_after:.1f} cm, moved {rec['max_translation_change_m']:.3f} m max")
     assert ate_after <= ate_before
-    assert end_error(res.T_world_cam) < 0.5 * end_error(drifted)
+    assert _end_error(res.T_world_cam, gt) < 0.5 * _end_error(drifted, gt)
     assert rec["max_translation_change_m"] > 0.01
     # The record travels with the keyframes (keyframes.json) and old artifacts still load.
     ks = KeyframeSet(res.T_world_cam, valid, kf, "estimated", rec)
@@ -353,10 +361,7 @@ def test_a_return_that_adds_no_keyframes_closes_its_loop_through_probes(loop_seq
     m = loop_sequence
     gt = m.T_world_cam_gt
     valid = m.has_gt.copy()
-    err = np.eye(4)
-    err[:3, :3] = so3_exp(np.radians([0.0, 0.08, 0.0]))
-    err[:3, 3] = (0.0, 0.0, 0.001)
-    drifted = _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
+    drifted = _drifted(gt)
     kf = select_keyframes(drifted, valid, 0.08, 8.0)
     start, returned = int(0.1 * m.n_frames), int(0.6 * m.n_frames)
     kf = kf[kf < returned]
@@ -370,12 +375,10 @@ def test_a_return_that_adds_no_keyframes_closes_its_loop_through_probes(loop_seq
     home = [lp for lp in rec["loops"] if lp["kept"] and lp["matched_frame"] < start]
     assert home and all(lp["keyframe"] is None and lp["frame"] >= returned for lp in home)
 
-    def end_error(P):
-        return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
-
-    print(f"end-point error: drifted {100 * end_error(drifted):.1f} cm, keyframes only "
-          f"{100 * end_error(without.T_world_cam):.1f} cm, with probes {100 * end_error(res.T_world_cam):.1f} cm")
-    assert end_error(res.T_world_cam) < 0.5 * end_error(without.T_world_cam)
+    print(f"end-point error: drifted {100 * _end_error(drifted, gt):.1f} cm, keyframes only "
+          f"{100 * _end_error(without.T_world_cam, gt):.1f} cm, "
+          f"with probes {100 * _end_error(res.T_world_cam, gt):.1f} cm")
+    assert _end_error(res.T_world_cam, gt) < 0.5 * _end_error(without.T_world_cam, gt)
     # the keyframes' corrected poses are the keyframes' own (the map is re-fused from them)
     np.testing.assert_array_equal(res.T_keyframes_after, res.T_world_cam[kf])
 
@@ -410,10 +413,7 @@ def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
     m = loop_sequence
     gt = m.T_world_cam_gt
     valid = m.has_gt.copy()
-    err = np.eye(4)
-    err[:3, :3] = so3_exp(np.radians([0.0, 0.08, 0.0]))
-    err[:3, 3] = (0.0, 0.0, 0.001)
-    drifted = _chain(gt[0], np.einsum("ij,kjl->kil", err, relative_poses(gt)))
+    drifted = _drifted(gt)
     kf = select_keyframes(drifted, valid, 0.08, 8.0)
     radius = 0.005
     assert not any(len(loop_candidates(drifted[kf], i, 10, radius)) for i in range(len(kf)))
@@ -421,10 +421,7 @@ def test_a_loop_beyond_the_search_radius_is_found_by_appearance(loop_sequence):
     rec = res.record()
     assert rec["n_loops"] >= 1
 
-    def end_error(P):
-        return float(np.linalg.norm((invert_se3(P[0]) @ P[-1])[:3, 3] - (invert_se3(gt[0]) @ gt[-1])[:3, 3]))
-
-    assert end_error(res.T_world_cam) < 0.5 * end_error(drifted)
+    assert _end_error(res.T_world_cam, gt) < 0.5 * _end_error(drifted, gt)
 
 
 @pytest.mark.slow

@@ -51,7 +51,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from atlas_pipeline.geometry import invert_se3, rotation_angle_rad
+from atlas_pipeline.geometry import invert_se3
 
 logger = logging.getLogger(__name__)
 
@@ -536,9 +536,10 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
 def _apart(T_a: np.ndarray, T_b: np.ndarray) -> bool:
     """Whether two fits of one frame are different poses (beyond :data:`LOOP_AMBIGUITY_M` or
     :data:`LOOP_AMBIGUITY_DEG`)."""
-    rel = invert_se3(T_a) @ T_b
-    return bool(np.linalg.norm(rel[:3, 3]) > LOOP_AMBIGUITY_M
-                or np.degrees(rotation_angle_rad(rel[:3, :3])) > LOOP_AMBIGUITY_DEG)
+    from atlas_pipeline.localization.tracker import pose_change
+
+    moved_m, turned_deg = pose_change(T_a, T_b)
+    return moved_m > LOOP_AMBIGUITY_M or turned_deg > LOOP_AMBIGUITY_DEG
 
 
 # -- the whole step (reads frames) -------------------------------------------------------------------
