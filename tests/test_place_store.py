@@ -67,6 +67,31 @@ def test_a_built_bundle_stores_the_index_a_session_would_build(built):
         [m.keyframe for m in fresh.query(depth, 3)]
 
 
+def test_a_verified_bundle_hashes_each_part_once(built, tmp_path, monkeypatch):
+    """Loading checks every checksum; the tracking map and the place index read after it are not
+    hashed again, but a file whose size changed since is still refused, named."""
+    import shutil
+
+    import atlas_pipeline.scene_memory.bundle as bundle_mod
+
+    camera = _session(built)[2].camera
+    world = shutil.copytree(built, tmp_path / "world")
+    hashed: list[str] = []
+    real = bundle_mod.sha256_file
+    monkeypatch.setattr(bundle_mod, "sha256_file", lambda path: hashed.append(path.name) or real(path))
+    bundle = load_world_bundle(world)
+    bundle.tracking_model()
+    assert bundle.stored_places(camera) is not None
+    assert sorted(hashed) == sorted(bundle.metadata["files"])  # each listed file exactly once
+    hashed.clear()
+    load_world_bundle(world, verify=False).tracking_model()
+    assert hashed == ["surfels.npz"]  # not verified at load: checked where it is read
+    with open(world / PLACES_FILE, "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(BundleFormatError, match=PLACES_FILE):
+        bundle.stored_places(camera)
+
+
 def test_a_session_with_no_start_pose_uses_the_stored_index_and_places_the_same(built, monkeypatch):
     cfg, bundle, manifest, model, poses = _session(built)
     rendered: list[int] = []

@@ -524,15 +524,23 @@ def read_metadata(directory: Path) -> dict[str, Any]:
 
 @dataclass
 class WorldBundle:
-    """A loaded bundle: the Gaussians and the metadata."""
+    """A loaded bundle: the Gaussians and the metadata. ``verified``: every listed file's checksum
+    was checked when it was loaded, so its parts are read without hashing them again."""
 
     directory: Path
     field: GaussianField
     metadata: dict[str, Any]
+    verified: bool = False
 
     @property
     def map_id(self) -> str:
         return self.metadata.get("map_id", "")
+
+    def part(self, name: str) -> Path:
+        """``directory / name``, a file metadata.json lists: present and of its recorded size, and
+        its checksum checked unless the whole bundle was at load (:func:`verified_file`)."""
+        return listed_file(self.directory, self.metadata, name) if self.verified else verified_file(
+            self.directory, self.metadata, name)
 
     def tracking_model(self, voxel_size_m: float | None = None):
         """The ``SurfelModel`` to localize against: ``surfels.npz`` (checksum verified) when the
@@ -541,7 +549,7 @@ class WorldBundle:
 
         voxel = voxel_size_m or float(self.metadata.get("gaussians", {}).get("voxel_size_m", 0.02))
         if "surfels.npz" in self.metadata.get("files", {}):
-            model = SurfelModel.load(verified_file(self.directory, self.metadata, "surfels.npz"))
+            model = SurfelModel.load(self.part("surfels.npz"))
         else:
             model = SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
         # the Gaussians' colours: what relocalization checks a pose's appearance against
@@ -550,7 +558,9 @@ class WorldBundle:
 
     def stored_places(self, camera):
         """The bundle's place index (:func:`read_place_index`)."""
-        return read_place_index(self.directory, camera, self.metadata)
+        from atlas_pipeline.localization.places import PlaceIndex
+
+        return PlaceIndex.load(self.part(PLACES_FILE), camera) if PLACES_FILE in self.metadata["files"] else None
 
 
 def read_place_index(directory: str | Path, camera, meta: dict[str, Any] | None = None):
@@ -578,8 +588,9 @@ def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
     return poses
 
 
-def verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
-    """``directory / name`` after checking it is listed in metadata.json, present, and unchanged."""
+def listed_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
+    """``directory / name`` after checking it is listed in metadata.json, present, and of the
+    recorded size (:func:`verified_file` also checks its checksum)."""
     rec = meta.get("files", {}).get(name)
     if rec is None:
         raise BundleFormatError(directory / "metadata.json", f"no checksum recorded for {name}")
@@ -589,7 +600,13 @@ def verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
     size = path.stat().st_size
     if size != rec["bytes"]:
         raise BundleFormatError(path, f"is {size} bytes, metadata.json records {rec['bytes']} (file changed or truncated)")
-    if sha256_file(path) != rec["sha256"]:
+    return path
+
+
+def verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
+    """``directory / name`` after checking it is listed in metadata.json, present, and unchanged."""
+    path = listed_file(directory, meta, name)
+    if sha256_file(path) != meta["files"][name]["sha256"]:
         raise BundleFormatError(path, "checksum does not match metadata.json (file changed or corrupted)")
     return path
 
@@ -612,7 +629,7 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
             raise BundleFormatError(directory / "metadata.json", f"no checksum recorded for {name}")
     path = directory / name
     field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
-    return WorldBundle(directory, field, meta)
+    return WorldBundle(directory, field, meta, verified=verify)
 
 
 def parent_reference(directory: str | Path) -> dict[str, Any]:
