@@ -349,7 +349,7 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
     for second, first in first_visit_of.items():
         seconds_of.setdefault(first, set()).add(second)
 
-    @asset(name=REVISIT_STAGE, code_version="2", partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP,
+    @asset(name=REVISIT_STAGE, code_version="3", partitions_def=partitions_def, io_manager_key=IO, group_name=GROUP,
            deps=[settings_key(REVISIT_STAGE)], output_required=False,
            ins={"first_visit_world": AssetIn(
                FIRST_VISIT_WORLD.path[-1], dagster_type=Optional[GaussianWorld],

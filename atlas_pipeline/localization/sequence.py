@@ -70,7 +70,7 @@ from atlas_pipeline.localization.tracker import (
     pose_change,
     predict_constant_velocity,
 )
-from atlas_pipeline.mapping.consistency import agreeing_points
+from atlas_pipeline.mapping.consistency import point_relation
 from atlas_pipeline.perception.colour_timing import MAX_COLOUR_DELAY_S, colour_at_depth_time
 from atlas_pipeline.perception.rgbd import backproject
 from atlas_pipeline.sensors.camera import CameraIntrinsics
@@ -125,6 +125,10 @@ MAP_MERGE_RELOCALIZE_EVERY_KEYFRAMES = 5
 # where the map has no surface (one tenth of the view is new).
 KEYFRAME_MIN_NEW_SURFACE = 0.1
 NOTE_CONFLICT = "frame-to-frame; sees mapped surface the map disagrees with, not merged"
+# A session extending a saved world takes a frame's pose from the saved world alone when at least
+# this share of its points lands on that world's surfaces: the world is the reference, and the
+# session's own surfaces carry whatever error their poses had.
+SAVED_WORLD_MIN_OVERLAP = 0.5
 
 
 @dataclass
@@ -198,9 +202,12 @@ class SequenceTracker:
         one_surface: mapping only; a keyframe's points that contradict a surface already in the
             map are left out (:func:`~atlas_pipeline.mapping.consistency.disagreeing_points`), as
             the world build does, so a session extending a saved world does not double it.
-        saved_world: mapping only; a session inside a saved world (an extension): the world's own
-            colours are the photometric reference, and a stale pose is relocalized, not tracked,
-            as along a fixed world (localization always is).
+        saved_world: mapping only; a session inside a saved world (an extension): a frame that
+            mostly sees the saved world is aligned to it alone (``SAVED_WORLD_MIN_OVERLAP``), a
+            keyframe merges only its points on rays where the map has no surface
+            (:func:`~atlas_pipeline.mapping.consistency.point_relation`), the world's own colours
+            are the photometric reference, and a stale pose is relocalized, not tracked, as along
+            a fixed world (localization always is).
     """
 
     def __init__(self, camera: CameraIntrinsics, cfg: LocalizationConfig, depth_range_m: tuple[float, float],
@@ -223,6 +230,12 @@ class SequenceTracker:
         # Mapping: the surfel map follows the builder incrementally (cost per keyframe, not per map).
         self._surfels = None if builder is None else SurfelCache(builder)
         self.model = model if model is not None else self._surfels.model()
+        # An extension's saved world, frozen as it was loaded (colours included): the reference
+        # its frames are placed against wherever they see it.
+        self._saved_model = None
+        if builder is not None and self.saved_world and len(self.model):
+            self._saved_model = self.model
+            self._saved_model.appearance()
         self.priors = [] if prior_poses is None else [np.asarray(T, np.float64) for T in prior_poses]
         self.keyframe_indices: list[int] = []
         self.keyframe_poses: list[np.ndarray] = []
@@ -385,10 +398,13 @@ class SequenceTracker:
             odo = self._odometry(index, fp, guess, prior)
             if odo is not None:
                 guess = prior = odo  # odometry runs only where the motion model holds the pose
-            # In a saved world (along it, or extending it) the world's own colours are the
-            # photometric reference: a keyframe of this session would move with the camera's error.
-            res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None, surface_behind=behind,
-                                     motion_prior=prior, map_reference=self.saved_world, within_range=True)
+            res = self._align_to_saved_world(fp, guess, prior, use_photo)
+            if res is None:
+                # In a saved world (along it, or extending it) the world's own colours are the photometric
+                # reference: a keyframe of this session would move with the camera's error.
+                res = self.tracker.align(fp, self.model, guess, self._ref if use_photo else None,
+                                         surface_behind=behind, motion_prior=prior, map_reference=self.saved_world,
+                                         within_range=True)
             if not res.ok:
                 # Second try: last good pose, geometry only (blur or a bad prediction misleads the
                 # hybrid solve), held to the same prior: it must not slide where the first could not.
@@ -574,6 +590,17 @@ class SequenceTracker:
         reference = self._last_frame if self.cfg.photometric_weight > 0 else None
         return self.tracker.odometry(fp, frame_view(prev, T_prev, self.tracker.model_level), guess, reference, prior)
 
+    def _align_to_saved_world(self, fp, guess: np.ndarray, prior: np.ndarray | None,
+                              use_photo: bool) -> TrackResult | None:
+        """An extension's frame aligned to the saved world alone, as along a fixed world; None where
+        there is no saved world, the alignment fails, or under ``SAVED_WORLD_MIN_OVERLAP`` of the
+        frame lands on it (mostly new surface: the session's own map places it)."""
+        if self._saved_model is None or self.map_id != 0:
+            return None
+        res = self.tracker.align(fp, self._saved_model, guess, self._ref if use_photo else None, surface_behind=True,
+                                 motion_prior=prior, map_reference=True, within_range=True)
+        return res if res.ok and res.overlap >= SAVED_WORLD_MIN_OVERLAP else None
+
     def _align_to_last_frame(self, fp, guess: np.ndarray) -> TrackResult | None:
         """Mapping: align to the previous accepted frame's points when the map does not explain the
         frame (it looks where no keyframe has looked yet). None when that fails too."""
@@ -635,14 +662,20 @@ class SequenceTracker:
         pts, cols = backproject(depth, rgb, self.camera, self.fusion_stride, *self.depth_range_m)
         if rgb is None:
             cols = np.full((len(pts), 3), 128, np.uint8)
-        if self.one_surface:
-            pts, cols, refused = agreeing_points(self.model, pts, cols, T, self.camera)
-            self.n_refused_points += refused
+        merge = cover = np.ones(len(pts), bool)
+        if self.one_surface or self._saved_model is not None:
+            unmapped, conflicting = point_relation(self.model, pts, T, self.camera)
+            cover = ~conflicting  # seen: a surface the map holds is covered, not new
+            # An extension merges only what its world lacks: a second look at a surface the world
+            # holds, from a pose never better than the world's, would thicken it and tilt its normals.
+            merge = unmapped if self._saved_model is not None else cover
+            self.n_refused_points += int(len(merge) - merge.sum())
         pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-        self.builder.integrate(pw, cols)
-        self._coverage_map().add(pw)
-        self.model = self._surfels.model()
-        self._relocalizer = None  # its map features are stale now
+        self._coverage_map().add(pw[cover])
+        if merge.any():
+            self.builder.integrate(pw[merge], cols[merge])
+            self.model = self._surfels.model()
+            self._relocalizer = None  # its map features are stale now
         self.keyframe_indices.append(int(index))
         self.keyframe_poses.append(T.copy())
         self._last_kf_pose = T.copy()

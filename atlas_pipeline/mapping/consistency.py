@@ -10,6 +10,8 @@ between them where the geometry leaves a direction free (a wall and the floor).
 keyframe's points whose depth differs from the map's surface on their ray by more than the sensor
 can explain (:func:`conflict_tolerance_m`). Those are left out; points where the map has no surface
 (new surface) and points on the map's surface (a second look, which averages the noise) are merged.
+A session extending a saved world merges only the first kind (:func:`point_relation`): the world
+is its reference, and a second look from a pose a few cm off would thicken the world's surfaces.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
 __all__ = ["CONFLICT_LEVEL", "CONFLICT_MIN_M", "CONFLICT_SIGMAS", "conflict_tolerance_m", "disagreeing_points",
-           "agreeing_points"]
+           "agreeing_points", "map_depth_on_rays", "point_relation"]
 
 # The map is rendered at this pyramid level (half resolution): a view per keyframe costs
 # milliseconds, and a keyframe's points are a stride-2 sample of its depth anyway.
@@ -38,17 +40,17 @@ def conflict_tolerance_m(depth_m: np.ndarray) -> np.ndarray:
     return np.maximum(CONFLICT_MIN_M, CONFLICT_SIGMAS * depth_sigma_m(depth_m))
 
 
-def disagreeing_points(model, points_cam: np.ndarray, T_world_cam: np.ndarray,
-                       camera: CameraIntrinsics) -> np.ndarray:
-    """``[M]`` bool: the camera-frame points ``[M, 3]`` of a frame at ``T_world_cam [4, 4]`` that the
-    map ``model`` (a :class:`~atlas_pipeline.localization.tracker.SurfelModel`) contradicts: it has
-    a surface on the point's ray, nearer or farther than :func:`conflict_tolerance_m` allows."""
+def map_depth_on_rays(model, points_cam: np.ndarray, T_world_cam: np.ndarray,
+                      camera: CameraIntrinsics) -> np.ndarray:
+    """``[M]`` depth (m) of the map ``model``'s first surface (a
+    :class:`~atlas_pipeline.localization.tracker.SurfelModel` rendered at ``T_world_cam [4, 4]``)
+    on the ray of each camera-frame point ``[M, 3]``; NaN where the map has no surface there."""
     from atlas_pipeline.localization.tracker import _level_K
 
     pts = np.asarray(points_cam, np.float64)
-    out = np.zeros(len(pts), bool)
+    zm = np.full(len(pts), np.nan)
     if len(model) == 0 or len(pts) == 0:
-        return out
+        return zm
     view, _ = model.render(T_world_cam, camera, CONFLICT_LEVEL)
     z_map = view[..., 2]  # [h, w], NaN where the map has nothing
     h, w = z_map.shape
@@ -60,11 +62,32 @@ def disagreeing_points(model, points_cam: np.ndarray, T_world_cam: np.ndarray,
     u[front] = np.floor(fx * pts[front, 0] / z[front] + cx + 0.5).astype(np.int64)
     v[front] = np.floor(fy * pts[front, 1] / z[front] + cy + 0.5).astype(np.int64)
     inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    zm = np.full(len(pts), np.nan)
     zm[inside] = z_map[v[inside], u[inside]]
-    seen = np.isfinite(zm)
-    out[seen] = np.abs(z[seen] - zm[seen]) > conflict_tolerance_m(z[seen])
-    return out
+    return zm
+
+
+def point_relation(model, points_cam: np.ndarray, T_world_cam: np.ndarray,
+                   camera: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """``(unmapped [M], conflicting [M])`` bool for the camera-frame points ``[M, 3]`` of a frame
+    at ``T_world_cam [4, 4]`` against the map ``model`` (a
+    :class:`~atlas_pipeline.localization.tracker.SurfelModel`): no surface of the map on the
+    point's ray; a surface there, nearer or farther than :func:`conflict_tolerance_m` allows.
+    Points in neither set lie on a surface the map holds."""
+    z = np.asarray(points_cam, np.float64).reshape(-1, 3)[:, 2]
+    zm = map_depth_on_rays(model, points_cam, T_world_cam, camera)
+    unmapped = ~np.isfinite(zm)
+    conflicting = np.zeros(len(z), bool)
+    seen = ~unmapped
+    conflicting[seen] = np.abs(z[seen] - zm[seen]) > conflict_tolerance_m(z[seen])
+    return unmapped, conflicting
+
+
+def disagreeing_points(model, points_cam: np.ndarray, T_world_cam: np.ndarray,
+                       camera: CameraIntrinsics) -> np.ndarray:
+    """``[M]`` bool: the camera-frame points ``[M, 3]`` of a frame at ``T_world_cam [4, 4]`` that the
+    map ``model`` (a :class:`~atlas_pipeline.localization.tracker.SurfelModel`) contradicts: it has
+    a surface on the point's ray, nearer or farther than :func:`conflict_tolerance_m` allows."""
+    return point_relation(model, points_cam, T_world_cam, camera)[1]
 
 
 def agreeing_points(model, points_cam: np.ndarray, colours: np.ndarray, T_world_cam: np.ndarray,
@@ -73,3 +96,4 @@ def agreeing_points(model, points_cam: np.ndarray, colours: np.ndarray, T_world_
     ``colours [M, 3]`` that :func:`disagreeing_points` does not mark, the ones to merge."""
     agree = ~disagreeing_points(model, points_cam, T_world_cam, camera)
     return points_cam[agree], colours[agree], int(len(agree) - agree.sum())
+

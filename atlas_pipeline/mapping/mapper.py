@@ -275,7 +275,7 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
         raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
                                           "everywhere): is it a world of the same place?")
     if st.n_refused_points:
-        logger.info("tracking map: %d keyframe points left out where they contradict the saved world's surfaces",
+        logger.info("tracking map: %d keyframe points left out where the saved world already has a surface",
                     st.n_refused_points)
     idx = np.asarray(st.keyframe_indices, np.int64)
     # The tracker merged its keyframes' tracking-range points; the map takes them out to its own range.
