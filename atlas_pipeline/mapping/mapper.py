@@ -233,10 +233,12 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
                              depth_range_m: tuple[float, float], fusion_stride: int,
                              log: Callable[[str], None] | None = None, places=None):
     """A second session inside a saved world: the first frame is relocalized in ``world`` (no
-    initial pose), then every frame is tracked against the world and keyframes are merged into a
-    copy of its voxel statistics (ids of surfaces seen before are kept). As along a fixed world,
-    the motion model holds the camera where the surfaces leave a direction free. ``places``: the
-    world's stored place index (used while it fits the map, :class:`SequenceTracker`).
+    initial pose), then every frame is tracked against the world (by the world alone where it
+    sees mostly the world) and keyframes are merged into a copy of its voxel statistics (ids of
+    surfaces seen before are kept): into the tracking map only what the world lacks, into the
+    Gaussians every point (:class:`SequenceTracker` with ``saved_world``). As along a fixed
+    world, the motion model holds the camera where the surfaces leave a direction free.
+    ``places``: the world's stored place index (used while it fits the map).
 
     Returns ``(extended world, T_world_cam [N, 4, 4], status [N])``; ``world`` is not modified.
     Raises :class:`DatasetError` when no frame of the sequence can be placed in the world.
