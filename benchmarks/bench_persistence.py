@@ -169,6 +169,9 @@ class _AttemptTimer:
         return float(np.mean(t)) if t else float("nan")
 
 
+MAX_FRAMES_LISTED = 20  # own frames not placed, listed by index after the table
+
+
 def _progress(stage: str, row: dict) -> None:
     """The figures so far, to stderr: a long pair shows each stage as it ends."""
     print(f"  {stage}: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
@@ -264,6 +267,7 @@ def sessions_in_world(slam, world, places, v1, v2, cfg) -> dict:
     # Own frames in the world they built.
     own = localize(v1, world, cfg)
     row.update({"own_placed_pct": 100 * _placed(own.status).mean(), "own_ate_m": own.summary.get("ate_rmse_m"),
+                "own_not_placed": [int(i) for i in np.flatnonzero(~_placed(own.status))],
                 "own_frames_per_s": own.summary.get("frames_per_s"), "own_outcome": own.summary.get("outcome")})
     _progress("own frames", row)
     # Second visit, no start pose.
@@ -347,6 +351,11 @@ def main(argv: list[str] | None = None) -> int:
               f"| {_fmt(r['visit2_index_s'], 1, 2)} ({r['visit2_index_n']}) "
               f"| {_fmt(r['extend_placed_pct'])} | {_fmt(r['extend_ate_m'], 100, 2)} | {_fmt(r['extend_frames_per_s'])} "
               f"| {_fmt(r['extended_placed_pct'])} | {_fmt(r['extended_ate_m'], 100, 2)} |")
+    for r in rows:
+        if r["own_not_placed"]:
+            shown = ", ".join(map(str, r["own_not_placed"][:MAX_FRAMES_LISTED]))
+            more = len(r["own_not_placed"]) > MAX_FRAMES_LISTED
+            print(f"{r['pair']}: own frames not placed: {shown}{', ...' if more else ''}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2, default=float) + "\n")
     return 0
