@@ -96,4 +96,3 @@ def agreeing_points(model, points_cam: np.ndarray, colours: np.ndarray, T_world_
     ``colours [M, 3]`` that :func:`disagreeing_points` does not mark, the ones to merge."""
     agree = ~disagreeing_points(model, points_cam, T_world_cam, camera)
     return points_cam[agree], colours[agree], int(len(agree) - agree.sum())
-
