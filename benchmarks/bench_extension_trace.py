@@ -67,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     if T_align is None:
         raise SystemExit(f"{args.pair[0]}: too few ground-truth poses to move visit 2 into the world's frame")
     truth = T_align @ v2.T_world_cam_gt  # [N, 4, 4]
-    extended, ext_poses, ext_status = extend_world_by_tracking(world, v2, cfg.mapping, cfg.localization, depth_range,
-                                                        cfg.fusion.stride, places=places)
+    extended, ext_poses, ext_status = extend_world_by_tracking(world, v2, cfg.mapping, cfg.localization,
+                                                               depth_range, cfg.fusion.stride, places=places)
     model = tracking_map(world)
     loc = localize_sequence(v2, model, cfg.localization, None, map_id=world.map_id, depth_range_m=depth_range,
                             prior_poses=world.T_world_cam_keyframes, places=places)
