@@ -423,6 +423,7 @@ def test_an_extension_places_a_frame_that_sees_the_saved_world_by_that_world_alo
     for k in range(1, len(times)):
         est = st.process(k, *syn.render_synthetic_frame(spec, scene, truth[k]), timestamp_s=float(times[k]))
         errors_m.append(float(np.linalg.norm(est.T_world_cam[:3, 3] - truth[k][:3, 3])))
+    assert st.n_by_saved_world == (len(times) - 1 if anchored else 0)
     if anchored:
         assert max(errors_m) < 0.015
     else:  # what anchoring prevents: the test would pass vacuously if the mixed map placed them as well

@@ -227,6 +227,7 @@ class SequenceTracker:
         self.one_surface = bool(one_surface)
         self.saved_world = bool(saved_world) or builder is None
         self.n_refused_points = 0  # keyframe points left out by the one-surface check
+        self.n_by_saved_world = 0  # an extension's frames placed by the saved world alone
         # Mapping: the surfel map follows the builder incrementally (cost per keyframe, not per map).
         self._surfels = None if builder is None else SurfelCache(builder)
         self.model = model if model is not None else self._surfels.model()
@@ -599,7 +600,10 @@ class SequenceTracker:
             return None
         res = self.tracker.align(fp, self._saved_model, guess, self._ref if use_photo else None, surface_behind=True,
                                  motion_prior=prior, map_reference=True, within_range=True)
-        return res if res.ok and res.overlap >= SAVED_WORLD_MIN_OVERLAP else None
+        if not (res.ok and res.overlap >= SAVED_WORLD_MIN_OVERLAP):
+            return None
+        self.n_by_saved_world += 1
+        return res
 
     def _align_to_last_frame(self, fp, guess: np.ndarray) -> TrackResult | None:
         """Mapping: align to the previous accepted frame's points when the map does not explain the

@@ -294,8 +294,9 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
         T_world_cam_keyframes=np.concatenate([world.T_world_cam_keyframes, poses[idx]]) if len(idx) else world.T_world_cam_keyframes,
         pose_source="estimated", history=np.asarray(history, np.int64),
     )
-    logger.info("extended world: %d -> %d Gaussians, %d new keyframes, %d frames lost",
-                len(world.field), len(extended.field), len(idx), status.count(STATUS_LOST))
+    logger.info("extended world: %d -> %d Gaussians, %d new keyframes, %d frames lost, %d of %d placed by the "
+                "saved world alone", len(world.field), len(extended.field), len(idx), status.count(STATUS_LOST),
+                st.n_by_saved_world, n)
     return extended, poses, status
 
 
