@@ -16,7 +16,7 @@ far the solve moves it and the smallest translation eigenvalue over the largest
 (``translation_constraint``): a slide of tens of cm where that share is under a few percent is
 a view the surfaces leave free. Ground truth only grades. Usage::
 
-    python benchmarks/bench_extension_trace.py [--pair VISIT1 VISIT2] [--frames 600] [--block 20]
+    python benchmarks/bench_extension_trace.py [--pair VISIT1 VISIT2] [--frames 600] [--block 20] [--min-overlap 0.5]
 """
 
 from __future__ import annotations
@@ -50,7 +50,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pair", nargs=2, default=list(SUITE_PAIR), metavar=("VISIT1", "VISIT2"))
     ap.add_argument("--frames", type=int, default=600, help="visit 2 frames traced (from its first)")
     ap.add_argument("--block", type=int, default=20, help="frames per printed row")
+    ap.add_argument("--min-overlap", type=float, default=None, metavar="SHARE",
+                    help="share of a frame landing on the saved world above which the extension places it by that "
+                         "world alone (default: sequence.SAVED_WORLD_MIN_OVERLAP; above 1: never)")
     args = ap.parse_args(argv)
+    if args.min_overlap is not None:
+        from atlas_pipeline.localization import sequence
+
+        sequence.SAVED_WORLD_MIN_OVERLAP = args.min_overlap
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     from atlas_pipeline.localization.localizer import bundle_tracking_files, localize_sequence, tracking_map
     from atlas_pipeline.localization.tracker import RGBDTracker, pose_change
