@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from atlas_pipeline.localization._ransac import SAMPLE_SIZE, RansacParams, fit_rigid, iterations_needed, ransac_batch
 from atlas_pipeline.localization._voxel_hash import VoxelTable, table_of_points
-from atlas_pipeline.localization.tracker import apply_update, converged, pose_change
+from atlas_pipeline.localization.tracker import apply_update, converged, poses_differ
 
 __all__ = ["FeatureCloud", "GlobalRegistration", "feature_cloud", "mutual_matches", "ransac_poses", "icp_point_to_plane"]
 
@@ -155,8 +155,7 @@ def _refit(pose: np.ndarray, src: np.ndarray, dst: np.ndarray, inlier_m: float) 
 
 
 def _far(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    dt, dr = pose_change(T_a, T_b)
-    return dt > DISTINCT_M or dr > DISTINCT_DEG
+    return poses_differ(T_a, T_b, DISTINCT_M, DISTINCT_DEG)
 
 
 def icp_point_to_plane(points: np.ndarray, T: np.ndarray, tree: cKDTree, map_points: np.ndarray,

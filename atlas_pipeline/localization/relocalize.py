@@ -29,7 +29,7 @@ import numpy as np
 from atlas_pipeline.geometry import so3_exp
 from atlas_pipeline.localization.global_registration import GlobalRegistration
 from atlas_pipeline.localization.places import PlaceIndex
-from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, SurfelModel, TrackResult, pose_change
+from atlas_pipeline.localization.tracker import FramePyramid, RGBDTracker, SurfelModel, TrackResult, poses_differ
 
 if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
@@ -95,8 +95,7 @@ DISTINCT_POSE_DEG = 5.0
 
 
 def _is_distinct(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    dt, dr = pose_change(T_a, T_b)
-    return dt > DISTINCT_POSE_M or dr > DISTINCT_POSE_DEG
+    return poses_differ(T_a, T_b, DISTINCT_POSE_M, DISTINCT_POSE_DEG)
 
 
 def _distinct(screened: list[tuple[float, str, TrackResult]], n: int) -> list[tuple[str, TrackResult]]:

@@ -68,6 +68,7 @@ from atlas_pipeline.localization.tracker import (
     TrackResult,
     frame_view,
     pose_change,
+    poses_differ,
     predict_constant_velocity,
 )
 from atlas_pipeline.mapping.consistency import point_relation
@@ -631,8 +632,8 @@ class SequenceTracker:
         self._t_prev = self._t_last if consecutive else None
         self._last = (index, T)
         self._t_last = timestamp_s
-        if self._ref is None or est.status != STATUS_TRACKED or _moved(self._ref[1], T, self.cfg.reference_translation_m,
-                                                                        self.cfg.reference_rotation_deg):
+        if self._ref is None or est.status != STATUS_TRACKED or poses_differ(
+                self._ref[1], T, self.cfg.reference_translation_m, self.cfg.reference_rotation_deg):
             self._ref = (fp, T)
         # A frame placed frame-to-frame beyond the map becomes a keyframe at once; one that moved
         # becomes a keyframe when enough of it is new surface (covisibility); a conflicting one never.
@@ -640,7 +641,7 @@ class SequenceTracker:
         new_surface = not (est.new_surface < KEYFRAME_MIN_NEW_SURFACE)  # NaN (unknown): new
         if self.builder is not None and est.note != NOTE_CONFLICT and (
                 self._last_kf_pose is None or beyond_map
-                or (new_surface and _moved(self._last_kf_pose, T, self.kf_t, self.kf_r))):
+                or (new_surface and poses_differ(self._last_kf_pose, T, self.kf_t, self.kf_r))):
             self._integrate(index, fp, T)
             est.keyframe = True
             self._ref = (fp, T)
@@ -689,8 +690,3 @@ def _better(a: TrackResult, b: TrackResult) -> bool:
     if a.ok != b.ok:
         return a.ok
     return a.inlier_fraction > b.inlier_fraction
-
-
-def _moved(T_a: np.ndarray, T_b: np.ndarray, translation_m: float, rotation_deg: float) -> bool:
-    dt, dr = pose_change(T_a, T_b)
-    return dt > translation_m or dr > rotation_deg

@@ -693,8 +693,7 @@ class RGBDTracker:
                     break
         # Quality at the final pose, finest level, geometry only; a view re-rendered there when
         # the pose travelled far from the one the model view was made at (relocalization).
-        moved_m, turned_deg = pose_change(view.T_world_cam, T)
-        if not self.screening and (moved_m > C.rerender_translation_m or turned_deg > C.rerender_rotation_deg):
+        if not self.screening and poses_differ(view.T_world_cam, T, C.rerender_translation_m, C.rerender_rotation_deg):
             view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m)
         H_final, stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
@@ -856,3 +855,9 @@ def pose_change(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """``(translation m, rotation deg)`` between two poses."""
     rel = invert_se3(T_a) @ T_b
     return float(np.linalg.norm(rel[:3, 3])), float(np.degrees(rotation_angle_rad(rel[:3, :3])))
+
+
+def poses_differ(T_a: np.ndarray, T_b: np.ndarray, translation_m: float, rotation_deg: float) -> bool:
+    """Whether two poses are more than ``translation_m`` or ``rotation_deg`` apart (:func:`pose_change`)."""
+    moved_m, turned_deg = pose_change(T_a, T_b)
+    return moved_m > translation_m or turned_deg > rotation_deg

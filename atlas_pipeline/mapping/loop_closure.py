@@ -230,7 +230,7 @@ def loop_probe_frames(T_world_cam: np.ndarray, valid: np.ndarray, kf_indices: np
     Returns:
         ``[P]`` int64 frame indices, increasing, none of them a keyframe, none before the first.
     """
-    from atlas_pipeline.localization.tracker import pose_change
+    from atlas_pipeline.localization.tracker import poses_differ
 
     kf = np.asarray(kf_indices, np.int64)
     idx = np.flatnonzero(np.asarray(valid, bool))
@@ -244,8 +244,7 @@ def loop_probe_frames(T_world_cam: np.ndarray, valid: np.ndarray, kf_indices: np
         if is_kf[i]:
             last = int(i)
             continue
-        moved_m, turned_deg = pose_change(T_world_cam[last], T_world_cam[i])
-        if moved_m > spacing_m or turned_deg > spacing_deg:
+        if poses_differ(T_world_cam[last], T_world_cam[i], spacing_m, spacing_deg):
             probes.append(int(i))
             last = int(i)
     end = int(idx[-1])
@@ -509,6 +508,8 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
 
     Returns ``(TrackResult-like with T_world_cam, inlier_fraction, residual_m, method)`` or None.
     """
+    from atlas_pipeline.localization.tracker import poses_differ
+
     def good(r) -> bool:
         return (r.ok and r.inlier_fraction >= min_inlier_fraction and r.agreement >= LOOP_MIN_AGREEMENT
                 and r.translation_constraint >= LOOP_MIN_TRANSLATION_CONSTRAINT)
@@ -521,7 +522,7 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
             fits.append(r.T_world_cam)
             if best is None or r.inlier_fraction > best.inlier_fraction:
                 best = r
-    if any(_apart(T, fits[0]) for T in fits[1:]):
+    if any(poses_differ(T, fits[0], LOOP_AMBIGUITY_M, LOOP_AMBIGUITY_DEG) for T in fits[1:]):
         # Two starts, two good fits in different places: the geometry fits more than one pose.
         return None
     if best is not None:
@@ -531,15 +532,6 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
         if good(r):
             return r.T_world_cam, r.inlier_fraction, r.residual_m, "relocalizer"
     return None
-
-
-def _apart(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    """Whether two fits of one frame are different poses (beyond :data:`LOOP_AMBIGUITY_M` or
-    :data:`LOOP_AMBIGUITY_DEG`)."""
-    from atlas_pipeline.localization.tracker import pose_change
-
-    moved_m, turned_deg = pose_change(T_a, T_b)
-    return moved_m > LOOP_AMBIGUITY_M or turned_deg > LOOP_AMBIGUITY_DEG
 
 
 # -- the whole step (reads frames) -------------------------------------------------------------------
