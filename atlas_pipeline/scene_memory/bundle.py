@@ -539,8 +539,7 @@ class WorldBundle:
     def part(self, name: str) -> Path:
         """``directory / name``, a file metadata.json lists: present and of its recorded size, and
         its checksum checked unless the whole bundle was at load (:func:`verified_file`)."""
-        return listed_file(self.directory, self.metadata, name) if self.verified else verified_file(
-            self.directory, self.metadata, name)
+        return bundle_part(self.directory, self.metadata, name, self.verified)
 
     def tracking_model(self, voxel_size_m: float | None = None):
         """The ``SurfelModel`` to localize against: ``surfels.npz`` (checksum verified) when the
@@ -558,22 +557,21 @@ class WorldBundle:
 
     def stored_places(self, camera):
         """The bundle's place index (:func:`read_place_index`)."""
-        from atlas_pipeline.localization.places import PlaceIndex
-
-        return PlaceIndex.load(self.part(PLACES_FILE), camera) if PLACES_FILE in self.metadata["files"] else None
+        return read_place_index(self.directory, camera, self.metadata, self.verified)
 
 
-def read_place_index(directory: str | Path, camera, meta: dict[str, Any] | None = None):
-    """The place index the bundle at ``directory`` stores (``places.npz``, checksum verified and
-    checked), entries to be rendered later at ``camera``; None when the bundle has none. Whether it
-    fits a session's map and camera is decided where it is used (its key)."""
+def read_place_index(directory: str | Path, camera, meta: dict[str, Any] | None = None, verified: bool = False):
+    """The place index the bundle at ``directory`` stores (``places.npz``, checksum verified unless
+    ``verified`` says the bundle was, and checked), entries to be rendered later at ``camera``; None
+    when the bundle has none. Whether it fits a session's map and camera is decided where it is used
+    (its key)."""
     from atlas_pipeline.localization.places import PlaceIndex
 
     directory = Path(directory)
     meta = read_metadata(directory) if meta is None else meta
     if PLACES_FILE not in meta.get("files", {}):
         return None
-    return PlaceIndex.load(verified_file(directory, meta, PLACES_FILE), camera)
+    return PlaceIndex.load(bundle_part(directory, meta, PLACES_FILE, verified), camera)
 
 
 def bundle_keyframe_poses(metadata: dict[str, Any]) -> np.ndarray:
@@ -601,6 +599,11 @@ def listed_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
     if size != rec["bytes"]:
         raise BundleFormatError(path, f"is {size} bytes, metadata.json records {rec['bytes']} (file changed or truncated)")
     return path
+
+
+def bundle_part(directory: Path, meta: dict[str, Any], name: str, verified: bool) -> Path:
+    """:func:`listed_file` when the bundle's checksums were already ``verified``, else :func:`verified_file`."""
+    return (listed_file if verified else verified_file)(directory, meta, name)
 
 
 def verified_file(directory: Path, meta: dict[str, Any], name: str) -> Path:
