@@ -26,9 +26,10 @@ def _default_numba_cache() -> None:
 # GNU OpenMP (Numba's "omp" threading layer here, and Open3D's) spins at every barrier by default.
 # With any other busy process on the machine (a second run, a test, a benchmark), a kernel's
 # threads then burn their time slices spinning while the thread they wait for is descheduled
-# (benchmarks/bench_openmp_wait.py measures it). Waking a sleeping thread is slow in a VM (~2 ms), so
-# kernels called many times per frame on little work run serially (localization/_kernels.py
-# normal_equations); on a machine of your own, OMP_WAIT_POLICY=ACTIVE avoids the wake-ups.
+# (benchmarks/bench_openmp_wait.py measures it). Waking a sleeping OpenMP thread is slow in a VM
+# (~2 ms), so kernels called many times per frame on little work split their chunks over plain
+# threads instead (localization/normal_equations.py); on a machine of your own,
+# OMP_WAIT_POLICY=ACTIVE avoids the wake-ups.
 OPENMP_WAIT_POLICY = "PASSIVE"
 
 

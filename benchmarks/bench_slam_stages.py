@@ -35,7 +35,7 @@ WARM_UP_FRAMES = 5  # compiles the kernels before the clock starts
 
 # stage -> (module path suffix, function name, time taken: "own" (tottime) or "all" (cumulative))
 STAGES = {
-    "normal equations (kernel)": ("localization/_kernels.py", "normal_equations", "own"),
+    "normal equations (both threads, wall)": ("localization/normal_equations.py", "normal_equations", "all"),
     "Gauss-Newton step (solve)": ("localization/tracker.py", "solve_update", "all"),
     "Gauss-Newton step (apply)": ("localization/tracker.py", "apply_update", "all"),
     "model view splat (kernel)": ("localization/_kernels.py", "splat_surfels", "own"),

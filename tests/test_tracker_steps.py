@@ -4,11 +4,15 @@ system (point-to-plane + intensity, Huber and depth-noise weights), and the upda
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
 from atlas_pipeline.geometry import so3_exp
 from atlas_pipeline.localization import _kernels as kn
+from atlas_pipeline.localization.normal_equations import SPLIT_MIN_POINTS
+from atlas_pipeline.localization.normal_equations import normal_equations as split_normal_equations
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS, TrackerConstants
 from atlas_pipeline.localization.tracker import apply_update, converged, solve_update
 
@@ -258,6 +262,43 @@ def test_normal_equations_sums_the_steps_over_chunks(scene):
     np.testing.assert_allclose(stats[4:], stats1[4:], rtol=1e-12)
     H2, g2, stats2 = kn.normal_equations(frame, T, model, ref, params)
     assert np.array_equal(H, H2) and np.array_equal(g, g2) and stats == stats2
+
+
+@pytest.mark.parametrize("threads", [2, 3, 5, kn.N_CHUNKS, 64])
+def test_normal_equations_are_the_same_on_any_number_of_threads(scene, threads):
+    """The tracker's call splits the chunks between threads; the sums come out bit for bit as on
+    the calling thread alone, and the worker threads did run a share."""
+    frame, T, model, ref = scene
+    params = _params()
+    H, g, stats = kn.normal_equations(frame, T, model, ref, params)
+    ran_on = set()
+    original = kn.normal_equation_chunks
+
+    def spy(*args):
+        ran_on.add(threading.current_thread().name)
+        return original(*args)
+
+    kn.normal_equation_chunks = spy
+    try:
+        H2, g2, stats2 = split_normal_equations(frame, T, model, ref, params, threads=threads)
+    finally:
+        kn.normal_equation_chunks = original
+    assert np.array_equal(H, H2) and np.array_equal(g, g2) and stats == stats2
+    # the calling thread ran its range, and a worker at least one (an idle worker may take two)
+    assert threading.current_thread().name in ran_on and len(ran_on) >= 2
+
+
+def test_normal_equations_of_few_points_stay_on_the_calling_thread(scene):
+    frame, T, model, ref = scene
+    assert len(frame.points_cam) < SPLIT_MIN_POINTS
+    ran_on = []
+    original = kn.normal_equations
+    kn.normal_equations = lambda *a: ran_on.append(threading.current_thread().name) or original(*a)
+    try:
+        split_normal_equations(frame, T, model, ref, _params())
+    finally:
+        kn.normal_equations = original
+    assert ran_on == [threading.current_thread().name]
 
 
 def test_stats_of_no_correspondence():

@@ -16,11 +16,12 @@ The normal equations are built in the named steps of kiss-icp's ``Registration.c
    the correspondences summed into ``J^T W J`` and ``J^T W r``;
 3. solving and applying the update: the caller's (:mod:`atlas_pipeline.localization.tracker`).
 
-:func:`normal_equations` runs 1 and 2 per chunk of points in parallel, so a chunk's
-correspondences are still in cache when they are summed. (Measured on a TUM frame: as fast as, in
-fact ~10 % faster than, the single fused loop it replaced. Per-point helpers inlined into one fused
-loop were ~30 % slower: each array a Numba-inlined function binds costs a reference-count update
-per call, so the per-point helpers here take scalars only, poses as tuples from :func:`_pose`.)
+:func:`normal_equation_chunks` runs 1 and 2 per chunk of points, so a chunk's correspondences
+are still in cache when they are summed, and :func:`add_chunks` adds the chunks in a fixed order.
+(Measured on a TUM frame: as fast as, in fact ~10 % faster than, the single fused loop it
+replaced. Per-point helpers inlined into one fused loop were ~30 % slower: each array a
+Numba-inlined function binds costs a reference-count update per call, so the per-point helpers
+here take scalars only, poses as tuples from :func:`_pose`.)
 
 Conventions: ``T_*`` are 4x4 float64 camera-to-world poses; images are row-major ``[h, w]``; a
 level-``l`` pixel ``(i, j)`` covers the full-resolution block starting at ``(s*i, s*j)`` with
@@ -44,7 +45,8 @@ __all__ = [
     "PinholeView", "SplatParams", "FramePoints", "ModelView", "ReferenceImage", "Params", "Correspondences", "Stats",
     "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "MATCH_IN_FRONT", "MATCH_BEHIND", "N_CHUNKS",
     "downsample_depth", "downsample_mean", "image_gradients", "splat_surfels", "SplatCulling", "NO_CULLING",
-    "associate", "build_linear_system", "normal_equations",
+    "associate", "build_linear_system", "normal_equations", "ChunkSums", "chunk_sums",
+    "normal_equation_chunks", "add_chunks",
 ]
 
 # Summation layout (not tuning): the points are summed in this many chunks, then the chunks are
@@ -167,6 +169,15 @@ class Correspondences(NamedTuple):
     photometric: np.ndarray  # [n] bool: the reference sees the point (photometric correspondence)
     points_ref: np.ndarray  # [n, 3] float64 the points in the reference camera frame (photometric term on)
     ref_samples: np.ndarray  # [n, 3] float64 reference (intensity, grad_x, grad_y) where ``photometric``
+
+
+class ChunkSums(NamedTuple):
+    """Per-chunk sums of :func:`normal_equation_chunks`, row ``c`` = chunk ``c``."""
+
+    H: np.ndarray  # [N_CHUNKS, 6, 6] float64 J^T W J
+    g: np.ndarray  # [N_CHUNKS, 6] float64 J^T W r
+    counts: np.ndarray  # [N_CHUNKS, 4] int64 n_on_model, n_in_front, n_geometric, n_photometric
+    costs: np.ndarray  # [N_CHUNKS, 3] float64 geometric_cost, photometric_cost, geometric_sq_m2
 
 
 class Stats(NamedTuple):
@@ -784,19 +795,72 @@ def build_linear_system(corr, model, ref, params):
 # ---- both steps, chunk by chunk -----------------------------------------------------------------------
 
 
-# Serial on purpose: a frame's solve calls this ~10 times on 2k-40k points, and waking OpenMP
-# threads that sleep at barriers (OMP_WAIT_POLICY=PASSIVE, set by atlas_pipeline) cost ~2 ms a
-# call in a VM, more than the work (teddy: 2.4 / 2.6 / 3.6 ms a call on 2k / 10k / 40k points in
-# parallel, 0.3 / 0.9 / 2.9 ms serial). The chunked sum is kept: it is what makes the result
-# independent of how the chunks are run.
+# The chunks run serially inside one call: a frame's solve calls this ~10 times on 2k-40k points, and
+# waking OpenMP threads that sleep at barriers (OMP_WAIT_POLICY=PASSIVE, set by atlas_pipeline)
+# costs ~2 ms a call in a VM, more than the work (teddy: 2.4 / 2.6 / 3.6 ms a call on 2k / 10k / 40k
+# points in parallel, 0.3 / 0.9 / 2.9 ms serial). Ranges of chunks run on plain threads instead
+# (:mod:`atlas_pipeline.localization.normal_equations`; this kernel releases the GIL). The chunked
+# sum is what makes the result independent of how the chunks are run.
+@njit(cache=True, nogil=True)
+def normal_equation_chunks(c_lo, c_hi, frame, T_world_cam, model, ref, params, sums):
+    """:func:`associate` then :func:`build_linear_system` for chunks ``c_lo:c_hi`` of the
+    :data:`N_CHUNKS` chunks of ``frame``'s points, each written to its row of ``sums``
+    (:class:`ChunkSums`, from :func:`chunk_sums`); a chunk's correspondences stay in cache between
+    the two steps. Args as :func:`normal_equations`."""
+    n_pts = frame.points_cam.shape[0]
+    step = (n_pts + N_CHUNKS - 1) // N_CHUNKS
+    for c in range(c_lo, c_hi):
+        lo = c * step
+        hi = min(n_pts, lo + step)
+        if lo < hi:
+            corr = associate(lo, hi, frame, T_world_cam, model, ref, params)
+            H_c, g_c, s = build_linear_system(corr, model, ref, params)
+            sums.H[c] = H_c
+            sums.g[c] = g_c
+            sums.counts[c, 0] = s.n_on_model
+            sums.counts[c, 1] = s.n_in_front
+            sums.counts[c, 2] = s.n_geometric
+            sums.counts[c, 3] = s.n_photometric
+            sums.costs[c, 0] = s.geometric_cost
+            sums.costs[c, 1] = s.photometric_cost
+            sums.costs[c, 2] = s.geometric_sq_m2
+
+
 @njit(cache=True)
+def add_chunks(n_pts, sums):
+    """The chunks' rows of ``sums`` added in chunk order (so the sum does not depend on which
+    thread ran which chunk): ``(H [6, 6], g [6], Stats)`` of all ``n_pts`` points."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    n_on_model = n_geometric = n_photometric = n_in_front = 0
+    geometric_cost = photometric_cost = geometric_sq = 0.0
+    for c in range(N_CHUNKS):
+        H += sums.H[c]
+        g += sums.g[c]
+        n_on_model += sums.counts[c, 0]
+        n_in_front += sums.counts[c, 1]
+        n_geometric += sums.counts[c, 2]
+        n_photometric += sums.counts[c, 3]
+        geometric_cost += sums.costs[c, 0]
+        photometric_cost += sums.costs[c, 1]
+        geometric_sq += sums.costs[c, 2]
+    return H, g, Stats(n_pts, n_on_model, n_geometric, n_photometric, geometric_cost, photometric_cost,
+                       geometric_sq, n_in_front)
+
+
+def chunk_sums() -> ChunkSums:
+    """Zeroed per-chunk sums for :func:`normal_equation_chunks` (a chunk with no points adds zero)."""
+    return ChunkSums(np.zeros((N_CHUNKS, 6, 6)), np.zeros((N_CHUNKS, 6)), np.zeros((N_CHUNKS, 4), np.int64),
+                     np.zeros((N_CHUNKS, 3)))
+
+
 def normal_equations(frame, T_world_cam, model, ref, params):
     """:func:`associate` then :func:`build_linear_system` over all points of ``frame`` at the pose
-    ``T_world_cam`` ``[4, 4]``: the hybrid (point-to-plane + photometric) Gauss-Newton system.
+    ``T_world_cam`` ``[4, 4]``, on the calling thread: the hybrid (point-to-plane + photometric)
+    Gauss-Newton system.
 
-    Points are split into :data:`N_CHUNKS` chunks, each associated and accumulated in turn (its
-    correspondences stay in cache between the two steps), then the chunks' sums are added in
-    chunk order.
+    Points are split into :data:`N_CHUNKS` chunks, each associated and accumulated in turn, then
+    the chunks' sums are added in chunk order.
 
     Args:
         frame: :class:`FramePoints` ``[N]``; model: :class:`ModelView`; ref:
@@ -804,46 +868,6 @@ def normal_equations(frame, T_world_cam, model, ref, params):
     Returns:
         ``(H [6, 6], g [6], stats)`` as :func:`build_linear_system`, for all points.
     """
-    n_pts = frame.points_cam.shape[0]
-    Hs = np.zeros((N_CHUNKS, 6, 6))
-    gs = np.zeros((N_CHUNKS, 6))
-    # per-chunk Stats fields
-    on_model = np.zeros(N_CHUNKS, np.int64)
-    in_front = np.zeros(N_CHUNKS, np.int64)
-    geometric = np.zeros(N_CHUNKS, np.int64)
-    photometric = np.zeros(N_CHUNKS, np.int64)
-    geometric_cost = np.zeros(N_CHUNKS)
-    photometric_cost = np.zeros(N_CHUNKS)
-    geometric_sq = np.zeros(N_CHUNKS)
-    step = (n_pts + N_CHUNKS - 1) // N_CHUNKS
-    for c in range(N_CHUNKS):
-        lo = c * step
-        hi = min(n_pts, lo + step)
-        if lo < hi:
-            corr = associate(lo, hi, frame, T_world_cam, model, ref, params)
-            H_c, g_c, s = build_linear_system(corr, model, ref, params)
-            Hs[c] = H_c
-            gs[c] = g_c
-            on_model[c] = s.n_on_model
-            in_front[c] = s.n_in_front
-            geometric[c] = s.n_geometric
-            photometric[c] = s.n_photometric
-            geometric_cost[c] = s.geometric_cost
-            photometric_cost[c] = s.photometric_cost
-            geometric_sq[c] = s.geometric_sq_m2
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
-    n_on_model = n_geometric = n_photometric = n_in_front = 0
-    geometric_cost_sum = photometric_cost_sum = geometric_sq_sum = 0.0
-    for c in range(N_CHUNKS):  # in chunk order: the sums do not depend on the thread count
-        H += Hs[c]
-        g += gs[c]
-        n_on_model += on_model[c]
-        n_in_front += in_front[c]
-        n_geometric += geometric[c]
-        n_photometric += photometric[c]
-        geometric_cost_sum += geometric_cost[c]
-        photometric_cost_sum += photometric_cost[c]
-        geometric_sq_sum += geometric_sq[c]
-    return H, g, Stats(n_pts, n_on_model, n_geometric, n_photometric, geometric_cost_sum, photometric_cost_sum,
-                       geometric_sq_sum, n_in_front)
+    sums = chunk_sums()
+    normal_equation_chunks(0, N_CHUNKS, frame, T_world_cam, model, ref, params, sums)
+    return add_chunks(frame.points_cam.shape[0], sums)

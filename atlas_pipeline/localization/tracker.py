@@ -20,8 +20,8 @@ association distances). A frame whose alignment is poor (too few model correspon
 residual) is *lost*: its pose is a prediction and it is never merged into the map.
 
 Each Gauss-Newton iteration is kiss-icp's ``Registration.cpp`` loop in named steps: ``associate``
-and ``build_linear_system`` (Numba kernels, run together by
-:func:`~atlas_pipeline.localization._kernels.normal_equations`), then :func:`solve_update` (damped,
+and ``build_linear_system`` (Numba kernels, run together chunk by chunk on the process's share
+of the cores by :func:`~atlas_pipeline.localization.normal_equations.normal_equations`), then :func:`solve_update` (damped,
 trust-region-limited step), :func:`apply_update` and :func:`converged`. Fixed tuning values are in
 :mod:`atlas_pipeline.localization.constants`; per-run settings in ``LocalizationConfig``.
 
@@ -46,6 +46,7 @@ from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization import _voxel_hash
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
 from atlas_pipeline.localization.culling import CHUNK_M, MAX_CHUNKS, ChunkGrid, ChunkIndex
+from atlas_pipeline.localization.normal_equations import normal_equations
 from atlas_pipeline.perception.rgbd import _undistort_normalized
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 
@@ -679,7 +680,7 @@ class RGBDTracker:
             # Trust region, per level: coarse levels may step further (their basin is wider).
             max_step_m = C.max_step_m * 2 ** (level - fin)
             for _ in range(iters):
-                H, g, stats = kn.normal_equations(points, T, view, ref, params)
+                H, g, stats = normal_equations(points, T, view, ref, params)
                 total_it += 1
                 if stats.n_geometric < C.min_geometric_inliers:
                     break
@@ -723,7 +724,7 @@ class RGBDTracker:
             ref = self._no_reference if reference is None else self._reference_image(reference[0], reference[1], level)
             max_step_m = C.max_step_m * 2 ** (level - fin)
             for _ in range(iters):
-                H, g, stats = kn.normal_equations(points, T, local_view, ref, params)
+                H, g, stats = normal_equations(points, T, local_view, ref, params)
                 if stats.n_geometric < C.min_geometric_inliers:
                     return None
                 if motion_prior is not None:
@@ -743,7 +744,7 @@ class RGBDTracker:
         :meth:`judge` grades. Returns ``(H [6, 6] point-to-plane normal matrix, stats)``."""
         points = frame.points(self.cfg.finest_level, C.finest_checkerboard)
         T = np.ascontiguousarray(T_world_cam, np.float64)
-        H, _, stats = kn.normal_equations(points, T, view, self._no_reference, self._params)
+        H, _, stats = normal_equations(points, T, view, self._no_reference, self._params)
         return H, stats
 
     def judge(self, inlier_fraction: float, residual_m: float, agreement: float = 1.0) -> bool:
