@@ -190,34 +190,25 @@ def build_first_world(v1, cfg) -> tuple[object, object, object, dict[str, float]
     """Visit 1 tracked and mapped (loop closure included) and fused in the same pass, as
     ``atlas-gs build`` runs it (:func:`fuse_and_select_keyframes`), then merged into a world from
     its keyframes, and its place index: ``(slam_poses result, world, place index, seconds per
-    step: fuse_s (the fusion work done inside the pass), slam_s (the rest of the pass), world_s,
-    places_s)``."""
+    step: slam_s (the pass: tracking, mapping and loop closure, each frame back-projected on the
+    reader thread meanwhile), fuse_s (the fused frames finished after it), world_s, places_s)``."""
     from atlas_pipeline.localization.localizer import bundle_tracking_files
     from atlas_pipeline.mapping.keyframes import slam_keyframes, slam_poses
     from atlas_pipeline.mapping.mapper import build_world
     from atlas_pipeline.perception.rgbd import FrameFuser
 
     depth_range = (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m)
-    fusing = [0.0]
-
-    def timed(call):
-        def run(*args):
-            t = time.perf_counter()
-            out = call(*args)
-            fusing[0] += time.perf_counter() - t
-            return out
-        return run
-
     t0 = time.perf_counter()
-    with FrameFuser(v1, cfg.fusion) as fuser:  # the pass of fuse_and_select_keyframes, its fusion timed
-        slam = slam_poses(v1, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride, on_frame=timed(fuser.add))
-        fused = timed(fuser.finish)()
+    with FrameFuser(v1, cfg.fusion) as fuser:  # the pass of fuse_and_select_keyframes
+        slam = slam_poses(v1, cfg.mapping, cfg.localization, depth_range, cfg.fusion.stride, on_frame=fuser.add)
+        t_pass = time.perf_counter()
+        fused = fuser.finish()
     kf = slam_keyframes(slam)
     t1 = time.perf_counter()
     world = build_world(fused, kf, cfg.mapping, manifest=v1)
     t2 = time.perf_counter()
     _, places = bundle_tracking_files(world, v1.camera, cfg.localization)
-    return slam, world, places, {"fuse_s": fusing[0], "slam_s": t1 - t0 - fusing[0], "world_s": t2 - t1,
+    return slam, world, places, {"fuse_s": t1 - t_pass, "slam_s": t_pass - t0, "world_s": t2 - t1,
                                  "places_s": time.perf_counter() - t2}
 
 

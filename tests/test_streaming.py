@@ -152,6 +152,58 @@ def test_read_ahead_raises_a_read_error_at_its_frame():
     assert got == [0, 1, 2, 3]
 
 
+def test_read_ahead_runs_on_frame_on_the_reader_thread_in_order_before_yielding():
+    import threading
+
+    from atlas_pipeline.perception.rgbd import read_ahead
+
+    seen, threads = [], set()
+
+    def on_frame(i, rgb, depth):
+        seen.append(i)
+        threads.add(threading.current_thread().name)
+
+    order = [3, 4, 2, 1, 0]
+    for i, _, _ in read_ahead(_CountingManifest(10), order, on_frame):
+        assert i in seen  # done before the frame reaches the caller
+    assert seen == order
+    assert threads and threading.current_thread().name not in threads
+
+
+def test_read_ahead_raises_an_on_frame_error_at_its_frame_and_closing_waits_for_the_reader():
+    import time
+
+    from atlas_pipeline.perception.rgbd import read_ahead
+
+    def on_frame(i, rgb, depth):
+        if i == 2:
+            raise OSError(f"frame {i}: chunk file not writable")
+
+    got = []
+    with pytest.raises(OSError, match="frame 2: chunk file not writable"):
+        for i, _, _ in read_ahead(_CountingManifest(10), range(10), on_frame):
+            got.append(i)
+    assert got == [0, 1]
+    # Closed early, the iterator returns only once the frame being worked on is done: the caller
+    # may then remove what on_frame writes to.
+    started, finished = [], []
+
+    def slow(i, rgb, depth):
+        started.append(i)
+        if i == 1:
+            time.sleep(0.3)
+        finished.append(i)
+
+    frames = read_ahead(_CountingManifest(10), range(10), slow)
+    next(frames)
+    deadline = time.monotonic() + 5.0
+    while 1 not in started and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert 1 in started and 1 not in finished  # frame 1 in progress on the reader thread
+    frames.close()
+    assert 1 in finished and started == finished
+
+
 def test_fusion_in_the_tracking_pass_equals_the_two_stages(small_manifest, tmp_path):
     """`atlas-gs build` fuses each frame as the tracker reads it: the same fused bytes and the
     same keyframes as fusion, then SLAM, each reading the frames."""

@@ -98,7 +98,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
             the first frames of the sequence; by default frames are read one at a time.
         budget_s: stop tracking after this many seconds (benchmarks); ``n_attempted`` says where.
         on_frame: called with ``(index, rgb [H, W, 3], depth_m [H, W])`` of every frame before it
-            is tracked, for work that needs the decoded frames too (:class:`FrameFuser`).
+            is tracked, for work that needs the decoded frames too (:class:`FrameFuser`); on the
+            reader thread when frames are read from disk (:func:`read_ahead`), in frame order.
     """
     import time
 
@@ -119,22 +120,25 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
     # Frames given in memory (fewer than the sequence: a warm-up, the rest not attempted), or
     # read ahead from disk.
     source = (((i, *f) for i, f in enumerate(frames[:n])) if frames is not None
-              else read_ahead(manifest, range(n)))
-    for i, rgb, depth in source:
-        if on_frame is not None:
-            on_frame(i, rgb, depth)
-        # The first frame with depth anchors the world at the identity.
-        anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
-        est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]),
-                         colour_delay_s=manifest.colour_delay_s(i))
-        started = started or anchor is not None
-        poses[i], map_ids[i] = est.T_world_cam, est.map_id
-        status.append(est.status)
-        progress.update(extra=f"{est.status}, {len(st.keyframe_indices)} keyframes, map {st.map_id}")
-        if budget_s is not None and time.perf_counter() - t0 > budget_s and i + 1 < n:
-            logger.warning("%s: time budget of %.0f s spent after %d of %d frames; stopping", manifest.dataset,
-                           budget_s, i + 1, n)
-            break
+              else read_ahead(manifest, range(n), on_frame))
+    try:
+        for i, rgb, depth in source:
+            if frames is not None and on_frame is not None:  # frames read from disk: the reader ran it
+                on_frame(i, rgb, depth)
+            # The first frame with depth anchors the world at the identity.
+            anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
+            est = st.process(i, rgb, depth, T_given=anchor, timestamp_s=float(manifest.timestamps_s[i]),
+                             colour_delay_s=manifest.colour_delay_s(i))
+            started = started or anchor is not None
+            poses[i], map_ids[i] = est.T_world_cam, est.map_id
+            status.append(est.status)
+            progress.update(extra=f"{est.status}, {len(st.keyframe_indices)} keyframes, map {st.map_id}")
+            if budget_s is not None and time.perf_counter() - t0 > budget_s and i + 1 < n:
+                logger.warning("%s: time budget of %.0f s spent after %d of %d frames; stopping", manifest.dataset,
+                               budget_s, i + 1, n)
+                break
+    finally:
+        source.close()  # waits for the reader thread: its on_frame is done before the caller cleans up
     n_done = len(status)
     status += ["not_attempted"] * (n - n_done)
     if not any(len(kf) for _, kf, _ in st.all_keyframes()):

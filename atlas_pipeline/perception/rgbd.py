@@ -103,15 +103,25 @@ def backproject(
 READ_AHEAD_FRAMES = 2
 
 
-def read_ahead(manifest: FrameManifest, indices) -> "Iterator[tuple[int, np.ndarray, np.ndarray]]":
+def read_ahead(manifest: FrameManifest, indices,
+               on_frame: "Callable[[int, np.ndarray, np.ndarray], None] | None" = None,
+               ) -> "Iterator[tuple[int, np.ndarray, np.ndarray]]":
     """Yield ``(frame_index, rgb [H, W, 3] uint8, depth_m [H, W] float32)`` for ``indices`` in order,
     each decoded by a reader thread while the caller works on the previous ones. Depth may be all
     zero (``allow_empty``: the tracker marks such a frame lost). A read error is raised at the frame
-    it belongs to; frames not consumed are dropped when the caller stops early."""
+    it belongs to; frames not consumed are dropped when the caller stops early, and closing the
+    iterator waits for the frame being read.
+
+    ``on_frame(i, rgb, depth_m)``: work on each frame that does not need the caller's results
+    (back-projection while tracking), run on the reader thread in frame order before the frame is
+    yielded; its error is raised at that frame, as a read error is."""
     from concurrent.futures import ThreadPoolExecutor
 
     def read(i: int):
-        return manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)
+        rgb, depth = manifest.read_rgb(i), manifest.read_depth_m(i, allow_empty=True)
+        if on_frame is not None:
+            on_frame(i, rgb, depth)
+        return rgb, depth
 
     order = list(indices)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="atlas-read") as pool:
