@@ -288,6 +288,32 @@ def test_normal_equations_are_the_same_on_any_number_of_threads(scene, threads):
     assert threading.current_thread().name in ran_on and len(ran_on) >= 2
 
 
+def test_normal_equations_take_back_the_chunks_a_busy_worker_has_not_started(scene, monkeypatch):
+    """A worker held up elsewhere does not hold the call up: the calling thread runs the chunks
+    it handed out and the worker never started, with the same sums."""
+    from atlas_pipeline.localization import normal_equations as ne
+
+    frame, T, model, ref = scene
+    params = _params()
+    H, g, stats = kn.normal_equations(frame, T, model, ref, params)
+    monkeypatch.setattr(ne, "_workers", None)  # a pool of one worker, of this test's own
+    release = threading.Event()
+    pool = ne._pool(1)
+    blocker = pool.submit(release.wait, 30.0)  # the only worker, busy
+    out = []
+    call = threading.Thread(target=lambda: out.append(split_normal_equations(frame, T, model, ref, params, threads=2)))
+    try:
+        call.start()
+        call.join(10.0)
+        assert not call.is_alive() and not blocker.done()  # done while the worker was still busy
+    finally:
+        release.set()
+        call.join()
+        pool.shutdown()
+    H2, g2, stats2 = out[0]
+    assert np.array_equal(H, H2) and np.array_equal(g, g2) and stats == stats2
+
+
 def test_normal_equations_of_few_points_stay_on_the_calling_thread(scene):
     frame, T, model, ref = scene
     assert len(frame.points_cam) < SPLIT_MIN_POINTS

@@ -4,9 +4,9 @@ A call holds 2k to 40k frame points and takes 0.3 to 2.5 ms on one core, about a
 frame. Numba's own parallel loop costs more than that to wake its OpenMP threads in a VM (see
 :mod:`atlas_pipeline.localization._kernels`); a hand-off to a waiting Python thread costs about
 50 microseconds. So the :data:`~atlas_pipeline.localization._kernels.N_CHUNKS` chunks of a call
-are split into contiguous ranges: the calling thread runs the first, persistent worker threads
-the others (the chunk kernel releases the GIL), and the chunks' sums are added in chunk order.
-The result is the same, bit for bit, however many threads ran it.
+are shared out: the calling thread runs its share, persistent worker threads the others (the
+chunk kernel releases the GIL), and the chunks' sums are added in chunk order. The result is
+the same, bit for bit, however many threads ran it.
 """
 
 from __future__ import annotations
@@ -23,6 +23,10 @@ __all__ = ["normal_equations", "SPLIT_MIN_POINTS"]
 # Below this many points a call runs on the calling thread alone: the hand-off would cost a
 # sizeable share of the work it saves (at 3-6k points a split call takes 0.27 ms against 0.39).
 SPLIT_MIN_POINTS = 2000
+
+# Chunks handed to a worker at a time: a smaller job leaves more for the calling thread to take
+# back from a worker held up elsewhere, and each costs a hand-off.
+JOB_CHUNKS = 2
 
 _lock = threading.Lock()
 _workers: ThreadPoolExecutor | None = None
@@ -56,11 +60,19 @@ def normal_equations(frame: kn.FramePoints, T_world_cam, model: kn.ModelView, re
     if threads == 1:
         return kn.normal_equations(frame, T_world_cam, model, ref, params)
     sums = kn.chunk_sums()
-    bounds = [kn.N_CHUNKS * i // threads for i in range(threads + 1)]
+    args = (frame, T_world_cam, model, ref, params, sums)
+    own = kn.N_CHUNKS // threads
     pool = _pool(threads - 1)
-    others = [pool.submit(kn.normal_equation_chunks, bounds[i], bounds[i + 1], frame, T_world_cam, model, ref,
-                          params, sums) for i in range(1, threads)]
-    kn.normal_equation_chunks(bounds[0], bounds[1], frame, T_world_cam, model, ref, params, sums)
-    for job in others:
-        job.result()
+    # The rest go to the workers a few chunks at a time: whatever a worker has not started when the
+    # calling thread is done with its own (the core busy with another thread: the frame reader, a
+    # second run) the calling thread takes back, from the last, instead of waiting for it.
+    jobs = [(c, min(c + JOB_CHUNKS, kn.N_CHUNKS)) for c in range(own, kn.N_CHUNKS, JOB_CHUNKS)]
+    futures = [pool.submit(kn.normal_equation_chunks, lo, hi, *args) for lo, hi in jobs]
+    kn.normal_equation_chunks(0, own, *args)
+    for (lo, hi), job in zip(reversed(jobs), reversed(futures)):
+        if job.cancel():
+            kn.normal_equation_chunks(lo, hi, *args)
+    for job in futures:
+        if not job.cancelled():
+            job.result()
     return kn.add_chunks(n_pts, sums)
