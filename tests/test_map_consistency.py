@@ -163,3 +163,39 @@ def test_a_session_extending_a_world_keeps_one_copy_of_its_surfaces(small_manife
     assert refused[False] == 0 and added[False] > 0.2 * len(world.tracking_voxels)
     # ... checked, what it adds is what lies along the surfaces (edges, grazing floor), a third of that.
     assert refused[True] > 0 and added[True] < 0.4 * added[False]
+
+
+class _OnTheCallingThread:
+    """A stand-in for the merge's worker pool that runs each job at once, where it is submitted."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        done = Future()
+        done.set_result(fn(*args))
+        return done
+
+
+def test_the_two_maps_merged_on_two_threads_equal_one_after_the_other(small_manifest, small_inputs, monkeypatch):
+    """The Gaussians' statistics take each keyframe on a worker thread while the tracking map
+    takes it here: the same world, bit for bit, as every step on one thread in keyframe order."""
+    cfg, fused, kf = small_inputs
+    threaded = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
+    monkeypatch.setattr(mapper, "ThreadPoolExecutor", _OnTheCallingThread)
+    serial = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
+    for name in ("tracking_voxels", "map_voxels"):
+        a, b = getattr(threaded, name), getattr(serial, name)
+        assert np.array_equal(a.ids, b.ids), name
+        for stat in ("count", "sum_xyz", "sum_rgb", "sum_sq", "weight"):
+            assert np.array_equal(getattr(a, stat), getattr(b, stat)), (name, stat)
+    assert np.array_equal(threaded.history, serial.history)
+    assert len(threaded.history) == len(kf.indices) and threaded.history[-1] == len(threaded.map_voxels)

@@ -20,6 +20,7 @@ colour where the images show a surface and the depth does not."""
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Callable
@@ -191,19 +192,34 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
     # The tracking map keeps one copy of each surface (mapping.consistency); it needs the camera.
     surfels = SurfelCache(tracking) if manifest is not None else None
     n_refused = 0
-    for k in keyframes.indices:
-        pts, cols = fused.frame(int(k))
-        T = keyframes.T_world_cam[k]
-        if surfels is not None:
-            pts, cols, refused = consistency.agreeing_points(surfels.model(), pts, cols, T, manifest.camera)
-            n_refused += refused
-        pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-        tracking.integrate(pw, cols)
-        measured, holes = _mapping_points(fused, int(k), cfg, manifest)
+
+    def merge_into_map(k: int, T: np.ndarray) -> int:
+        """Keyframe ``k`` into the Gaussians' statistics; their voxel count after it."""
+        measured, holes = _mapping_points(fused, k, cfg, manifest)
         _integrate_mapping(mapping, *measured, T, cfg.voxel_size_m, cfg.noise_adaptive_cells)
         _integrate_mapping(mapping, *holes, T, cfg.voxel_size_m, cfg.noise_adaptive_cells, HOLE_FILL_WEIGHT)
-        history.append(len(mapping))
-        progress.update()
+        return len(mapping)
+
+    # The two maps take each keyframe in the same order, each on a thread of its own: the
+    # Gaussians' statistics (and the reading of the keyframe's images they need) on a worker,
+    # the tracking map (and its consistency test against itself) here.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="atlas-map") as worker:
+        sizes = []
+        try:
+            for k in keyframes.indices:
+                T = keyframes.T_world_cam[k]
+                sizes.append(worker.submit(merge_into_map, int(k), T))
+                pts, cols = fused.frame(int(k))
+                if surfels is not None:
+                    pts, cols, refused = consistency.agreeing_points(surfels.model(), pts, cols, T, manifest.camera)
+                    n_refused += refused
+                pw = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+                tracking.integrate(pw, cols)
+                progress.update()
+            history += [size.result() for size in sizes]
+        finally:
+            for size in sizes:
+                size.cancel()
     if n_refused:
         logger.info("tracking map: %d keyframe points left out where they contradict surfaces already mapped "
                     "(drift before a loop)", n_refused)

@@ -227,9 +227,12 @@ class FusedFrames:
         return -(-self.n_frames // self.chunk_frames)
 
     def _chunk(self, c: int) -> tuple[np.ndarray, np.ndarray]:
-        """Points and colours of chunk ``c`` (the last one read stays cached), checked against the index."""
-        if self._cache.get("c") == c:
-            return self._cache["pts"], self._cache["cols"]
+        """Points and colours of chunk ``c`` (the last one read stays cached), checked against the index.
+        The cache entry is one tuple, replaced whole: threads reading frames of different chunks
+        never see one chunk's points with another's number."""
+        cached = self._cache.get("chunk")
+        if cached is not None and cached[0] == c:
+            return cached[1], cached[2]
         path = self.chunk_dir / FUSED_CHUNK_PATTERN.format(c)
         z = load_npz_checked(path, _FUSED_CHUNK_MEMBERS, error_type=ArtifactError)
         pts, cols = z["points_cam"], z["colors"]
@@ -240,8 +243,9 @@ class FusedFrames:
                                 f"[{b - a}, 3] (the index's points of frames {c * self.chunk_frames}..)")
         if not np.isfinite(pts).all():
             raise ArtifactError(f"{path}: points_cam has NaN or infinite values")
-        self._cache.update(c=c, pts=pts.astype(np.float32, copy=False), cols=cols)
-        return self._cache["pts"], cols
+        pts = pts.astype(np.float32, copy=False)
+        self._cache["chunk"] = (c, pts, cols)
+        return pts, cols
 
     def frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """``(points_cam [Mi, 3], colors [Mi, 3])`` of frame ``i`` (views, no copy)."""
