@@ -404,6 +404,23 @@ def _splat(centres, normals, radius_m, blend_sigmas: float, blend_floor_m: float
                             kn.NO_CULLING)[:2]
 
 
+def test_a_splat_reuses_its_k_buffer_and_leaves_nothing_of_the_last_view_in_the_next():
+    """The k-buffer is kept between splats of one size and not cleared: a view drawn after a
+    denser one (more hits a pixel, in the same buffer) is the image a fresh buffer gives."""
+    C = TRACKER_CONSTANTS
+    sparse = _noisy_layer(LAYER_DEPTH_M, LAYER_SIGMA_M, spacing_m=0.03, seed=5)
+    dense = _noisy_layer(LAYER_DEPTH_M - 0.3, LAYER_SIGMA_M, spacing_m=0.005, seed=6)
+    kn._splat_scratches.by_size = {}  # a fresh buffer
+    first = _splat(*sparse, 0.016, C.splat_blend_sigmas, 0.02)
+    buffers = kn._splat_scratch(SPLAT_H, SPLAT_W)
+    _splat(*dense, 0.016, C.splat_blend_sigmas, 0.02)  # fills every pixel's k-buffer
+    again = _splat(*sparse, 0.016, C.splat_blend_sigmas, 0.02)
+    assert kn._splat_scratch(SPLAT_H, SPLAT_W)[0] is buffers[0]  # the same buffer all along
+    for a, b in zip(first, again):
+        assert np.array_equal(a, b, equal_nan=True)
+    assert np.isfinite(first[0][..., 2]).mean() > 0.5
+
+
 def test_splatting_averages_a_noisy_layer_instead_of_taking_its_front():
     """Overlapping disks of a noisy layer: the nearest alone sits about a sigma in front of the
     surface (the bias that pulled each frame after a keyframe towards its camera); the visibility

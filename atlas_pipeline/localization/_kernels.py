@@ -34,6 +34,7 @@ unknowns of a pose).
 from __future__ import annotations
 
 import math
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -223,9 +224,9 @@ class SplatCulling(NamedTuple):
 NO_CULLING = SplatCulling(np.zeros(0, np.int32), np.zeros(0, np.bool_))
 
 
-@njit(cache=True, parallel=True)
 def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling):
-    """Render oriented disks (surfels) into a pinhole view with a z-buffer.
+    """Render oriented disks (surfels) into a pinhole view with a z-buffer (:func:`_splat_surfels`
+    with this thread's scratch k-buffer for the view's size, :func:`_splat_scratch`).
 
     Args:
         centres_w, normals_w: ``[N, 3]`` float64 surfel centres and unit normals (world).
@@ -243,6 +244,37 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
         :func:`_splat_band`), so the model surface is smooth and point-to-plane residuals against
         it are sub-voxel; the ``behind`` pair, the same of the next band of hits behind it.
     """
+    hit_z, hit_k = _splat_scratch(view.height, view.width)
+    return _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling, hit_z, hit_k)
+
+
+# A splat's k-buffer (SPLAT_HITS_PER_PIXEL depths and surfel numbers a pixel) is 20 MB at 320x240.
+# Allocated afresh, its pages cost more to map and fill than a tracking view costs to draw; kept per
+# thread for the last few view sizes, it is reused without being cleared (each pixel counts its own
+# hits). Buffers larger than this are not kept (full-resolution renders are rare).
+SPLAT_SCRATCH_MAX_BYTES = 48 << 20
+SPLAT_SCRATCH_SIZES = 2  # view sizes kept per thread
+_splat_scratches = threading.local()
+
+
+def _splat_scratch(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(hit_z [h, w, K] float64, hit_k [h, w, K] int64)`` scratch of this thread, contents undefined."""
+    kept = getattr(_splat_scratches, "by_size", None)
+    if kept is None:
+        kept = _splat_scratches.by_size = {}
+    buffers = kept.pop((h, w), None)
+    if buffers is None:
+        buffers = (np.empty((h, w, SPLAT_HITS_PER_PIXEL)), np.empty((h, w, SPLAT_HITS_PER_PIXEL), np.int64))
+    if sum(b.nbytes for b in buffers) <= SPLAT_SCRATCH_MAX_BYTES:
+        kept[(h, w)] = buffers  # the most recent last
+        while len(kept) > SPLAT_SCRATCH_SIZES:
+            del kept[next(iter(kept))]
+    return buffers
+
+
+@njit(cache=True, parallel=True)
+def _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling, hit_z, hit_k):
+    """:func:`splat_surfels` with the k-buffer ``hit_z``, ``hit_k`` ``[h, w, K]`` as scratch."""
     pose = _pose(view.T_world_cam)
     fx, fy, cx, cy, w, h = view.fx, view.fy, view.cx, view.cy, view.width, view.height
     intrinsics = (fx, fy, cx, cy, w, h)
@@ -278,8 +310,9 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
     # race on the z-buffer and the result does not depend on the number of threads.
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
     for band in prange(N_SPLAT_BANDS):
-        _splat_band(min(h, band * band_h), min(h, (band + 1) * band_h), VisibleSurfels(cam, box, order, r2),
-                    (fx, fy, cx, cy), params, SplatBuffers(zbuf, pts, nrm, pts2, nrm2), surface_behind)
+        lo, hi = min(h, band * band_h), min(h, (band + 1) * band_h)
+        _splat_band(lo, hi, VisibleSurfels(cam, box, order, r2), (fx, fy, cx, cy), params,
+                    SplatBuffers(zbuf, pts, nrm, pts2, nrm2), surface_behind, hit_z[lo:hi], hit_k[lo:hi])
     return pts, nrm, pts2, nrm2
 
 
@@ -376,9 +409,9 @@ def _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, min_incidence_cos):
 
 
 @njit(cache=True)
-def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind):
+def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind, hit_z, hit_k):
     """Surfels ``order`` (visible ones, ascending) into rows ``row_lo:row_hi`` of the buffers (see
-    :func:`splat_surfels`).
+    :func:`splat_surfels`); ``hit_z``, ``hit_k`` ``[row_hi - row_lo, w, K]``: scratch.
 
     Each pixel keeps its :data:`SPLAT_HITS_PER_PIXEL` nearest disk hits (a k-buffer, one sweep
     over the disks); then the hits within the visibility band behind the nearest are averaged,
@@ -392,8 +425,7 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind
     rows = row_hi - row_lo
     w = zbuf.shape[1]
     kbuf = SPLAT_HITS_PER_PIXEL
-    hit_z = np.full((rows, w, kbuf), np.inf)
-    hit_k = np.empty((rows, w, kbuf), np.int64)
+    n_hits = np.zeros((rows, w), np.int64)  # the pixel's hits so far: the first n_hits of its k-buffer
     for i in range(order.shape[0]):
         k = order[i]
         if box[k, 3] < row_lo or box[k, 2] >= row_hi:
@@ -402,10 +434,17 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind
             r = v - row_lo
             for u in range(box[k, 0], box[k, 1] + 1):
                 z = _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, mic)
-                if z >= hit_z[r, u, kbuf - 1]:  # a miss (inf), or behind the k nearest
+                if z == np.inf:  # a miss
                     continue
-                j = kbuf - 1  # insertion into the sorted k nearest; ties keep the earlier disk first
-                while j > 0 and hit_z[r, u, j - 1] > z:
+                n = n_hits[r, u]
+                if n < kbuf:
+                    j = n
+                    n_hits[r, u] = n + 1
+                elif z >= hit_z[r, u, kbuf - 1]:  # behind the k nearest
+                    continue
+                else:
+                    j = kbuf - 1
+                while j > 0 and hit_z[r, u, j - 1] > z:  # insertion; ties keep the earlier disk first
                     hit_z[r, u, j] = hit_z[r, u, j - 1]
                     hit_k[r, u, j] = hit_k[r, u, j - 1]
                     j -= 1
@@ -415,38 +454,38 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind
         v = row_lo + r
         ry = (v - cy) / fy
         for u in range(w):
-            z, nx, ny, nz, nxt = _blend_band(hit_z[r, u], hit_k[r, u], 0, cam, params)
+            n = n_hits[r, u]
+            if n == 0:
+                continue
+            z, nx, ny, nz, nxt = _blend_band(hit_z[r, u], hit_k[r, u], n, 0, cam, params)
             if not np.isfinite(z):
                 continue
             zbuf[v, u] = z
             rx = (u - cx) / fx
             pts[v, u, 0], pts[v, u, 1], pts[v, u, 2] = rx * z, ry * z, z
             nrm[v, u, 0], nrm[v, u, 1], nrm[v, u, 2] = nx, ny, nz
-            if surface_behind and nxt < kbuf:
-                z, nx, ny, nz, _ = _blend_band(hit_z[r, u], hit_k[r, u], nxt, cam, params)
+            if surface_behind and nxt < n:
+                z, nx, ny, nz, _ = _blend_band(hit_z[r, u], hit_k[r, u], n, nxt, cam, params)
                 if np.isfinite(z):
                     pts2[v, u, 0], pts2[v, u, 1], pts2[v, u, 2] = rx * z, ry * z, z
                     nrm2[v, u, 0], nrm2[v, u, 1], nrm2[v, u, 2] = nx, ny, nz
 
 
 @njit(cache=True, inline="always")
-def _blend_band(hit_z, hit_k, j0, cam, params):
-    """Mean depth and unit normal of the sorted hits ``j0..`` of one pixel within the visibility band
-    behind hit ``j0`` (``inf`` depth: none, or opposed normals cancelled), and the index of the
-    first hit beyond the band."""
-    kbuf = hit_z.shape[0]
+def _blend_band(hit_z, hit_k, n, j0, cam, params):
+    """Mean depth and unit normal of the sorted hits ``j0..n-1`` of one pixel (``n`` hits) within
+    the visibility band behind hit ``j0`` (``inf`` depth: opposed normals cancelled), and the
+    index of the first hit beyond the band (``n``: none)."""
     z0 = hit_z[j0]
-    if not np.isfinite(z0):
-        return np.inf, 0.0, 0.0, 0.0, kbuf
     dz = z0 - params.noise_z0_m if z0 > params.noise_z0_m else 0.0
     band = max(params.blend_floor_m, params.blend_sigmas * (params.noise_a_m + params.noise_b_per_m * dz * dz))
     zsum = 0.0
     nx = ny = nz = 0.0
     count = 0
     j = j0
-    while j < kbuf:
+    while j < n:
         z = hit_z[j]
-        if z > z0 + band:  # sorted: the rest are farther (or inf)
+        if z > z0 + band:  # sorted: the rest are farther
             break
         k = hit_k[j]
         zsum += z
@@ -455,7 +494,7 @@ def _blend_band(hit_z, hit_k, j0, cam, params):
         nz += cam[k, 5]
         count += 1
         j += 1
-    nxt = j if j < kbuf and np.isfinite(hit_z[j]) else kbuf
+    nxt = j
     nn = math.sqrt(nx * nx + ny * ny + nz * nz)
     if nn <= 0.0:  # opposed normals cancelled: no surface orientation to offer
         return np.inf, 0.0, 0.0, 0.0, nxt
