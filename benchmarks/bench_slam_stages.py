@@ -38,7 +38,7 @@ STAGES = {
     "normal equations (both threads, wall)": ("localization/normal_equations.py", "normal_equations", "all"),
     "Gauss-Newton step (solve)": ("localization/tracker.py", "solve_update", "all"),
     "Gauss-Newton step (apply)": ("localization/tracker.py", "apply_update", "all"),
-    "model view splat (kernel)": ("localization/_kernels.py", "splat_surfels", "own"),
+    "model view splat (kernel)": ("localization/_kernels.py", "splat_surfels", "all"),
     "view culling": ("localization/tracker.py", "culling", "all"),
     "frame preparation (pyramid)": ("localization/tracker.py", "prepare", "all"),
     "frame points per level": ("localization/tracker.py", "points", "own"),
