@@ -20,10 +20,11 @@ association distances). A frame whose alignment is poor (too few model correspon
 residual) is *lost*: its pose is a prediction and it is never merged into the map.
 
 Each Gauss-Newton iteration is kiss-icp's ``Registration.cpp`` loop in named steps: ``associate``
-and ``build_linear_system`` (Numba kernels, run together chunk by chunk on the process's share
-of the cores by :func:`~atlas_pipeline.localization.normal_equations.normal_equations`), then :func:`solve_update` (damped,
-trust-region-limited step), :func:`apply_update` and :func:`converged`. Fixed tuning values are in
-:mod:`atlas_pipeline.localization.constants`; per-run settings in ``LocalizationConfig``.
+and ``build_linear_system`` (Numba kernels, run together chunk by chunk on the process's share of
+the cores by :func:`~atlas_pipeline.localization.normal_equations.normal_equations`), then
+:func:`solve_update` (damped, trust-region-limited step), :func:`apply_update` and
+:func:`converged`. Fixed tuning values are in :mod:`atlas_pipeline.localization.constants`;
+per-run settings in ``LocalizationConfig``.
 
 Shapes: ``T_*`` ``[4, 4]`` camera-to-world; ``depth_m`` ``[H, W]`` float32 metres (0 = none);
 ``rgb`` ``[H, W, 3]`` uint8.

@@ -123,7 +123,7 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
               else read_ahead(manifest, range(n), on_frame))
     try:
         for i, rgb, depth in source:
-            if frames is not None and on_frame is not None:  # frames read from disk: the reader ran it
+            if frames is not None and on_frame is not None:  # in memory (read from disk, the reader ran it)
                 on_frame(i, rgb, depth)
             # The first frame with depth anchors the world at the identity.
             anchor = None if started or np.count_nonzero(depth) < _MIN_ANCHOR_DEPTH_PIXELS else np.eye(4)
