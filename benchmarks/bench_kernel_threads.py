@@ -1,9 +1,9 @@
-"""The tracker's normal equations on two threads against one: SLAM frames/s and time per call.
+"""The tracker's normal equations split over threads against one: SLAM frames/s and time per call.
 
 SLAM (``slam_poses`` as ``atlas-gs build --set mapping.pose_source=estimated`` runs it, loop
 closure included) on the first ``--frames`` frames of a dataset, decoded before the clock starts,
-with the normal equations split between the calling thread and a worker thread
-(:mod:`atlas_pipeline.localization.normal_equations`, the default) and, as the reference in the
+with the normal equations split between the calling thread and worker threads, as many threads as
+Numba's (:mod:`atlas_pipeline.localization.normal_equations`, the default; 2 on a 2-core machine) and, as the reference in the
 same run, on the calling thread alone (every call below the split threshold). Runs alternate,
 ``--repeats`` times each, best of each reported; the poses should be identical (two runs of
 one mode may differ in rounding where a sequence loses frames or closes a loop). Per call: the
@@ -93,7 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     m = _slice(full, 0, min(args.frames, full.n_frames), args.dataset)
     frames = load_frames(m)
     _slam(_slice(m, 0, WARM_UP_FRAMES, args.dataset), frames[:WARM_UP_FRAMES], cfg)
-    modes = {"one thread (reference)": ONE_THREAD, "split over two threads": ne.SPLIT_MIN_POINTS}
+    from atlas_pipeline.cores import kernel_threads
+
+    modes = {"one thread (reference)": ONE_THREAD, f"split over {kernel_threads()} threads": ne.SPLIT_MIN_POINTS}
     best: dict[str, dict] = {}
     calls: dict[str, list] = {}
     poses: dict[str, np.ndarray] = {}

@@ -185,13 +185,20 @@ class _OnTheCallingThread:
         return done
 
 
-def test_the_two_maps_merged_on_two_threads_equal_one_after_the_other(small_manifest, small_inputs, monkeypatch):
+@pytest.mark.parametrize("with_images", [True, False])
+def test_the_two_maps_merged_on_two_threads_equal_one_after_the_other(small_manifest, small_inputs, monkeypatch,
+                                                                      with_images):
     """The Gaussians' statistics take each keyframe on a worker thread while the tracking map
-    takes it here: the same world, bit for bit, as every step on one thread in keyframe order."""
-    cfg, fused, kf = small_inputs
-    threaded = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
+    takes it here: the same world, bit for bit, as every step on one thread in keyframe order.
+    Without the recording's images both threads read the fused points, chunk by chunk."""
+    from atlas_pipeline.perception.rgbd import fuse_frames
+
+    cfg, _, kf = small_inputs
+    fused = fuse_frames(small_manifest, cfg.fusion, chunk_frames=2)  # many chunks: the threads read different ones
+    manifest = small_manifest if with_images else None
+    threaded = mapper.build_world(fused, kf, cfg.mapping, manifest=manifest)
     monkeypatch.setattr(mapper, "ThreadPoolExecutor", _OnTheCallingThread)
-    serial = mapper.build_world(fused, kf, cfg.mapping, manifest=small_manifest)
+    serial = mapper.build_world(fused, kf, cfg.mapping, manifest=manifest)
     for name in ("tracking_voxels", "map_voxels"):
         a, b = getattr(threaded, name), getattr(serial, name)
         assert np.array_equal(a.ids, b.ids), name
@@ -199,3 +206,4 @@ def test_the_two_maps_merged_on_two_threads_equal_one_after_the_other(small_mani
             assert np.array_equal(getattr(a, stat), getattr(b, stat)), (name, stat)
     assert np.array_equal(threaded.history, serial.history)
     assert len(threaded.history) == len(kf.indices) and threaded.history[-1] == len(threaded.map_voxels)
+    assert fused.n_chunks > 2 and len(kf.indices) >= 4

@@ -434,7 +434,7 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind
             r = v - row_lo
             for u in range(box[k, 0], box[k, 1] + 1):
                 z = _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, mic)
-                if z == np.inf:  # a miss
+                if not z < np.inf:  # a miss (or a NaN from a non-finite surfel)
                     continue
                 n = n_hits[r, u]
                 if n < kbuf:

@@ -39,8 +39,8 @@ def _pool(n: int) -> ThreadPoolExecutor:
     global _workers, _workers_pid, _workers_n
     with _lock:
         if _workers is None or _workers_pid != os.getpid() or _workers_n < n:
-            if _workers is not None and _workers_pid == os.getpid():
-                _workers.shutdown(wait=False)
+            # Not shut down: another thread may still hand it work. Its idle threads end when
+            # the last reference to it goes.
             _workers = ThreadPoolExecutor(n, thread_name_prefix="atlas-normal-equations")
             _workers_pid, _workers_n = os.getpid(), n
         return _workers

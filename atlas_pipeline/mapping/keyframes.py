@@ -99,7 +99,8 @@ def slam_poses(manifest: FrameManifest, mapping: MappingConfig, localization: Lo
         budget_s: stop tracking after this many seconds (benchmarks); ``n_attempted`` says where.
         on_frame: called with ``(index, rgb [H, W, 3], depth_m [H, W])`` of every frame before it
             is tracked, for work that needs the decoded frames too (:class:`FrameFuser`); on the
-            reader thread when frames are read from disk (:func:`read_ahead`), in frame order.
+            reader thread when frames are read from disk (:func:`read_ahead`), in frame order, and
+            then also for the frame or two read ahead when ``budget_s`` stops the pass early.
     """
     import time
 

@@ -165,6 +165,11 @@ def _integrate_mapping(builder: VoxelGaussianBuilder, pts_cam: np.ndarray, cols:
                       noise_cell_voxels(z, voxel_size_m) if noise_cells else None)
 
 
+# Keyframes the Gaussians' statistics may lag behind the tracking map while both merge (each
+# waits in the worker's queue holding only its number and pose).
+MAP_MERGES_AHEAD = 2
+
+
 def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: KeyframeSet,
                  cfg: MappingConfig, log: Callable[[str], None] | None = None,
                  manifest: FrameManifest | None = None) -> GaussianWorld:
@@ -209,6 +214,8 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
             for k in keyframes.indices:
                 T = keyframes.T_world_cam[k]
                 sizes.append(worker.submit(merge_into_map, int(k), T))
+                if len(sizes) > MAP_MERGES_AHEAD:  # its error here, not after every keyframe
+                    sizes[-1 - MAP_MERGES_AHEAD].result()
                 pts, cols = fused.frame(int(k))
                 if surfels is not None:
                     pts, cols, refused = consistency.agreeing_points(surfels.model(), pts, cols, T, manifest.camera)

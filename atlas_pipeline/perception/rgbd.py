@@ -114,7 +114,8 @@ def read_ahead(manifest: FrameManifest, indices,
 
     ``on_frame(i, rgb, depth_m)``: work on each frame that does not need the caller's results
     (back-projection while tracking), run on the reader thread in frame order before the frame is
-    yielded; its error is raised at that frame, as a read error is."""
+    yielded; its error is raised at that frame, as a read error is. A caller that stops early may
+    find it ran for the frames read ahead too (their errors then go unseen)."""
     from concurrent.futures import ThreadPoolExecutor
 
     def read(i: int):
