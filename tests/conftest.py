@@ -84,3 +84,25 @@ def small_world(small_manifest):
                                                   "mapping.colour_refinement.iterations": 0})
     fused = fuse(small_manifest, cfg)
     return build_gaussian_world(fused, select_keyframes_stage(small_manifest, fused, cfg), cfg).field
+
+
+class InlinePool:
+    """A ``concurrent.futures`` executor's interface (``ThreadPoolExecutor`` or
+    ``ProcessPoolExecutor``) that runs each job at once, where it is submitted: the reference for
+    work spread over a pool, or a way to keep fakes in one process."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        done = Future()
+        done.set_result(fn(*args))
+        return done

@@ -9,6 +9,7 @@ import textwrap
 import pytest
 
 from atlas_pipeline.errors import ConfigError
+from tests.conftest import InlinePool
 
 
 # ---- a key repeated in a profile or the dataset registry ---------------------------------------
@@ -409,26 +410,6 @@ class _FakeResult:
         self.success, self.run_id, self.all_events = True, f"run-{partition}", []
 
 
-class _InlinePool:
-    """ProcessPoolExecutor's interface, running each job here at once (so the fakes below apply)."""
-
-    def __init__(self, *args, **kwargs):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def submit(self, fn, *args):
-        from concurrent.futures import Future
-
-        f = Future()
-        f.set_result(fn(*args))
-        return f
-
-
 @pytest.mark.parametrize("argv, failing, expected", [
     (["run", "--all", "--concurrency", "1", "--json"], None, ["par-a", "par-b", "par-c"]),
     (["run", "--all", "--concurrency", "1"], None, ["par-a", "par-b", "par-c"]),  # stdout not a terminal: JSON
@@ -455,7 +436,7 @@ def test_run_prints_one_json_document(isolated, monkeypatch, capsys, argv, faili
         return _FakeResult(p)
 
     monkeypatch.setattr(launch, "execute_partition", fake_execute)
-    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", _InlinePool)
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", InlinePool)
     code = cli.main(argv)
     out = capsys.readouterr().out
     doc = json.loads(out)  # one document, whatever the path

@@ -18,6 +18,7 @@ from atlas_pipeline.perception.rgbd import fuse
 from atlas_pipeline.mapping import consistency
 from atlas_pipeline.mapping.consistency import CONFLICT_MIN_M, conflict_tolerance_m, disagreeing_points
 from atlas_pipeline.sensors.camera import CameraIntrinsics
+from tests.conftest import InlinePool
 
 CAMERA = CameraIntrinsics(width=160, height=120, fx=120.0, fy=120.0, cx=79.5, cy=59.5)
 VOXEL_M = 0.02
@@ -165,26 +166,6 @@ def test_a_session_extending_a_world_keeps_one_copy_of_its_surfaces(small_manife
     assert refused[True] > 0 and added[True] < 0.4 * added[False]
 
 
-class _OnTheCallingThread:
-    """A stand-in for the merge's worker pool that runs each job at once, where it is submitted."""
-
-    def __init__(self, *args, **kwargs):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def submit(self, fn, *args):
-        from concurrent.futures import Future
-
-        done = Future()
-        done.set_result(fn(*args))
-        return done
-
-
 @pytest.mark.parametrize("with_images", [True, False])
 def test_the_two_maps_merged_on_two_threads_equal_one_after_the_other(small_manifest, small_inputs, monkeypatch,
                                                                       with_images):
@@ -197,7 +178,7 @@ def test_the_two_maps_merged_on_two_threads_equal_one_after_the_other(small_mani
     fused = fuse_frames(small_manifest, cfg.fusion, chunk_frames=2)  # many chunks: the threads read different ones
     manifest = small_manifest if with_images else None
     threaded = mapper.build_world(fused, kf, cfg.mapping, manifest=manifest)
-    monkeypatch.setattr(mapper, "ThreadPoolExecutor", _OnTheCallingThread)
+    monkeypatch.setattr(mapper, "ThreadPoolExecutor", InlinePool)
     serial = mapper.build_world(fused, kf, cfg.mapping, manifest=manifest)
     for name in ("tracking_voxels", "map_voxels"):
         a, b = getattr(threaded, name), getattr(serial, name)
