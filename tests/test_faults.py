@@ -589,6 +589,36 @@ def test_rotation_error_is_reported_only_where_the_alignment_fixes_the_rotation(
             assert word in summary["ate_rot_note"], summary["ate_rot_note"]
 
 
+@pytest.mark.slow
+def test_a_revisit_with_its_fused_frames_reports_its_empty_depth_images_once(small_synthetic, tmp_path, caplog):
+    """The Dagster revisit fuses the recording (which reports the frames without depth), then
+    tracks it into the first world: the same frames are not reported a second time."""
+    import logging
+
+    from atlas_pipeline.config import load_profile
+    from atlas_pipeline.mapping.mapper import build_gaussian_world, extend_world_with_visit, select_keyframes_stage
+    from atlas_pipeline.perception.rgbd import fuse
+    from atlas_pipeline.sensors.synthetic import SyntheticSpec
+    from atlas_pipeline.sensors.tum import load_tum_sequence
+    from tests.conftest import SMALL_SYNTH
+
+    cfg = load_profile("default").with_overrides({"mapping.pose_source": "estimated", "mapping.fit.epochs": 0,
+                                                  "mapping.colour_refinement.iterations": 0})
+    camera = SyntheticSpec(**SMALL_SYNTH).camera()
+    first = load_tum_sequence(small_synthetic, camera, "synth-small")
+    fused_first = fuse(first, cfg)
+    world = build_gaussian_world(fused_first, select_keyframes_stage(first, fused_first, cfg), cfg)
+    rec = tmp_path / "again"
+    shutil.copytree(small_synthetic, rec)
+    zeroed = _zero_depth(rec, [3])
+    again = load_tum_sequence(rec, camera, "again")
+    with caplog.at_level(logging.WARNING):
+        fused = fuse(again, cfg)
+        extend_world_with_visit(world, again, fused, cfg)
+    reports = [r for r in caplog.records if "no valid pixel" in r.getMessage()]
+    assert len(reports) == 1 and zeroed[0].name in reports[0].getMessage()
+
+
 def test_extending_with_a_recording_short_of_depth_names_its_images(isolated, small_synthetic, capsys):
     """``build --extend`` tracks into the saved world without a fusion pass of its own; a recording
     whose depth images are mostly empty is still refused, naming the first of them."""

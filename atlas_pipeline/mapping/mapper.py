@@ -254,14 +254,16 @@ def build_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: MappingConfig,
 
 def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingConfig, localization,
                              depth_range_m: tuple[float, float], fusion_stride: int,
-                             log: Callable[[str], None] | None = None, places=None):
+                             log: Callable[[str], None] | None = None, places=None, depth_checked: bool = False):
     """A second session inside a saved world: the first frame is relocalized in ``world`` (no
     initial pose), then every frame is tracked against the world (by the world alone where it
     sees mostly the world) and keyframes are merged into a copy of its voxel statistics (ids of
     surfaces seen before are kept): into the tracking map only what the world lacks, into the
     Gaussians every point (:class:`SequenceTracker` with ``saved_world``). As along a fixed
     world, the motion model holds the camera where the surfaces leave a direction free.
-    ``places``: the world's stored place index (used while it fits the map).
+    ``places``: the world's stored place index (used while it fits the map). ``depth_checked``:
+    the recording's empty depth images were already reported (its fused frames were made), so
+    they are not reported again.
 
     Returns ``(extended world, T_world_cam [N, 4, 4], status [N])``; ``world`` is not modified.
     Raises :class:`DatasetError` when no frame of the sequence can be placed in the world.
@@ -295,7 +297,8 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
         poses[i] = est.T_world_cam
         status.append(est.status)
         progress.update(extra=est.status)
-    check_usable_depth(manifest, no_depth)  # a recording short of depth: that error names its images
+    if not depth_checked:
+        check_usable_depth(manifest, no_depth)  # a recording short of depth: that error names its images
     if status.count(STATUS_LOST) == n:
         raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
                                           "everywhere): is it a world of the same place?")
@@ -461,5 +464,5 @@ def extend_world_with_visit(previous: GaussianWorld, manifest: FrameManifest, fu
         # A second session: relocalize in the saved world, then track and map into it.
         world, _, _ = extend_world_by_tracking(
             previous, manifest, cfg.mapping, cfg.localization, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-            cfg.fusion.stride, log, places)
+            cfg.fusion.stride, log, places, depth_checked=fused is not None)
     return world, len(world.keyframe_indices) - len(previous.keyframe_indices)
