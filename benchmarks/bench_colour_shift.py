@@ -247,8 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     import yaml
 
     from atlas_pipeline.config import load_profile
-    from atlas_pipeline.sensors.camera import TUM_CAMERAS
-    from atlas_pipeline.sensors.registry import DatasetEntry, load_dataset, load_registry, read_dataset_manifest
+    from atlas_pipeline.sensors.registry import DatasetEntry, load_dataset, load_registry
+    from benchmarks.common import shared_tum_manifest
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=DEFAULT_N_FRAMES, help="frames sampled per sequence")
@@ -269,9 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         p = reg[name].params
         run(name, load_dataset(reg[name], cfg), f"({p.get('rgb_shift_x_px', 0):+.2f}, {p.get('rgb_shift_y_px', 0):+.2f})")
     for folder, cam in SHARED:
-        path = ROOT.parent / "shared" / "data" / folder
-        if path.is_dir():
-            run(folder, read_dataset_manifest(DatasetEntry(folder, "tum", path, camera=TUM_CAMERAS[cam])), "unknown")
+        manifest = shared_tum_manifest(folder, cam)
+        if manifest is not None:
+            run(folder, manifest, "unknown")
     if not args.no_ablation:
         base = {k: v for k, v in reg["synthetic-noisy"].params.items()}
         colour_only = {k: v for k, v in base.items() if not k.startswith(DEPTH_PREFIXES)} | {"n_frames": 12}

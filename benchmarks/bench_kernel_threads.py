@@ -25,8 +25,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_persistence import SHARED_DATA, SHARED_SPLITS, _slice, benchmark_config  # noqa: E402
-from benchmarks.common import grade, load_frames  # noqa: E402
+from benchmarks.bench_persistence import SHARED_SPLITS, _slice, benchmark_config  # noqa: E402
+from benchmarks.common import SHARED_DATA, grade, load_frames, shared_tum_manifest  # noqa: E402
 
 WARM_UP_FRAMES = 5  # compiles the kernels and starts the worker thread before the clock
 ONE_THREAD = 1 << 62  # a split threshold no call reaches: every call on the calling thread
@@ -35,12 +35,14 @@ POINT_CLASSES = ((0, 2_000), (2_000, 6_000), (6_000, 15_000), (15_000, 30_000), 
 
 def _dataset(name: str, cfg):
     """A registry dataset, or a TUM folder of ``../shared/data`` (camera from its name)."""
-    from atlas_pipeline.sensors.camera import TUM_CAMERAS
-    from atlas_pipeline.sensors.registry import DatasetEntry, load_dataset, load_registry, read_dataset_manifest
+    from atlas_pipeline.sensors.registry import load_dataset, load_registry
 
     for folder, cam, _ in SHARED_SPLITS:
         if name == folder:
-            return read_dataset_manifest(DatasetEntry(folder, "tum", SHARED_DATA / folder, camera=TUM_CAMERAS[cam]))
+            manifest = shared_tum_manifest(folder, cam)
+            if manifest is None:
+                raise SystemExit(f"{SHARED_DATA / folder}: not found")
+            return manifest
     return load_dataset(load_registry()[name], cfg)
 
 

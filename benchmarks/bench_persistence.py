@@ -49,7 +49,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-SHARED_DATA = ROOT.parent / "shared" / "data"
 SHARED_SPLITS = (("tum_fr3_teddy_100", "freiburg3", 50), ("tum_fr1_xyz_10", "freiburg1", 5))
 SUITE_PAIR = ("synthetic-suite", "synthetic-suite-visit2")
 QUICK_SUITE_FRAMES = (300, 200)  # --quick: the first frames of each suite visit
@@ -71,8 +70,8 @@ def _slice(manifest, start: int, stop: int, name: str):
 
 
 def _pairs(args, cfg) -> list[tuple[str, object, object]]:
-    from atlas_pipeline.sensors.camera import TUM_CAMERAS
-    from atlas_pipeline.sensors.registry import DatasetEntry, load_dataset, load_registry, read_dataset_manifest
+    from atlas_pipeline.sensors.registry import load_dataset, load_registry
+    from benchmarks.common import SHARED_DATA, shared_tum_manifest
 
     reg = load_registry()
     out = []
@@ -84,11 +83,10 @@ def _pairs(args, cfg) -> list[tuple[str, object, object]]:
             mb = _slice(mb, 0, min(QUICK_SUITE_FRAMES[1], mb.n_frames), b)
         out.append((f"{a} / {b}", ma, mb))
     for folder, cam, split in SHARED_SPLITS:
-        root = SHARED_DATA / folder
-        if not root.is_dir():
-            logger.warning("%s not found: skipped", root)
+        m = shared_tum_manifest(folder, cam)
+        if m is None:
+            logger.warning("%s not found: skipped", SHARED_DATA / folder)
             continue
-        m = read_dataset_manifest(DatasetEntry(folder, "tum", root, camera=TUM_CAMERAS[cam]))
         out.append((f"{folder} [0,{split}) / [{split},{m.n_frames})", _slice(m, 0, split, f"{folder}-1"),
                     _slice(m, split, m.n_frames, f"{folder}-2")))
     return out

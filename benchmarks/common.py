@@ -15,10 +15,13 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
 logger = logging.getLogger(__name__)
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # ../shared/data beside the project
 
 # Open3D's reference settings (open3d/examples/python/t_reconstruction_system/default_config.yml).
 O3D_ODOMETRY_ITERATIONS = (10, 5, 3)  # coarse to fine, as ../shared/data/README.md measured
@@ -27,6 +30,18 @@ O3D_MODEL_VOXEL_M = 0.0058  # dense_slam.py default voxel (~3 m / 512)
 O3D_MODEL_BLOCK_COUNT = 40000
 O3D_MODEL_TRUNC_VOXELS = 8.0  # truncation distance = 8 voxels
 O3D_MODEL_DISTANCE_THR_M = 0.07  # point-to-plane correspondence distance of frame-to-model tracking
+
+
+def shared_tum_manifest(folder: str, camera: str):
+    """The TUM recording ``folder`` of :data:`SHARED_DATA` with the TUM intrinsics ``camera``
+    (``"freiburg1"``, ...); None when that folder is absent."""
+    from atlas_pipeline.sensors.camera import TUM_CAMERAS
+    from atlas_pipeline.sensors.registry import DatasetEntry, read_dataset_manifest
+
+    root = SHARED_DATA / folder
+    if not root.is_dir():
+        return None
+    return read_dataset_manifest(DatasetEntry(folder, "tum", root, camera=TUM_CAMERAS[camera]))
 
 
 def load_frames(manifest) -> list[tuple[np.ndarray, np.ndarray]]:
