@@ -46,6 +46,7 @@ __all__ = [
     "PinholeView", "SplatParams", "FramePoints", "ModelView", "ReferenceImage", "Params", "Correspondences", "Stats",
     "MATCH_NONE", "MATCH_GATED", "MATCH_OK", "MATCH_IN_FRONT", "MATCH_BEHIND", "N_CHUNKS",
     "downsample_depth", "downsample_mean", "image_gradients", "splat_surfels", "SplatCulling", "NO_CULLING",
+    "FarSurfels", "NO_FAR",
     "associate", "build_linear_system", "normal_equations", "ChunkSums", "chunk_sums",
     "normal_equation_chunks", "add_chunks",
 ]
@@ -224,7 +225,22 @@ class SplatCulling(NamedTuple):
 NO_CULLING = SplatCulling(np.zeros(0, np.int32), np.zeros(0, np.bool_))
 
 
-def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling):
+class FarSurfels(NamedTuple):
+    """A coarser stand-in for the map's far part (``tracker.far_level``): in a view given one,
+    :func:`splat_surfels` draws its surfels where their centre lies beyond ``from_m`` along the
+    optical axis, and the map's own surfels only up to ``from_m``."""
+
+    centres_w: np.ndarray  # [F, 3] float64
+    normals_w: np.ndarray  # [F, 3] float64 unit
+    radius_m: np.ndarray  # [F] float64 each disk's radius
+    culling: SplatCulling  # of these surfels (NO_CULLING: none)
+    from_m: float  # depth along the optical axis where they take over (inf: never)
+
+
+NO_FAR = FarSurfels(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), NO_CULLING, math.inf)
+
+
+def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling, far=NO_FAR):
     """Render oriented disks (surfels) into a pinhole view with a z-buffer (:func:`_splat_surfels`
     with this thread's scratch k-buffer for the view's size, :func:`_splat_scratch`).
 
@@ -237,6 +253,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
             pair stays NaN, and costs no blending).
         culling: :class:`SplatCulling` (``NO_CULLING``: every surfel); it must be conservative:
             the image is the same as without it, only cheaper.
+        far: :class:`FarSurfels` drawn instead of the map's surfels beyond ``far.from_m``
+            (``NO_FAR``: none).
     Returns:
         ``(points_cam, normals_cam, points_behind_cam, normals_behind_cam)``, each ``[h, w, 3]``
         float64, NaN where nothing was hit; each pixel holds the mean ray / disk-plane
@@ -245,7 +263,21 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
         it are sub-voxel; the ``behind`` pair, the same of the next band of hits behind it.
     """
     hit_z, hit_k = _splat_scratch(view.height, view.width)
-    return _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling, hit_z, hit_k)
+    cand, cand_far = _candidates(centres_w.shape[0], culling), _candidates(far.centres_w.shape[0], far.culling)
+    cam, box, visible = _footprint_scratch(cand.shape[0] + cand_far.shape[0])
+    return _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, cand, far, cand_far,
+                          SplatScratch(hit_z, hit_k, cam, box, visible))
+
+
+class SplatScratch(NamedTuple):
+    """Working memory of :func:`_splat_surfels`, contents undefined on entry (see
+    :func:`_splat_scratch`, :func:`_footprint_scratch`)."""
+
+    hit_z: np.ndarray  # [h, w, K] float64 the k-buffer's depths
+    hit_k: np.ndarray  # [h, w, K] int64 ... and rows of ``cam``
+    cam: np.ndarray  # [>= M, 8] float64 per candidate surfel (pass 1): see VisibleSurfels
+    box: np.ndarray  # [>= M, 4] int32 its pixel box
+    visible: np.ndarray  # [>= M] bool
 
 
 # A splat's k-buffer (SPLAT_HITS_PER_PIXEL depths and surfel numbers a pixel) is 20 MB at 320x240.
@@ -272,46 +304,82 @@ def _splat_scratch(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     return buffers
 
 
+# Pass 1 of a splat keeps 44 bytes per candidate surfel: 26 MB for the 600,000 a view of a
+# multi-room world may hold. Allocated afresh (past the C allocator's 32 MB reuse limit, or after
+# it trimmed the heap), its pages are mapped and zeroed at every call, which costs more than the
+# pass itself. Kept per thread, growing to the largest view, up to this size.
+FOOTPRINT_SCRATCH_MAX_BYTES = 256 << 20
+FOOTPRINT_SCRATCH_HEADROOM = 1.25  # grow to this many times what a view needs: fewer regrowths
+_FOOTPRINT_BYTES = 8 * 8 + 4 * 4 + 1  # cam, box, visible per candidate
+
+
+def _footprint_scratch(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(cam [>= m, 8] float64, box [>= m, 4] int32, visible [>= m] bool)`` of this thread,
+    contents undefined."""
+    kept = getattr(_splat_scratches, "footprints", None)
+    if kept is not None and kept[0].shape[0] >= m:
+        return kept
+    cap = max(m, int(m * FOOTPRINT_SCRATCH_HEADROOM))
+    if cap * _FOOTPRINT_BYTES > FOOTPRINT_SCRATCH_MAX_BYTES:
+        cap = m
+    buffers = (np.empty((cap, 8)), np.empty((cap, 4), np.int32), np.empty(cap, np.bool_))
+    if cap * _FOOTPRINT_BYTES <= FOOTPRINT_SCRATCH_MAX_BYTES:
+        _splat_scratches.footprints = buffers
+    return buffers
+
+
 @njit(cache=True, parallel=True)
-def _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling, hit_z, hit_k):
-    """:func:`splat_surfels` with the k-buffer ``hit_z``, ``hit_k`` ``[h, w, K]`` as scratch."""
+def _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, cand, far, cand_far, scratch):
+    """:func:`splat_surfels` of the candidate surfels ``cand`` and far stand-ins ``cand_far``
+    (ascending ``[M]``, ``[F]`` int64: :func:`_candidates`) with ``scratch``'s memory
+    (:class:`SplatScratch`)."""
     pose = _pose(view.T_world_cam)
     fx, fy, cx, cy, w, h = view.fx, view.fy, view.cx, view.cy, view.width, view.height
     intrinsics = (fx, fy, cx, cy, w, h)
-    limits = (params.min_depth_m, params.max_radius_px, radius_m, params.max_depth_m)
+    near_limits = (params.min_depth_m, params.max_radius_px, radius_m, min(params.max_depth_m, far.from_m))
     zbuf = np.full((h, w), np.inf)
     pts = np.full((h, w, 3), np.nan)
     nrm = np.full((h, w, 3), np.nan)
     pts2 = np.full((h, w, 3), np.nan)
     nrm2 = np.full((h, w, 3), np.nan)
-    r2 = radius_m * radius_m
     # Pass 1 (parallel over surfels): camera-frame centre, camera-facing normal, pixel box. Only
     # the candidates (surfels of the chunks the view may see) are looked at, and memory is
     # allocated for them, not for the whole map. One parallel loop: waking the threads costs more
-    # than the work of a small map.
-    cand = _candidates(centres_w.shape[0], culling)
-    m = cand.shape[0]
-    cam = np.empty((m, 7))  # xc yc zc nx ny nz n.c
-    box = np.empty((m, 4), np.int64)  # ulo uhi vlo vhi
-    visible = np.zeros(m, np.bool_)
-    for j in prange(m):
-        k = cand[j]
-        seen, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
-            pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2], normals_w[k, 0], normals_w[k, 1],
-            normals_w[k, 2], intrinsics, limits)
+    # than the work of a small map. Rows m.. are the far stand-ins, each with its own radius.
+    far_c, far_n, far_r, far_from_m = far.centres_w, far.normals_w, far.radius_m, far.from_m  # no tuples in prange
+    m, n_cand = cand.shape[0], cand.shape[0] + cand_far.shape[0]
+    cam = scratch.cam[:n_cand]  # xc yc zc nx ny nz n.c r^2
+    box = scratch.box[:n_cand]  # ulo uhi vlo vhi
+    visible = scratch.visible[:n_cand]
+    hit_z, hit_k = scratch.hit_z, scratch.hit_k
+    for j in prange(n_cand):
+        if j < m:
+            k = cand[j]
+            r = radius_m
+            seen, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
+                pose, centres_w[k, 0], centres_w[k, 1], centres_w[k, 2], normals_w[k, 0], normals_w[k, 1],
+                normals_w[k, 2], intrinsics, near_limits)
+        else:
+            k = cand_far[j - m]
+            r = far_r[k]
+            seen, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
+                pose, far_c[k, 0], far_c[k, 1], far_c[k, 2], far_n[k, 0], far_n[k, 1], far_n[k, 2], intrinsics,
+                (params.min_depth_m, params.max_radius_px, r, params.max_depth_m))
+            seen = seen and zc > far_from_m
+        visible[j] = seen
         if not seen:
             continue
         cam[j, 0], cam[j, 1], cam[j, 2] = xc, yc, zc
         cam[j, 3], cam[j, 4], cam[j, 5], cam[j, 6] = nx, ny, nz, ndotc
+        cam[j, 7] = r * r
         box[j, 0], box[j, 1], box[j, 2], box[j, 3] = ulo, uhi, vlo, vhi
-        visible[j] = True
     order = np.nonzero(visible)[0]  # the visible candidates, in surfel order
     # Pass 2 (parallel over image bands): each band writes only its own rows, so there is no
     # race on the z-buffer and the result does not depend on the number of threads.
     band_h = (h + N_SPLAT_BANDS - 1) // N_SPLAT_BANDS
     for band in prange(N_SPLAT_BANDS):
         lo, hi = min(h, band * band_h), min(h, (band + 1) * band_h)
-        _splat_band(lo, hi, VisibleSurfels(cam, box, order, r2), (fx, fy, cx, cy), params,
+        _splat_band(lo, hi, VisibleSurfels(cam, box, order), (fx, fy, cx, cy), params,
                     SplatBuffers(zbuf, pts, nrm, pts2, nrm2), surface_behind, hit_z[lo:hi], hit_k[lo:hi])
     return pts, nrm, pts2, nrm2
 
@@ -373,10 +441,9 @@ def _footprint(pose, xw, yw, zw, nxw, nyw, nzw, intrinsics, limits):
 class VisibleSurfels(NamedTuple):
     """The surfels a view sees, in its camera frame (pass 1 of :func:`splat_surfels`)."""
 
-    cam: np.ndarray  # [M, 7] float64: centre xyz, normal xyz, normal . centre (camera frame)
-    box: np.ndarray  # [M, 4] int64: pixel bounds ulo, uhi, vlo, vhi of each disk's footprint
+    cam: np.ndarray  # [M, 8] float64: centre xyz, normal xyz, normal . centre (camera frame), radius^2 (m^2)
+    box: np.ndarray  # [M, 4] int32: pixel bounds ulo, uhi, vlo, vhi of each disk's footprint
     order: np.ndarray  # [V] int64: the visible ones, ascending
-    radius_sq: float  # squared disk radius (m^2)
 
 
 class SplatBuffers(NamedTuple):
@@ -390,7 +457,7 @@ class SplatBuffers(NamedTuple):
 
 
 @njit(cache=True, inline="always")
-def _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, min_incidence_cos):
+def _ray_hit(k, u, v, cam, fx, fy, cx, cy, min_incidence_cos):
     """Depth along pixel ``(u, v)``'s ray where it meets disk ``k`` (inf: it misses)."""
     rx = (u - cx) / fx
     ry = (v - cy) / fy
@@ -403,7 +470,7 @@ def _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, min_incidence_cos):
     ex = rx * z - cam[k, 0]
     ey = ry * z - cam[k, 1]
     ez = z - cam[k, 2]
-    if ex * ex + ey * ey + ez * ez > r2:
+    if ex * ex + ey * ey + ez * ez > cam[k, 7]:
         return np.inf
     return z
 
@@ -418,7 +485,7 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind
     depth and normal (surface splatting's blending, Zwicker et al. 2001). A surface seen by few
     noisy frames is a layer of disks as thick as the depth noise; the nearest disk alone lies
     about a sigma in front of it, and a frame aligned to it is pulled towards its camera."""
-    cam, box, order, r2 = surfels
+    cam, box, order = surfels
     fx, fy, cx, cy = intrinsics
     zbuf, pts, nrm, pts2, nrm2 = out
     mic = params.min_incidence_cos
@@ -433,7 +500,7 @@ def _splat_band(row_lo, row_hi, surfels, intrinsics, params, out, surface_behind
         for v in range(max(box[k, 2], row_lo), min(box[k, 3], row_hi - 1) + 1):
             r = v - row_lo
             for u in range(box[k, 0], box[k, 1] + 1):
-                z = _ray_hit(k, u, v, cam, r2, fx, fy, cx, cy, mic)
+                z = _ray_hit(k, u, v, cam, fx, fy, cx, cy, mic)
                 if not z < np.inf:  # a miss (or a NaN from a non-finite surfel)
                     continue
                 n = n_hits[r, u]

@@ -50,6 +50,19 @@ class TrackerConstants:
     # Maps of fewer surfels are splatted without culling by chunk: testing the chunks would cost
     # about what looking at every surfel does.
     min_surfels_to_cull: int = 20_000
+    # A saved world's far part (beyond any frame point's reach) is drawn from a coarser level: the
+    # surfels of each cell of so many voxels as one disk, cells of 4 voxels first, then of 2 for
+    # the surfels left. At the tracker's far clip a 160-pixel view's pixel spans more than a voxel,
+    # so the fine disks pile up per pixel: a multi-room world seen through a door puts hundreds
+    # of thousands of them into a 19,200-pixel view ...
+    far_level_cell_voxels: tuple[int, ...] = (4, 2)
+    # ... a cell of fewer surfels than this (a fringe, a lone speck) keeps them as they are ...
+    far_level_min_members: int = 4
+    # ... and so does one whose normals do not agree (a corner, an edge): the largest eigenvalue of
+    # the mean of n n^T below this (1: all parallel; 0.95: about 13 degrees of spread).
+    far_level_min_coherence: float = 0.95
+    # Maps of fewer surfels than this have no far level: the whole of a small map costs little.
+    far_level_min_surfels: int = 20_000
     # Largest disk footprint splatted, pixels: bounds the cost of a surfel right in front of the camera.
     splat_max_radius_px: int = 8
     # A ray meeting a disk at cos(incidence) below this (> ~81 deg off its normal) or from behind

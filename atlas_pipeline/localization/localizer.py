@@ -404,6 +404,7 @@ def tracking_map(world: GaussianWorld) -> SurfelModel:
 
     model = SurfelModel.from_builder(world.tracking_voxels)
     model.builder = None
+    model.fixed = True
     model.appearance_map = VoxelAppearance.from_field(world.field, world.tracking_voxels.voxel_size_m)
     return model
 

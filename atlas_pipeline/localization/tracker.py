@@ -37,6 +37,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -266,6 +267,65 @@ class SurfelCache:
         return self._model
 
 
+class FarLevel(NamedTuple):
+    """A map's far part as fewer, larger disks (:func:`far_level`)."""
+
+    centres: np.ndarray  # [F, 3] float64
+    normals: np.ndarray  # [F, 3] float64 unit
+    radius_m: np.ndarray  # [F] float64
+    chunks: ChunkGrid
+
+
+def far_level(centres: np.ndarray, normals: np.ndarray, radius_m: float) -> FarLevel:
+    """The surfels ``centres``, ``normals`` ``[M, 3]`` (disks of ``radius_m``) coarsened for the
+    part of a view beyond any frame point's reach, where a pixel spans several voxels.
+
+    For each cell size of ``far_level_cell_voxels`` (coarse first), the surfels not merged yet are
+    binned into cells of that many voxels. A cell of at least ``far_level_min_members`` of them
+    whose normals agree (``far_level_min_coherence``) becomes one disk: the members' mean centre,
+    their principal normal (largest eigenvector of the mean of ``n n^T``: a surfel normal's sign
+    is arbitrary), and a radius that reaches the farthest member's disk, at most the cell's share
+    (``cell voxels`` radii). The surfels left keep their disks. Deterministic: the merged cells,
+    coarse first, each size in ascending cell order, then the surfels left in map order."""
+    c = np.asarray(centres, np.float64).reshape(-1, 3)  # [M, 3]
+    n = np.asarray(normals, np.float64).reshape(-1, 3)  # [M, 3]
+    left = np.arange(len(c))
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for cell_voxels in C.far_level_cell_voxels:
+        merged, left = _merge_cells(c, n, left, radius_m, cell_voxels)
+        parts.append(merged)
+    parts.append((c[left], n[left], np.full(len(left), float(radius_m))))
+    out_c, out_n, out_r = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    return FarLevel(out_c, out_n, out_r, ChunkGrid.build(out_c))
+
+
+def _merge_cells(c: np.ndarray, n: np.ndarray, members: np.ndarray, radius_m: float,
+                 cell_voxels: int) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """One cell size of :func:`far_level`: surfels ``members`` (indices into ``c``, ``n`` ``[M, 3]``)
+    binned into cells of ``cell_voxels`` voxels. Returns ``((centres [G, 3], normals [G, 3],
+    radius_m [G]) of the cells merged, the members left, ascending)``."""
+    from atlas_pipeline.gaussian_world.builder import pack_voxel_ids
+
+    cm, nm = c[members], n[members]
+    cell_m = cell_voxels * radius_m / C.surfel_radius_voxels
+    _, group, count = np.unique(pack_voxel_ids(np.floor(cm / cell_m).astype(np.int64)), return_inverse=True,
+                                return_counts=True)
+    group = group.reshape(-1)
+    g = len(count)
+    mean = np.stack([np.bincount(group, cm[:, a], g) for a in range(3)], axis=1) / count[:, None]  # [G, 3]
+    scatter = np.empty((g, 3, 3))  # mean of n n^T per cell
+    for a in range(3):
+        for b in range(a, 3):
+            scatter[:, a, b] = scatter[:, b, a] = np.bincount(group, nm[:, a] * nm[:, b], g) / count
+    eigval, eigvec = np.linalg.eigh(scatter)  # ascending
+    merged = (count >= C.far_level_min_members) & (eigval[:, 2] >= C.far_level_min_coherence)
+    order = np.argsort(group, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    reach = np.maximum.reduceat(np.linalg.norm(cm[order] - mean[group[order]], axis=1), starts) + radius_m if g else mean[:, 0]
+    radius = np.minimum(reach, cell_voxels * radius_m)
+    return (mean[merged], eigvec[merged, :, 2], radius[merged]), members[~merged[group]]
+
+
 def _as_stored(centres: np.ndarray) -> np.ndarray:
     """``centres [K, 3]`` rounded as :class:`SurfelModel` keeps them (float32), so their chunks are
     those of the model's centres."""
@@ -444,8 +504,12 @@ class SurfelModel:
     # voxel statistics the surfels come from (computed when first needed).
     appearance_map: VoxelAppearance | None = field(default=None, repr=False, compare=False)
     builder: object = field(default=None, repr=False, compare=False)
+    # A saved world's map, which never changes: a view's part beyond ``detail_m`` (see
+    # :meth:`model_view`) is drawn from its :func:`far_level`, made once.
+    fixed: bool = field(default=False, repr=False, compare=False)
     # The surfels binned by chunk of space, for culling what a view cannot see (made when first needed).
     _chunks: ChunkGrid | None = field(default=None, init=False, repr=False, compare=False)
+    _far: FarLevel | None = field(default=None, init=False, repr=False, compare=False)
 
     def appearance(self) -> VoxelAppearance | None:
         """The map's voxel grey (:class:`VoxelAppearance`), or None when nothing is known of it."""
@@ -524,10 +588,24 @@ class SurfelModel:
         return self._splat(T_world_cam, camera, level, False)[:2]
 
     def _splat(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
-               surface_behind: bool, max_depth_m: float = math.inf) -> tuple[np.ndarray, ...]:
+               surface_behind: bool, max_depth_m: float = math.inf, detail_m: float = math.inf) -> tuple[np.ndarray, ...]:
         view, params = _level_view(T_world_cam, camera, level), splat_params(self.radius_m, max_depth_m)
+        far = self._far_surfels(view, params, detail_m)
+        near = params._replace(max_depth_m=min(max_depth_m, far.from_m))  # what the map's own surfels may reach
         return kn.splat_surfels(self.centres, self.normals, self.radius_m, view, params, surface_behind,
-                                self.culling(view, params))
+                                self.culling(view, near), far)
+
+    def _far_surfels(self, view: kn.PinholeView, params: kn.SplatParams, detail_m: float) -> kn.FarSurfels:
+        """The :func:`far_level` stand-ins a view of this map draws beyond ``detail_m``: none unless
+        the map is :attr:`fixed`, large (``far_level_min_surfels``) and the view reaches past it."""
+        if not (self.fixed and detail_m < params.max_depth_m and len(self) >= C.far_level_min_surfels):
+            return kn.NO_FAR
+        if self._far is None:
+            self._far = far_level(self.centres, self.normals, self.radius_m)
+        far = self._far
+        seen = far.chunks.seen(view, params._replace(min_depth_m=max(params.min_depth_m, detail_m)))
+        return kn.FarSurfels(far.centres, far.normals, far.radius_m, kn.SplatCulling(far.chunks.chunk_of, seen),
+                             float(detail_m))
 
     def culling(self, view: kn.PinholeView, params: kn.SplatParams) -> kn.SplatCulling:
         """What the splat of ``view`` may skip: the chunks of the map no surfel of which it can draw
@@ -539,12 +617,14 @@ class SurfelModel:
         return kn.SplatCulling(self._chunks.chunk_of, self._chunks.seen(view, params))
 
     def model_view(self, T_world_cam: np.ndarray, camera: CameraIntrinsics, level: int,
-                   surface_behind: bool = False, max_depth_m: float = math.inf) -> kn.ModelView:
+                   surface_behind: bool = False, max_depth_m: float = math.inf,
+                   detail_m: float = math.inf) -> kn.ModelView:
         """The map splatted at ``T_world_cam`` as the tracker's geometric reference: the first surface
         along each ray, with ``surface_behind`` the next one behind it too (else NaN), and the view's
-        pinhole; surfels farther than ``max_depth_m`` from the camera are left out."""
+        pinhole; surfels farther than ``max_depth_m`` from the camera are left out. In a
+        :attr:`fixed` map, those farther than ``detail_m`` are drawn from its :func:`far_level`."""
         T = np.ascontiguousarray(T_world_cam, np.float64)
-        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level, surface_behind, max_depth_m)
+        pts, nrm, pts_behind, nrm_behind = self._splat(T, camera, level, surface_behind, max_depth_m, detail_m)
         return kn.ModelView(pts, nrm, T, *_level_K(camera, level), pts_behind, nrm_behind)
 
 
@@ -659,7 +739,7 @@ class RGBDTracker:
         # The map's colours fit the exposure over every pixel of the view: the far ones stay in.
         far_m = self.tracking_far_m if within_range and not map_colours else math.inf
         # One model view per frame, at the initial pose; every level projects into it.
-        view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m)
+        view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m, self.tracking_far_m)
         w_photo = cfg.photometric_weight * C.photometric_scale if reference is not None else 0.0
         map_ref = None
         if map_colours:
@@ -696,7 +776,7 @@ class RGBDTracker:
         # Quality at the final pose, finest level, geometry only; a view re-rendered there when
         # the pose travelled far from the one the model view was made at (relocalization).
         if not self.screening and poses_differ(view.T_world_cam, T, C.rerender_translation_m, C.rerender_rotation_deg):
-            view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m)
+            view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m, self.tracking_far_m)
         H_final, stats = self.quality_stats(frame, view, T)
         T = orthonormalize(T)
         overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0

@@ -553,6 +553,7 @@ class WorldBundle:
             model = SurfelModel.from_field(self.field.positions, voxel, self.field.opacities)
         # the Gaussians' colours: what relocalization checks a pose's appearance against
         model.appearance_map = VoxelAppearance.from_field(self.field, voxel)
+        model.fixed = True  # a saved world does not change while it is localized in
         return model
 
     def stored_places(self, camera):
