@@ -62,30 +62,37 @@ def test_flat_cells_become_one_disk_each_while_corners_and_specks_keep_their_sur
     speck_c, speck_n = np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 0.0, 1.0]])
     c = np.concatenate([floor_c, wall_c, speck_c])
     n = np.concatenate([floor_n, wall_n, speck_n])
-    far = far_level(c, n, RADIUS_M)
+    level = far_level(c, n, RADIUS_M, DETAIL_M)
+    first = level.depth_lo_m == DETAIL_M  # the first band, (DETAIL_M, 2 DETAIL_M]: cells of 4 voxels, then 2
+    np.testing.assert_array_equal(level.depth_hi_m[first], 2 * DETAIL_M)
+    far = {k: getattr(level, k)[first] for k in ("centres", "normals", "radius_m")}
 
-    coarse = far.radius_m > RADIUS_M
-    assert len(far.centres) < len(c) // 3  # most of the map merged
-    assert len(far.chunks.chunk_of) == len(far.centres)
+    coarse = far["radius_m"] > RADIUS_M
+    assert len(far["centres"]) < len(c) // 3  # most of the map merged
+    assert len(level.chunk_of) == len(level.centres)
     # the speck and the surfels right in the corner (floor and wall in one 4 cm cell) stay as they were
-    kept = _rows(far.centres[~coarse])
+    kept = _rows(far["centres"][~coarse])
     assert tuple(np.round(speck_c[0], 9)) in kept
     corner = (floor_c[:, 0] < 2 * VOXEL_M) & (floor_c[:, 2] < 2 * VOXEL_M)
     assert _rows(floor_c[corner]) <= kept
-    np.testing.assert_array_equal(far.radius_m[~coarse], RADIUS_M)
+    np.testing.assert_array_equal(far["radius_m"][~coarse], RADIUS_M)
     # a merged floor disk: the mean of its cell's surfels, the floor's normal, reaching its members
-    on_floor = coarse & (np.abs(far.centres[:, 2] - 0.5 * VOXEL_M) < 1e-9)
+    on_floor = coarse & (np.abs(far["centres"][:, 2] - 0.5 * VOXEL_M) < 1e-9)
     assert on_floor.sum() >= 9
-    np.testing.assert_allclose(np.abs(far.normals[on_floor, 2]), 1.0, atol=1e-9)
-    cell_m = C.far_level_cell_voxels[0] * VOXEL_M
-    full = on_floor & (far.centres[:, 0] > cell_m)  # cells of 4 x 4 surfels clear of the wall
+    np.testing.assert_allclose(np.abs(far["normals"][on_floor, 2]), 1.0, atol=1e-9)
+    cell_m = C.far_level_cell_voxels * VOXEL_M
+    full = on_floor & (far["centres"][:, 0] > cell_m)  # cells of 4 x 4 surfels clear of the wall
     assert full.any()
-    np.testing.assert_allclose(far.centres[full, :2] % cell_m, cell_m / 2)
+    np.testing.assert_allclose(far["centres"][full, :2] % cell_m, cell_m / 2)
     reach = math.hypot(1.5 * VOXEL_M, 1.5 * VOXEL_M) + RADIUS_M  # the cell's corner surfel's disk
-    np.testing.assert_allclose(far.radius_m[full], min(reach, C.far_level_cell_voxels[0] * RADIUS_M))
+    np.testing.assert_allclose(far["radius_m"][full], min(reach, C.far_level_cell_voxels * RADIUS_M))
+    # farther bands: coarser cells, fewer disks; the last band is unbounded
+    counts = [int((level.depth_lo_m == lo).sum()) for lo, _, _ in level.bands]
+    assert len(counts) == C.far_level_bands and counts == sorted(counts, reverse=True) and counts[-1] < counts[0]
+    assert level.bands[-1][1] == math.inf
     # the same input, the same level
-    again = far_level(c, n, RADIUS_M)
-    for a, b in zip(far[:3], again[:3]):
+    again = far_level(c, n, RADIUS_M, DETAIL_M)
+    for a, b in zip(level[:6], again[:6]):
         np.testing.assert_array_equal(a, b)
 
 
@@ -107,7 +114,9 @@ def test_a_saved_world_draws_its_far_part_from_the_far_level_and_its_near_part_e
         za = a.points_cam[..., 2][far]  # far pixels: covered alike, at about the same depth
         assert np.isfinite(za).mean() > 0.99
         assert np.nanmedian(np.abs(za - z[far])) < VOXEL_M
-    assert fixed._far is not None and len(fixed._far.centres) < len(centres) / 4
+    assert fixed._far is not None
+    first_band = (fixed._far.depth_lo_m == DETAIL_M).sum()
+    assert first_band < len(centres) / 4 and len(fixed._far.centres) < 2 * first_band
     assert whole._far is None
 
 

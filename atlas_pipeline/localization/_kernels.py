@@ -226,18 +226,20 @@ NO_CULLING = SplatCulling(np.zeros(0, np.int32), np.zeros(0, np.bool_))
 
 
 class FarSurfels(NamedTuple):
-    """A coarser stand-in for the map's far part (``tracker.far_level``): in a view given one,
-    :func:`splat_surfels` draws its surfels where their centre lies beyond ``from_m`` along the
-    optical axis, and the map's own surfels only up to ``from_m``."""
+    """Coarser stand-ins for the map's far part (``tracker.far_level``): in a view given them,
+    :func:`splat_surfels` draws each where its centre's depth along the optical axis lies in its
+    window ``(depth_lo_m, depth_hi_m]``, and the map's own surfels only up to ``from_m``."""
 
     centres_w: np.ndarray  # [F, 3] float64
     normals_w: np.ndarray  # [F, 3] float64 unit
     radius_m: np.ndarray  # [F] float64 each disk's radius
+    depth_lo_m: np.ndarray  # [F] float64 its depth window (inf: unbounded)
+    depth_hi_m: np.ndarray  # [F] float64
     culling: SplatCulling  # of these surfels (NO_CULLING: none)
-    from_m: float  # depth along the optical axis where they take over (inf: never)
+    from_m: float  # where they take over from the map's surfels (inf: never)
 
 
-NO_FAR = FarSurfels(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), NO_CULLING, math.inf)
+NO_FAR = FarSurfels(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0), NO_CULLING, math.inf)
 
 
 def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, culling, far=NO_FAR):
@@ -253,8 +255,8 @@ def splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind, 
             pair stays NaN, and costs no blending).
         culling: :class:`SplatCulling` (``NO_CULLING``: every surfel); it must be conservative:
             the image is the same as without it, only cheaper.
-        far: :class:`FarSurfels` drawn instead of the map's surfels beyond ``far.from_m``
-            (``NO_FAR``: none).
+        far: :class:`FarSurfels` drawn instead of the map's surfels beyond ``far.from_m``, each
+            in its depth window (``NO_FAR``: none).
     Returns:
         ``(points_cam, normals_cam, points_behind_cam, normals_behind_cam)``, each ``[h, w, 3]``
         float64, NaN where nothing was hit; each pixel holds the mean ray / disk-plane
@@ -345,8 +347,9 @@ def _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind,
     # Pass 1 (parallel over surfels): camera-frame centre, camera-facing normal, pixel box. Only
     # the candidates (surfels of the chunks the view may see) are looked at, and memory is
     # allocated for them, not for the whole map. One parallel loop: waking the threads costs more
-    # than the work of a small map. Rows m.. are the far stand-ins, each with its own radius.
-    far_c, far_n, far_r, far_from_m = far.centres_w, far.normals_w, far.radius_m, far.from_m  # no tuples in prange
+    # than the work of a small map. Rows m.. are the far stand-ins, each with its own radius and
+    # depth window (tuples are unpacked before the loop: numba's parallel loops take arrays).
+    far_c, far_n, far_r, far_lo, far_hi = far.centres_w, far.normals_w, far.radius_m, far.depth_lo_m, far.depth_hi_m
     m, n_cand = cand.shape[0], cand.shape[0] + cand_far.shape[0]
     cam = scratch.cam[:n_cand]  # xc yc zc nx ny nz n.c r^2
     box = scratch.box[:n_cand]  # ulo uhi vlo vhi
@@ -364,8 +367,8 @@ def _splat_surfels(centres_w, normals_w, radius_m, view, params, surface_behind,
             r = far_r[k]
             seen, xc, yc, zc, nx, ny, nz, ndotc, ulo, uhi, vlo, vhi = _footprint(
                 pose, far_c[k, 0], far_c[k, 1], far_c[k, 2], far_n[k, 0], far_n[k, 1], far_n[k, 2], intrinsics,
-                (params.min_depth_m, params.max_radius_px, r, params.max_depth_m))
-            seen = seen and zc > far_from_m
+                (params.min_depth_m, params.max_radius_px, r, min(params.max_depth_m, far_hi[k])))
+            seen = seen and zc > far_lo[k]
         visible[j] = seen
         if not seen:
             continue

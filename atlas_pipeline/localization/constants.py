@@ -50,12 +50,14 @@ class TrackerConstants:
     # Maps of fewer surfels are splatted without culling by chunk: testing the chunks would cost
     # about what looking at every surfel does.
     min_surfels_to_cull: int = 20_000
-    # A saved world's far part (beyond any frame point's reach) is drawn from a coarser level: the
-    # surfels of each cell of so many voxels as one disk, cells of 4 voxels first, then of 2 for
-    # the surfels left. At the tracker's far clip a 160-pixel view's pixel spans more than a voxel,
-    # so the fine disks pile up per pixel: a multi-room world seen through a door puts hundreds
-    # of thousands of them into a 19,200-pixel view ...
-    far_level_cell_voxels: tuple[int, ...] = (4, 2)
+    # A saved world's far part (beyond any frame point's reach, from depth d on) is drawn from
+    # coarser levels, in bands of depth (d, 2d], (2d, 4d] ... the last unbounded: band b draws the
+    # surfels of each cell of 2^b times this many voxels as one disk, then, for the surfels left,
+    # of half as many, down to 2. At the tracker's far clip a 160-pixel view's pixel spans more
+    # than a voxel and grows with depth, so full-detail disks pile up per pixel: a multi-room
+    # world seen through a door puts hundreds of thousands of them into a 19,200-pixel view ...
+    far_level_cell_voxels: int = 4
+    far_level_bands: int = 3
     # ... a cell of fewer surfels than this (a fringe, a lone speck) keeps them as they are ...
     far_level_min_members: int = 4
     # ... and so does one whose normals do not agree (a corner, an edge): the largest eigenvalue of

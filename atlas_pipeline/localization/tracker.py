@@ -268,35 +268,54 @@ class SurfelCache:
 
 
 class FarLevel(NamedTuple):
-    """A map's far part as fewer, larger disks (:func:`far_level`)."""
+    """A map's far part as fewer, larger disks, band by band of depth (:func:`far_level`)."""
 
     centres: np.ndarray  # [F, 3] float64
     normals: np.ndarray  # [F, 3] float64 unit
     radius_m: np.ndarray  # [F] float64
-    chunks: ChunkGrid
+    depth_lo_m: np.ndarray  # [F] float64 each disk's band: drawn where its depth is in (lo, hi]
+    depth_hi_m: np.ndarray  # [F] float64
+    chunk_of: np.ndarray  # [F] int32 each disk's chunk, the bands' chunks numbered one after another
+    bands: tuple[tuple[float, float, ChunkGrid], ...]  # (lo, hi, its disks' chunks) per band
+    from_m: float  # the first band's lo
 
 
-def far_level(centres: np.ndarray, normals: np.ndarray, radius_m: float) -> FarLevel:
+def far_level(centres: np.ndarray, normals: np.ndarray, radius_m: float, from_m: float) -> FarLevel:
     """The surfels ``centres``, ``normals`` ``[M, 3]`` (disks of ``radius_m``) coarsened for the
-    part of a view beyond any frame point's reach, where a pixel spans several voxels.
+    part of a view beyond ``from_m`` (any frame point's reach), where a pixel spans several voxels.
 
-    For each cell size of ``far_level_cell_voxels`` (coarse first), the surfels not merged yet are
-    binned into cells of that many voxels. A cell of at least ``far_level_min_members`` of them
-    whose normals agree (``far_level_min_coherence``) becomes one disk: the members' mean centre,
-    their principal normal (largest eigenvector of the mean of ``n n^T``: a surfel normal's sign
-    is arbitrary), and a radius that reaches the farthest member's disk, at most the cell's share
-    (``cell voxels`` radii). The surfels left keep their disks. Deterministic: the merged cells,
-    coarse first, each size in ascending cell order, then the surfels left in map order."""
+    Band ``b`` of ``far_level_bands`` covers depths ``(from_m 2^b, from_m 2^(b+1)]`` (the last one
+    unbounded). For each of its cell sizes, ``far_level_cell_voxels`` times ``2^b`` voxels halved
+    down to 2, the surfels not merged yet are binned into cells of that many voxels. A cell of at
+    least ``far_level_min_members`` of them whose normals agree (``far_level_min_coherence``)
+    becomes one disk: the members' mean centre, their principal normal (largest eigenvector of the
+    mean of ``n n^T``: a surfel normal's sign is arbitrary), and a radius that reaches the
+    farthest member's disk, at most the cell's share (``cell voxels`` radii). The surfels left keep
+    their disks. Deterministic: per band, the merged cells, coarse first, each size in ascending
+    cell order, then the surfels left in map order."""
     c = np.asarray(centres, np.float64).reshape(-1, 3)  # [M, 3]
     n = np.asarray(normals, np.float64).reshape(-1, 3)  # [M, 3]
-    left = np.arange(len(c))
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    for cell_voxels in C.far_level_cell_voxels:
-        merged, left = _merge_cells(c, n, left, radius_m, cell_voxels)
-        parts.append(merged)
-    parts.append((c[left], n[left], np.full(len(left), float(radius_m))))
-    out_c, out_n, out_r = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    return FarLevel(out_c, out_n, out_r, ChunkGrid.build(out_c))
+    parts: list[tuple[np.ndarray, ...]] = []
+    bands = []
+    n_chunks = 0
+    for b in range(C.far_level_bands):
+        lo = from_m * 2.0 ** b
+        hi = from_m * 2.0 ** (b + 1) if b + 1 < C.far_level_bands else math.inf
+        left = np.arange(len(c))
+        band: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        cell_voxels = C.far_level_cell_voxels * 2 ** b
+        while cell_voxels >= 2:
+            merged, left = _merge_cells(c, n, left, radius_m, cell_voxels)
+            band.append(merged)
+            cell_voxels //= 2
+        band.append((c[left], n[left], np.full(len(left), float(radius_m))))
+        bc, bn, br = (np.concatenate([p[i] for p in band]) for i in range(3))
+        grid = ChunkGrid.build(bc)
+        parts.append((bc, bn, br, np.full(len(bc), lo), np.full(len(bc), hi), grid.chunk_of + np.int32(n_chunks)))
+        bands.append((lo, hi, grid))
+        n_chunks += grid.n_chunks
+    out = [np.concatenate([p[i] for p in parts]) for i in range(6)]
+    return FarLevel(*out[:5], out[5].astype(np.int32), tuple(bands), float(from_m))
 
 
 def _merge_cells(c: np.ndarray, n: np.ndarray, members: np.ndarray, radius_m: float,
@@ -509,7 +528,7 @@ class SurfelModel:
     fixed: bool = field(default=False, repr=False, compare=False)
     # The surfels binned by chunk of space, for culling what a view cannot see (made when first needed).
     _chunks: ChunkGrid | None = field(default=None, init=False, repr=False, compare=False)
-    _far: FarLevel | None = field(default=None, init=False, repr=False, compare=False)
+    _far: FarLevel | None = field(default=None, init=False, repr=False, compare=False)  # for one detail_m
 
     def appearance(self) -> VoxelAppearance | None:
         """The map's voxel grey (:class:`VoxelAppearance`), or None when nothing is known of it."""
@@ -600,12 +619,14 @@ class SurfelModel:
         the map is :attr:`fixed`, large (``far_level_min_surfels``) and the view reaches past it."""
         if not (self.fixed and detail_m < params.max_depth_m and len(self) >= C.far_level_min_surfels):
             return kn.NO_FAR
-        if self._far is None:
-            self._far = far_level(self.centres, self.normals, self.radius_m)
+        if self._far is None or self._far.from_m != detail_m:
+            self._far = far_level(self.centres, self.normals, self.radius_m, detail_m)
         far = self._far
-        seen = far.chunks.seen(view, params._replace(min_depth_m=max(params.min_depth_m, detail_m)))
-        return kn.FarSurfels(far.centres, far.normals, far.radius_m, kn.SplatCulling(far.chunks.chunk_of, seen),
-                             float(detail_m))
+        seen = np.concatenate([grid.seen(view, params._replace(min_depth_m=max(params.min_depth_m, lo),
+                                                              max_depth_m=min(params.max_depth_m, hi)))
+                               for lo, hi, grid in far.bands])
+        return kn.FarSurfels(far.centres, far.normals, far.radius_m, far.depth_lo_m, far.depth_hi_m,
+                             kn.SplatCulling(far.chunk_of, seen), far.from_m)
 
     def culling(self, view: kn.PinholeView, params: kn.SplatParams) -> kn.SplatCulling:
         """What the splat of ``view`` may skip: the chunks of the map no surfel of which it can draw
