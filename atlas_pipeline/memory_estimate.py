@@ -78,7 +78,11 @@ VOXEL_MERGE_COPIES = 2  # a merge's numpy.insert makes each array's new copy bef
 # to_field's temporaries per voxel: covariances and eigenvectors [3, 3] float64 (3 x 72), eigenvalues,
 # scales, means, moments (24 + 24 + 24 + 48), the neighbourhood normals (24)
 TO_FIELD_BYTES_PER_VOXEL = 3 * 72 + 24 + 24 + 24 + 48 + 24
-TRACKING_SURFEL_BYTES = 128  # the tracker's surfel of a voxel: position, normal (float64), weights, appearance
+# The tracker's surfel of a voxel: position, normal (float64), weights, appearance (128); in a
+# saved world its far level (tracker.far_level: up to one copy per band of depth, most of it
+# merged: 76 bytes a disk, about one disk per surfel over all bands) and a splat's per-surfel
+# working memory kept between views (81 bytes a candidate, with 25 % headroom).
+TRACKING_SURFEL_BYTES = 128 + 76 + 102
 
 # ---- Gaussians --------------------------------------------------------------------------------------
 # GaussianField: positions 24 (float64), scales 12, rotations 16, colours 3, opacities 4, ids 8

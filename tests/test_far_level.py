@@ -146,3 +146,8 @@ def test_the_splat_keeps_its_per_surfel_memory_between_views():
     for x, y in zip(first[:2] + first[-2:], again[:2] + again[-2:]):
         np.testing.assert_array_equal(x, y)
     assert np.isfinite(small.points_cam[..., 2]).sum() < np.isfinite(first.points_cam[..., 2]).sum()
+
+
+def test_an_empty_map_has_an_empty_far_level():
+    level = far_level(np.zeros((0, 3)), np.zeros((0, 3)), RADIUS_M, DETAIL_M)
+    assert len(level.centres) == len(level.chunk_of) == 0 and len(level.bands) == C.far_level_bands

@@ -325,6 +325,8 @@ def _merge_cells(c: np.ndarray, n: np.ndarray, members: np.ndarray, radius_m: fl
     radius_m [G]) of the cells merged, the members left, ascending)``."""
     from atlas_pipeline.gaussian_world.builder import pack_voxel_ids
 
+    if len(members) == 0:
+        return (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), members
     cm, nm = c[members], n[members]
     cell_m = cell_voxels * radius_m / C.surfel_radius_voxels
     _, group, count = np.unique(pack_voxel_ids(np.floor(cm / cell_m).astype(np.int64)), return_inverse=True,
@@ -340,7 +342,7 @@ def _merge_cells(c: np.ndarray, n: np.ndarray, members: np.ndarray, radius_m: fl
     merged = (count >= C.far_level_min_members) & (eigval[:, 2] >= C.far_level_min_coherence)
     order = np.argsort(group, kind="stable")
     starts = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
-    reach = np.maximum.reduceat(np.linalg.norm(cm[order] - mean[group[order]], axis=1), starts) + radius_m if g else mean[:, 0]
+    reach = np.maximum.reduceat(np.linalg.norm(cm[order] - mean[group[order]], axis=1), starts) + radius_m
     radius = np.minimum(reach, cell_voxels * radius_m)
     return (mean[merged], eigvec[merged, :, 2], radius[merged]), members[~merged[group]]
 
