@@ -82,10 +82,10 @@ class _Failures:
                 return TrackResult(np.asarray(T_init, np.float64), 0.0, float("nan"), 0, False)
             return real_align(tracker, frame, model, T_init, *args, **kwargs)
 
-        def relocalize(reloc, frame, extra=()):
+        def relocalize(reloc, frame, extra=(), reach=None):
             if state.current in state.window:
                 return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "global", 0)
-            return real_reloc(reloc, frame, extra)
+            return real_reloc(reloc, frame, extra, reach)
 
         monkeypatch.setattr(seq.SequenceTracker, "process", process)
         monkeypatch.setattr(RGBDTracker, "align", align)

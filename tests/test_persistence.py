@@ -201,12 +201,14 @@ def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free
     import copy
     import dataclasses
 
-    from atlas_pipeline.localization import constants, tracker
+    from atlas_pipeline.localization import constants, sequence, tracker
 
     cfg = LocalizationConfig()
     if not hold:
         monkeypatch.setattr(tracker, "C", dataclasses.replace(constants.TRACKER_CONSTANTS, motion_prior_share=0.0))
         cfg = cfg.model_copy(update={"odometry_prediction": False})
+        # ... and no bound on where a relocalization may put it, which would cap the slide too
+        monkeypatch.setattr(sequence, "RELOCALIZATION_MAX_SPEED_M_S", 1e9)
 
     spec = syn.SyntheticSpec(n_frames=1, **QVGA)
     cam, rng = spec.camera(), np.random.default_rng(0)
@@ -216,16 +218,16 @@ def test_a_session_in_a_saved_world_holds_the_camera_where_a_wall_leaves_it_free
         saved.integrate(pts.astype(np.float64) + [x, 0.0, 0.0], np.full((len(pts), 3), 128, np.uint8))
     st = SequenceTracker(cam, cfg, DEPTH_RANGE, builder=copy.deepcopy(saved), one_surface=True, saved_world=True)
     n = 40
+    excess_m = []  # per frame: how much farther than the camera went the pose is off
     for i in range(n):
         T_true = np.eye(4)
         T_true[0, 3] = WALL_STEP_M * i
         est = st.process(i, None, _wall_depth(cam, rng), T_given=T_true if i == 0 else None, timestamp_s=i / spec.fps)
-    err_m = float(np.linalg.norm(est.T_world_cam[:3, 3] - T_true[:3, 3]))
-    travelled_m = WALL_STEP_M * (n - 1)
+        excess_m.append(float(np.linalg.norm(est.T_world_cam[:3, 3] - T_true[:3, 3])) - WALL_STEP_M * i)
     if hold:
-        assert err_m <= travelled_m + 0.02
+        assert max(excess_m) <= 0.02
     else:  # what the hold prevents: the test would pass vacuously if nothing slid
-        assert err_m > 2 * travelled_m
+        assert max(excess_m) > 0.1
 
 
 TEXTURE_PERIOD_M = (0.3, 0.25)  # the wallpaper's blobs along x and y

@@ -30,7 +30,7 @@ def test_relocalization_backs_off_while_lost(small_manifest, monkeypatch):
 
     monkeypatch.setattr(st.tracker, "align", _failing_align)
     monkeypatch.setattr(st, "_align_to_last_frame", lambda fp, guess: None)
-    monkeypatch.setattr(type(st.relocalizer), "relocalize", lambda self, fp, extra=(): failing_reloc(fp, extra))
+    monkeypatch.setattr(type(st.relocalizer), "relocalize", lambda self, fp, extra=(), reach=None: failing_reloc(fp, extra))
     notes = [st.process(1 + k, rgb, depth).note for k in range(40)]
     assert len(calls) == 6, len(calls)
     assert notes.count(seq.NOTE_BACKING_OFF) == 34
@@ -167,3 +167,73 @@ def test_neighbourhood_surfels_match_a_numpy_reference():
         w, v = np.linalg.eigh(np.cov(p.T, bias=True))
         if w[1] - w[0] > 1e-6 * max(w[2], 1e-12):  # a well-defined least-variance axis
             assert abs(float(v[:, 0] @ normals[i])) > 0.999, (i, v[:, 0], normals[i])
+
+
+def _two_places_relocalizer(small_manifest, calls):
+    """A relocalizer whose alignments stay where they start and score a pose 4 m along x (a
+    look-alike room) better than the origin's: ``calls`` collects every pose aligned."""
+    from atlas_pipeline.localization.relocalize import Relocalizer
+    from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel
+
+    cfg = load_profile("default").localization
+    tracker = RGBDTracker(small_manifest.camera, cfg, (0.1, 4.0))
+    model = SurfelModel(np.zeros((0, 3)), np.zeros((0, 3)), 0.01)  # no colours, no global search
+
+    def align(frame, model, T_init, *args, **kwargs):
+        calls.append(np.asarray(T_init, np.float64)[:3, 3].copy())
+        far = T_init[0, 3] > 2.0
+        return TrackResult(np.asarray(T_init, np.float64), 0.9 if far else 0.7, 0.004, 1000, True,
+                           agreement=0.95, overlap=0.95)
+
+    reloc = Relocalizer(tracker, model, np.zeros((0, 4, 4)))
+    reloc.tracker.align = align
+    reloc._coarse.align = align
+    return reloc
+
+
+def test_a_look_alike_place_beyond_reach_is_not_taken(small_manifest):
+    """Of two poses that both fit, the better-scoring one 4 m away wins with no reach; with the
+    camera's reach around the other (1 m) the near one is placed and the far one is never even
+    screened; with the reach around neither, nothing is placed."""
+    from atlas_pipeline.localization.relocalize import Reach
+
+    near, far = np.eye(4), np.eye(4)
+    far[0, 3] = 4.0
+    calls: list[np.ndarray] = []
+    reloc = _two_places_relocalizer(small_manifest, calls)
+    r = reloc.relocalize_fast(None, [near, far])
+    assert r.ok and r.T_world_cam[0, 3] == 4.0
+    calls.clear()
+    r = reloc.relocalize_fast(None, [near, far], Reach(np.zeros(3), 1.0))
+    assert r.ok and r.T_world_cam[0, 3] == 0.0
+    assert all(c[0] < 2.0 for c in calls) and calls
+    r = reloc.relocalize(None, [near, far], Reach(np.array([10.0, 0.0, 0.0]), 1.0))
+    assert not r.ok and not np.isfinite(r.T_world_cam).any()
+
+
+def test_a_lost_frame_is_relocalized_within_reach_of_the_last_placed_one(small_manifest, monkeypatch):
+    """The reach a relocalization gets: the last placed frame's position, and as far as the
+    camera can move since at RELOCALIZATION_MAX_SPEED_M_S, plus the margin."""
+    m = small_manifest
+    cfg = load_profile("default")
+    st = seq.SequenceTracker(m.camera, cfg.localization, (0.1, 4.0), builder=VoxelGaussianBuilder(0.02))
+    rgb, depth = m.read_rgb(0), m.read_depth_m(0)
+    T0 = np.eye(4)
+    T0[:3, 3] = [1.0, 2.0, 3.0]
+    st.process(0, rgb, depth, T_given=T0, timestamp_s=10.0)
+    reaches = []
+
+    def failing_fast(fp, extra=(), reach=None):
+        reaches.append(reach)
+        return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "place", 0)
+
+    monkeypatch.setattr(st.tracker, "align", _failing_align)
+    monkeypatch.setattr(st, "_align_to_last_frame", lambda fp, guess: None)
+    monkeypatch.setattr(type(st.relocalizer), "relocalize_fast", lambda self, fp, extra=(), reach=None:
+                        failing_fast(fp, extra, reach))
+    est = st.process(1, rgb, depth, timestamp_s=10.25)
+    assert est.status == seq.STATUS_LOST and len(reaches) == 1
+    np.testing.assert_array_equal(reaches[0].centre_w, [1.0, 2.0, 3.0])
+    assert reaches[0].radius_m == pytest.approx(seq.RELOCALIZATION_REACH_MARGIN_M + 0.25 * seq.RELOCALIZATION_MAX_SPEED_M_S)
+    st.process(2, rgb, depth)  # no time: no reach
+    assert reaches[-1] is None

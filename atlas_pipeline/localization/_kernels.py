@@ -306,7 +306,7 @@ def _splat_scratch(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     return buffers
 
 
-# Pass 1 of a splat keeps 44 bytes per candidate surfel: 26 MB for the 600,000 a view of a
+# Pass 1 of a splat keeps 81 bytes per candidate surfel: 49 MB for the 600,000 a view of a
 # multi-room world may hold. Allocated afresh (past the C allocator's 32 MB reuse limit, or after
 # it trimmed the heap), its pages are mapped and zeroed at every call, which costs more than the
 # pass itself. Kept per thread, growing to the largest view, up to this size.

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable, Iterator
+from typing import TYPE_CHECKING, Iterable, Iterator, NamedTuple
 
 import numpy as np
 
@@ -37,7 +37,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RelocalizationResult", "Relocalizer", "relocalize_frames", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
+__all__ = ["RelocalizationResult", "Relocalizer", "Reach", "relocalize_frames", "select_priors", "MAX_PRIOR_VIEWPOINTS"]
 
 
 @dataclass
@@ -63,6 +63,22 @@ class RelocalizationResult:
     ambiguous: bool = False  # a distinct pose explains the frame almost as well (FAST_MAX_RUNNER_UP_SCORE)
     translation_constraint: float = 0.0  # of the best hypothesis (tracker.translation_constraint)
     agreement: float = float("nan")  # of the best hypothesis (TrackResult.agreement)
+
+
+class Reach(NamedTuple):
+    """Where the camera can be: its position within ``radius_m`` of ``centre_w``."""
+
+    centre_w: np.ndarray  # [3] float64 world frame
+    radius_m: float
+
+    def holds(self, T_world_cam: np.ndarray, slack_m: float = 0.0) -> bool:
+        """Whether the pose ``T_world_cam`` ``[4, 4]`` lies within reach (plus ``slack_m``)."""
+        return bool(np.linalg.norm(T_world_cam[:3, 3] - self.centre_w) <= self.radius_m + slack_m)
+
+
+# A hypothesis converges up to about this far from where it starts: one beyond the reach by more
+# is not screened at all.
+REACH_SCREEN_SLACK_M = 1.0
 
 
 def geometric_score(r: TrackResult) -> float:
@@ -185,14 +201,16 @@ class Relocalizer:
         self._global: GlobalRegistration | None = None
         self.places = places
 
-    def relocalize_fast(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
+    def relocalize_fast(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None,
+                        reach: Reach | None = None) -> RelocalizationResult:
         """Pose of ``frame`` from the place index's nearest viewpoints (and ``extra_priors``, e.g.
         the last good pose), verified by the tracker: a few coarse alignments and at most
-        ``FAST_REFINE`` full ones. Not ok (NaN pose) when no index or no hypothesis passes."""
+        ``FAST_REFINE`` full ones; only poses within ``reach`` (None: anywhere) count. Not ok (NaN
+        pose) when no index or no hypothesis passes."""
         hyps: list[tuple[str, np.ndarray]] = [("previous", np.asarray(T, np.float64)) for T in (extra_priors or [])]
         if self.places is not None and len(self.places):
             hyps += [("place", m.T_world_cam) for m in self.places.query(frame.depth[self.places.level], FAST_CANDIDATES)]
-        r = self._verify(frame, hyps, FAST_REFINE)
+        r = self._verify(frame, hyps, FAST_REFINE, reach)
         if r.ok and r.ambiguous:
             return dataclasses.replace(r, ok=False)
         return r
@@ -209,9 +227,14 @@ class Relocalizer:
         ncc, _ = appearance.correlation(pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3], grey)
         return ncc if np.isfinite(ncc) else 1.0
 
-    def _verify(self, frame: FramePyramid, hyps: list[tuple[str, np.ndarray]], n_refine: int) -> RelocalizationResult:
+    def _verify(self, frame: FramePyramid, hyps: list[tuple[str, np.ndarray]], n_refine: int,
+                reach: Reach | None = None) -> RelocalizationResult:
         """Screen ``hyps`` (``(source, T_world_cam)``) on the coarse levels, refine the best
-        ``n_refine`` on all levels, and return the best, with its confidence."""
+        ``n_refine`` on all levels, and return the best, with its confidence. With ``reach``, a
+        pose outside it is dropped before it is ranked: a look-alike place farther than the camera
+        can have moved neither wins nor makes the true one look ambiguous."""
+        if reach is not None:
+            hyps = [(src, T) for src, T in hyps if reach.holds(T, REACH_SCREEN_SLACK_M)]
         if not hyps:
             return RelocalizationResult(np.full((4, 4), np.nan), False, 0.0, 0.0, float("nan"), "none", 0)
         screened: list[tuple[float, str, TrackResult]] = []
@@ -219,13 +242,13 @@ class Relocalizer:
             # The screening score weighs no free space: the map beyond the frame's reach is left out
             # of the view (the same pose and score, a view of what the sensor reaches).
             r = self._coarse.align(frame, self.model, T, None, within_range=True)
-            if np.all(np.isfinite(r.T_world_cam)):
+            if np.all(np.isfinite(r.T_world_cam)) and (reach is None or reach.holds(r.T_world_cam)):
                 screened.append((geometric_score(r), src, r))
         screened.sort(key=lambda x: -x[0])
         results: list[tuple[str, TrackResult]] = []
         for src, rc in _distinct(screened, n_refine):
             r = self.tracker.align(frame, self.model, rc.T_world_cam, None)
-            if np.all(np.isfinite(r.T_world_cam)):
+            if np.all(np.isfinite(r.T_world_cam)) and (reach is None or reach.holds(r.T_world_cam)):
                 results.append((src, r))
         # Geometry and appearance together rank the poses: a look-alike place fits the geometry
         # as well as the true one, but not the texture.
@@ -263,8 +286,10 @@ class Relocalizer:
             return []
         return self._global.hypotheses(pts, self.n_global)
 
-    def relocalize(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None) -> RelocalizationResult:
-        """Pose of ``frame`` in the map, with no initial guess needed."""
+    def relocalize(self, frame: FramePyramid, extra_priors: list[np.ndarray] | None = None,
+                   reach: Reach | None = None) -> RelocalizationResult:
+        """Pose of ``frame`` in the map, with no initial guess needed; only poses within ``reach``
+        (None: anywhere) count."""
         hyps: list[tuple[str, np.ndarray]] = [("previous", np.asarray(T, np.float64)) for T in (extra_priors or [])]
         hyps += [("keyframe", T) for T in select_priors(self.priors, [T for _, T in hyps])]
         if self.use_global:
@@ -275,7 +300,7 @@ class Relocalizer:
         # Viewpoints around each prior: the camera swung about the point it looks at (an RGB-D
         # session usually circles what it scans), so a later frame from further round is reachable.
         hyps += [("keyframe", T) for _, P in list(hyps) if _ == "keyframe" for T in orbit_samples(P, frame)]
-        return self._verify(frame, hyps, self.n_refine)
+        return self._verify(frame, hyps, self.n_refine, reach)
 
 
 def relocalize_frames(manifest: FrameManifest, model: SurfelModel, prior_poses: np.ndarray, cfg: PipelineConfig,

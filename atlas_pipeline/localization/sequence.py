@@ -21,7 +21,9 @@ Per frame the status is one of:
   the place index's nearest keyframe views (milliseconds, every lost frame), then, with back-off,
   by the full search (seconds). In a saved world a frame more than
   :data:`STALE_POSE_AFTER_FRAMES` after the last placed one is not tracked at all, only
-  relocalized (the last pose is one of the hypotheses);
+  relocalized (the last pose is one of the hypotheses). While a session goes on, a relocalized
+  pose must lie where the camera can have moved since the last placed frame
+  (:data:`RELOCALIZATION_MAX_SPEED_M_S`);
 * ``lost``: no good alignment (too few correspondences, too large a residual, no valid depth);
   the pose is the motion-model prediction, and the frame never touches the map. After a failed
   relocalization the next tries back off (1, 2, 4 ... frames, at most
@@ -60,7 +62,7 @@ import numpy as np
 
 from atlas_pipeline.config import LocalizationConfig
 from atlas_pipeline.localization.places import CoverageMap, PlaceIndex, adopt_stored, descriptor_level
-from atlas_pipeline.localization.relocalize import Relocalizer
+from atlas_pipeline.localization.relocalize import Reach, Relocalizer
 from atlas_pipeline.localization.tracker import (
     RGBDTracker,
     SurfelCache,
@@ -107,6 +109,12 @@ FAST_ONLY_ATTEMPTS = 3
 # settle on surfaces that fit at a wrong place. Only a verified relocalization (geometry and
 # texture, that pose among its hypotheses) places it.
 STALE_POSE_AFTER_FRAMES = 4
+# A relocalization while a session goes on must lie where the camera can have moved since the last
+# placed frame: within this speed times the time since (a person walking, a robot at speed) plus
+# the margin (that frame's own error). A look-alike place farther off (rooms of one plan, a
+# repeating corridor) is not taken for it; after a long loss the reach covers any place.
+RELOCALIZATION_MAX_SPEED_M_S = 2.0
+RELOCALIZATION_REACH_MARGIN_M = 0.5
 # Mapping only: the points of the previous frame that a frame is tracked against when the map does
 # not cover it (a pan into unmapped space). One point per this many pixels in u and v.
 FRAME_TO_FRAME_STRIDE = 2
@@ -382,7 +390,7 @@ class SequenceTracker:
         elif self._last is None or len(self.model) == 0:
             est = self._relocalize(index, fp, [])
         elif self.saved_world and self.cfg.relocalize and abs(index - self._last[0]) > STALE_POSE_AFTER_FRAMES:
-            est = self._relocalize(index, fp, [self._last[1]])
+            est = self._relocalize(index, fp, [self._last[1]], reach=self._reach(timestamp_s))
             if not np.isfinite(est.T_world_cam).all():
                 est.T_world_cam = self._last[1].copy()  # lost: the last pose, as a prediction
         else:
@@ -423,7 +431,7 @@ class SequenceTracker:
                 est = FrameEstimate(index, f2f.T_world_cam, STATUS_TRACKED, f2f.inlier_fraction, f2f.residual_m, 0.0,
                                     note=NOTE_FRAME_TO_FRAME)
             elif self.cfg.relocalize:
-                est = self._relocalize(index, fp, [self._last[1]], fallback=(guess, res))
+                est = self._relocalize(index, fp, [self._last[1]], fallback=(guess, res), reach=self._reach(timestamp_s))
             else:
                 est = FrameEstimate(index, guess, STATUS_LOST, res.inlier_fraction, res.residual_m, 0.0,
                                     note="poor alignment")
@@ -541,11 +549,21 @@ class SequenceTracker:
         out += [(k, v.keyframe_indices, v.keyframe_poses) for k, v in sorted(self._old_maps.items())]
         return out
 
+    def _reach(self, timestamp_s: float | None) -> Reach | None:
+        """Where the camera can be at ``timestamp_s``: around the last placed frame, as far as
+        :data:`RELOCALIZATION_MAX_SPEED_M_S` takes it (None: no placed frame or no times)."""
+        if self._last is None or self._t_last is None or timestamp_s is None:
+            return None
+        dt_s = abs(timestamp_s - self._t_last)  # a session may run backwards in time
+        if not np.isfinite(dt_s):
+            return None
+        return Reach(self._last[1][:3, 3].copy(), RELOCALIZATION_REACH_MARGIN_M + RELOCALIZATION_MAX_SPEED_M_S * dt_s)
+
     def _relocalize(self, index: int, fp, extra: list[np.ndarray],
-                    fallback: tuple[np.ndarray, TrackResult] | None = None) -> FrameEstimate:
+                    fallback: tuple[np.ndarray, TrackResult] | None = None, reach: Reach | None = None) -> FrameEstimate:
         if len(self.model) == 0:
             return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, 0.0, float("nan"), 0.0, note="empty map")
-        fast = self.relocalizer.relocalize_fast(fp, extra)  # milliseconds: tried on every lost frame
+        fast = self.relocalizer.relocalize_fast(fp, extra, reach)  # milliseconds: tried on every lost frame
         if fast.ok:
             self._reloc_failures, self._reloc_wait = 0, FAST_ONLY_ATTEMPTS
             return FrameEstimate(index, fast.T_world_cam, STATUS_RELOCALIZED, fast.inlier_fraction, fast.residual_m, 0.0,
@@ -560,7 +578,7 @@ class SequenceTracker:
                                      note=NOTE_BACKING_OFF)
             return FrameEstimate(index, np.full((4, 4), np.nan), STATUS_LOST, 0.0, float("nan"), 0.0,
                                  note=NOTE_BACKING_OFF)
-        r = self.relocalizer.relocalize(fp, extra)
+        r = self.relocalizer.relocalize(fp, extra, reach)
         if r.ok:
             self._reloc_failures, self._reloc_wait = 0, FAST_ONLY_ATTEMPTS
             return FrameEstimate(index, r.T_world_cam, STATUS_RELOCALIZED, r.inlier_fraction, r.residual_m, 0.0,
