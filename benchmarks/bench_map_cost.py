@@ -11,7 +11,8 @@ depth at that pose (level 0, 640x480, Kinect-like intrinsics), and the alignment
 kernels compiled or loaded from numba's cache). Culled and whole renders are checked identical,
 and so are the poses aligned within range, against the whole view, and against the same map as a
 saved world holds it (``SurfelModel(fixed=True)``: its far part, beyond the frame's reach, drawn
-from the coarser ``far_level``; the view and alignment timed as the other columns). The tracker's
+from the coarser ``far_level``; the view and alignment timed as the other columns, and the far
+level's making once). The tracker's
 depth range is the default profile's (``fusion``).
 
 Keyframe integration on the same maps: the map's surfels are integrated into a voxel map (the
@@ -42,7 +43,7 @@ from atlas_pipeline.config import load_profile  # noqa: E402
 from atlas_pipeline.geometry import so3_exp  # noqa: E402
 from atlas_pipeline.localization import _kernels as kn  # noqa: E402
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C  # noqa: E402
-from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, _level_view, splat_params  # noqa: E402
+from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel, _level_view, far_level, splat_params  # noqa: E402
 from atlas_pipeline.sensors.camera import CameraIntrinsics  # noqa: E402
 
 CAMERA = CameraIntrinsics(width=640, height=480, fx=525.0, fy=525.0, cx=319.5, cy=239.5)
@@ -182,6 +183,9 @@ def measure(n_rooms: int, repeats: int) -> dict:
     row["view_ms_far_level"] = 1e3 * median_s(lambda: saved.model_view(T, CAMERA, level, False, np.inf, far_m), repeats)
     row["align_ms_far_level"] = 1e3 * median_s(lambda: tracker.align(frame, saved, T0), repeats)
     row["far_level_surfels"] = len(saved._far.centres) if saved._far is not None else 0
+    t0 = time.perf_counter()  # made once per session, at its first whole view
+    far_level(saved.centres, saved.normals, radius_m, far_m)
+    row["far_level_s"] = time.perf_counter() - t0
     for name, far in (("", np.inf), ("_range", far_m)):
         seen = culled.culling(_level_view(T, CAMERA, level), splat_params(radius_m, far))
         row[f"looked_at_pct{name}"] = 100.0 * float(seen.chunk_seen[seen.chunk_of].mean()) if len(seen.chunk_of) else 100.0
@@ -198,13 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write the rows here")
     args = ap.parse_args(argv)
     rows = [measure(n, args.repeats) for n in args.rooms]
-    print("| rooms | surfels (far level) | looked at %: culled / within range "
+    print("| rooms | surfels (far level: disks, s to make) | looked at %: culled / within range "
           "| model view ms: whole / culled / far level / within range "
           "| align ms: whole / culled / far level / within range "
           "| keyframe ms: integrate / surfel map rebuilt / kept up to date | align error mm | identical |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['rooms']} | {r['surfels']:,} ({r['far_level_surfels']:,}) "
+        print(f"| {r['rooms']} | {r['surfels']:,} ({r['far_level_surfels']:,}, {r['far_level_s']:.2f}) "
               f"| {r['looked_at_pct']:.1f} / {r['looked_at_pct_range']:.1f} "
               f"| {r['view_ms_whole']:.2f} / {r['view_ms_culled']:.2f} / {r['view_ms_far_level']:.2f} / {r['view_ms_range']:.2f} "
               f"| {r['align_ms_whole']:.1f} / {r['align_ms_culled']:.1f} / {r['align_ms_far_level']:.1f} / {r['align_ms_range']:.1f} "
