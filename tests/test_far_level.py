@@ -151,3 +151,21 @@ def test_the_splat_keeps_its_per_surfel_memory_between_views():
 def test_an_empty_map_has_an_empty_far_level():
     level = far_level(np.zeros((0, 3)), np.zeros((0, 3)), RADIUS_M, DETAIL_M)
     assert len(level.centres) == len(level.chunk_of) == 0 and len(level.bands) == C.far_level_bands
+
+
+def test_a_session_in_a_saved_world_makes_its_far_level_before_the_first_frame():
+    from atlas_pipeline.config import LocalizationConfig
+    from atlas_pipeline.localization.sequence import SequenceTracker
+
+    centres, normals = _hall()
+    fixed = SurfelModel(centres, normals, RADIUS_M, fixed=True)
+    session = SequenceTracker(CAMERA, LocalizationConfig(), (0.1, 2.5), model=fixed)
+    assert fixed._far is not None and fixed._far.from_m == session.tracker.tracking_far_m
+    assert fixed._chunks is not None
+    T = _looking_down_the_hall(0.0, 0.0)
+    made = fixed._far
+    fixed.model_view(T, CAMERA, 1, True, math.inf, session.tracker.tracking_far_m)
+    assert fixed._far is made  # the first view uses it, not a new one
+    changing = SurfelModel(centres, normals, RADIUS_M)
+    SequenceTracker(CAMERA, LocalizationConfig(), (0.1, 2.5), model=changing)
+    assert changing._far is None

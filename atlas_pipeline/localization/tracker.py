@@ -619,16 +619,32 @@ class SurfelModel:
     def _far_surfels(self, view: kn.PinholeView, params: kn.SplatParams, detail_m: float) -> kn.FarSurfels:
         """The :func:`far_level` stand-ins a view of this map draws beyond ``detail_m``: none unless
         the map is :attr:`fixed`, large (``far_level_min_surfels``) and the view reaches past it."""
-        if not (self.fixed and detail_m < params.max_depth_m and len(self) >= C.far_level_min_surfels):
+        far = self._far_level(detail_m) if detail_m < params.max_depth_m else None
+        if far is None:
             return kn.NO_FAR
-        if self._far is None or self._far.from_m != detail_m:
-            self._far = far_level(self.centres, self.normals, self.radius_m, detail_m)
-        far = self._far
         seen = np.concatenate([grid.seen(view, params._replace(min_depth_m=max(params.min_depth_m, lo),
                                                               max_depth_m=min(params.max_depth_m, hi)))
                                for lo, hi, grid in far.bands])
         return kn.FarSurfels(far.centres, far.normals, far.radius_m, far.depth_lo_m, far.depth_hi_m,
                              kn.SplatCulling(far.chunk_of, seen), far.from_m)
+
+    def _far_level(self, detail_m: float) -> FarLevel | None:
+        """This map's :func:`far_level` beyond ``detail_m``, made at its first use; None unless the
+        map is :attr:`fixed` and large (``far_level_min_surfels``)."""
+        if not (self.fixed and len(self) >= C.far_level_min_surfels):
+            return None
+        if self._far is None or self._far.from_m != detail_m:
+            self._far = far_level(self.centres, self.normals, self.radius_m, detail_m)
+        return self._far
+
+    def prepare_views(self, detail_m: float) -> None:
+        """Make what the first views of this map would otherwise make: its culling chunks and, when
+        :attr:`fixed`, its far level beyond ``detail_m``. A session calls it before its first
+        frame, so a first frame that must be relocalized does not pay for them (a 1.8M-surfel
+        map's far level takes seconds)."""
+        if len(self.centres) >= C.min_surfels_to_cull and self._chunks is None:
+            self._chunks = ChunkGrid.build(self.centres)
+        self._far_level(detail_m)
 
     def culling(self, view: kn.PinholeView, params: kn.SplatParams) -> kn.SplatCulling:
         """What the splat of ``view`` may skip: the chunks of the map no surfel of which it can draw
