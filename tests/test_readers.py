@@ -592,3 +592,34 @@ def test_cli_dataset_add_detects_kind_and_preset(isolated, tmp_path, capsys):
     assert main(["dataset", "add", "tumx", str(tmp_path / "tum"), "--intrinsics", "60 60 31.5 23.5",
                  "--width", "64", "--height", "48"]) == 0
     assert json.loads(capsys.readouterr().out)["registered"]["kind"] == "tum"
+
+
+def test_frames_decode_to_the_arrays_their_files_hold(tmp_path: Path):
+    from PIL import Image
+
+    from atlas_pipeline.sensors.images import read_depth_m, read_rgb
+
+    camera = CameraIntrinsics(width=6, height=4, fx=10.0, fy=10.0, cx=2.5, cy=1.5)
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 256, (4, 6, 4), dtype=np.uint8)
+    iio.imwrite(tmp_path / "rgba.png", rgba)
+    np.testing.assert_array_equal(read_rgb(tmp_path / "rgba.png", camera), rgba[..., :3])  # alpha dropped
+    palette = Image.fromarray(rgba[..., :3]).quantize(4)
+    palette.save(tmp_path / "palette.png")
+    np.testing.assert_array_equal(read_rgb(tmp_path / "palette.png", camera), np.asarray(palette.convert("RGB")))
+    raw = rng.integers(0, 65536, (4, 6), dtype=np.uint16)
+    iio.imwrite(tmp_path / "depth.png", raw)
+    depth = read_depth_m(tmp_path / "depth.png", camera)
+    assert depth.dtype == np.float32
+    np.testing.assert_array_equal(depth, raw.astype(np.float32) / np.float32(camera.depth_scale))
+
+
+def test_a_frame_whose_pixels_are_cut_off_names_its_file(tmp_path: Path):
+    from atlas_pipeline.sensors.images import read_rgb
+
+    camera = CameraIntrinsics(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+    path = tmp_path / "cut.png"
+    iio.imwrite(path, np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    path.write_bytes(path.read_bytes()[:200])  # the header intact, the image data cut short
+    with pytest.raises(DatasetError, match="cut.png.*cannot decode image"):
+        read_rgb(path, camera)
