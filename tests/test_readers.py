@@ -603,7 +603,10 @@ def test_frames_decode_to_the_arrays_their_files_hold(tmp_path: Path):
     rng = np.random.default_rng(0)
     rgba = rng.integers(0, 256, (4, 6, 4), dtype=np.uint8)
     iio.imwrite(tmp_path / "rgba.png", rgba)
-    np.testing.assert_array_equal(read_rgb(tmp_path / "rgba.png", camera), rgba[..., :3])  # alpha dropped
+    rgb = read_rgb(tmp_path / "rgba.png", camera)
+    np.testing.assert_array_equal(rgb, rgba[..., :3])  # alpha dropped
+    iio.imwrite(tmp_path / "rgb.png", rgba[..., :3])
+    assert read_rgb(tmp_path / "rgb.png", camera).flags.writeable  # a caller may draw on its frame
     palette = Image.fromarray(rgba[..., :3]).quantize(4)
     palette.save(tmp_path / "palette.png")
     np.testing.assert_array_equal(read_rgb(tmp_path / "palette.png", camera), np.asarray(palette.convert("RGB")))

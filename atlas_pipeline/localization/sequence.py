@@ -246,7 +246,7 @@ class SequenceTracker:
         if builder is not None and self.saved_world and len(self.model):
             self._saved_model = self.model
             self._saved_model.appearance()
-        if builder is None:  # a saved world: its views' culling and far level made before the first frame
+        if builder is None:  # localization: the map's culling (a fixed map's far level too) made before the first frame
             self.model.prepare_views(self.tracker.tracking_far_m)
         self.priors = [] if prior_poses is None else [np.asarray(T, np.float64) for T in prior_poses]
         self.keyframe_indices: list[int] = []

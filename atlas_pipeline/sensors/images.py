@@ -38,7 +38,9 @@ _PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
 # Pillow modes of the JPEGs it reads -> channels (8 bits each).
 _JPEG_CHANNELS = {"L": 1, "RGB": 3, "CMYK": 4, "YCbCr": 3}
 _DECODED_FORMATS = ["PNG", "JPEG"]
-# Pillow modes converted after decoding (None: to the palette's own mode), as imageio did.
+# Pillow modes converted after decoding (None: to the palette's own mode): a palette to its
+# colours, as imageio did; the rest to the plain modes the readers' checks name (the header
+# checks turn these away before decoding anyway).
 _CONVERTED_MODES = {"P": None, "PA": "RGBA", "CMYK": "RGB", "YCbCr": "RGB", "1": "L"}
 
 
@@ -154,10 +156,10 @@ def _read(path: Path) -> np.ndarray:
         with Image.open(path, formats=_DECODED_FORMATS) as im:
             if im.mode in _CONVERTED_MODES:
                 im = im.convert(_CONVERTED_MODES[im.mode] or im.palette.mode)
-            img = np.asarray(im)
+            img = np.array(im)  # writable, as callers may expect of a decoded frame
     except Exception as exc:  # Pillow raises many types for corrupt files
         raise DatasetError(path, f"cannot decode image ({type(exc).__name__}: {exc})") from exc
-    if img.dtype.byteorder == ">":  # a big-endian 16-bit mode: native order for the checks
+    if not img.dtype.isnative:  # a big-endian 16-bit mode: native order for the checks
         img = img.astype(img.dtype.newbyteorder("="))
     return img
 
