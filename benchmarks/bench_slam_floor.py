@@ -74,11 +74,9 @@ def _slam_s(manifest, cfg, frames=None, fuse: bool = False) -> float:
     if not fuse:
         slam_poses(manifest, *args, frames=frames)
         return time.perf_counter() - t0
-    with FrameFuser(manifest, cfg.fusion) as fuser:
+    with FrameFuser(manifest, cfg.fusion) as fuser:  # its temporary chunk files go with the block
         slam_poses(manifest, *args, frames=frames, on_frame=fuser.add)
-        seconds = time.perf_counter() - t0
-        fuser.finish()  # unreferenced at once: its temporary chunk files go with it
-    return seconds
+    return time.perf_counter() - t0
 
 
 def run(label: str, manifest, cfg) -> dict:

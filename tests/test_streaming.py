@@ -232,6 +232,14 @@ def test_frame_fuser_takes_frames_in_order_and_cleans_up_on_failure(small_manife
             fuser.add(1, rgb, depth)
     assert not spool.exists()  # the temporary chunks of a failed pass go
     with FrameFuser(small_manifest, FusionConfig()) as fuser:
+        spool = fuser._spool.dir
         fuser.add(0, rgb, depth)
         with pytest.raises(ValueError, match=f"1 of {small_manifest.n_frames} frames given"):
             fuser.finish()
+    assert not spool.exists()  # a refused finish hands nothing over: the chunks go with the block
+    with FrameFuser(small_manifest, FusionConfig()) as fuser:
+        for i in range(small_manifest.n_frames):
+            fuser.add(i, small_manifest.read_rgb(i), small_manifest.read_depth_m(i))
+        fused = fuser.finish()
+    assert fused.chunk_dir.exists()  # handed over: the artifact owns it now
+    fused.frame(0)

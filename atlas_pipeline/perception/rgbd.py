@@ -368,7 +368,8 @@ class FrameFuser:
     """Back-projects the frames of ``manifest``, given one at a time in order, into the chunk
     files of a :class:`FusedFrames` (settings of ``cfg``): the work of :func:`fuse_frames` per
     frame, for a pass that decodes the frames anyway (tracking) so each is decoded once. Used as a
-    context manager: the temporary chunks go when the block fails."""
+    context manager: the temporary chunks go when the block ends without :meth:`finish` having
+    handed them to its artifact (a failed pass, a refused finish, a pass left unfinished)."""
 
     def __init__(self, manifest: FrameManifest, cfg: FusionConfig, chunk_frames: int = FUSED_CHUNK_FRAMES):
         self.manifest, self.cfg = manifest, cfg
@@ -378,12 +379,13 @@ class FrameFuser:
         self._counts: list[int] = []
         self._valid: list[float] = []
         self._no_depth: list[int] = []
+        self._handed_over = False  # finish() gave the spool to its artifact, which removes it
 
     def __enter__(self) -> "FrameFuser":
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
+        if not self._handed_over:
             shutil.rmtree(self._spool.dir, ignore_errors=True)
 
     def add(self, i: int, rgb: np.ndarray, depth_m: np.ndarray) -> None:
@@ -418,6 +420,7 @@ class FrameFuser:
         )
         # The spool is ours (made here): it goes when the artifact object does, or when save() hands it over.
         out._spool_finalizer = weakref.finalize(out, shutil.rmtree, str(self._spool.dir), True)
+        self._handed_over = True
         return out
 
 
