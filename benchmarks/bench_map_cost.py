@@ -183,7 +183,7 @@ def measure(n_rooms: int, repeats: int) -> dict:
     row["view_ms_far_level"] = 1e3 * median_s(lambda: saved.model_view(T, CAMERA, level, False, np.inf, far_m), repeats)
     row["align_ms_far_level"] = 1e3 * median_s(lambda: tracker.align(frame, saved, T0), repeats)
     row["far_level_surfels"] = len(saved._far.centres) if saved._far is not None else 0
-    t0 = time.perf_counter()  # made once per session, at its first whole view
+    t0 = time.perf_counter()  # made once per session, when it starts
     far_level(saved.centres, saved.normals, radius_m, far_m)
     row["far_level_s"] = time.perf_counter() - t0
     for name, far in (("", np.inf), ("_range", far_m)):

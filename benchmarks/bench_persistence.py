@@ -132,15 +132,17 @@ class _AttemptTimer:
     those methods (timing only; results pass through unchanged)."""
 
     def __init__(self):
-        self.seconds: dict[str, list[float]] = {"fast": [], "full": [], "index": [], "start": []}
-
-    def __enter__(self):
         from atlas_pipeline.localization.places import PlaceIndex
         from atlas_pipeline.localization.relocalize import Relocalizer
         from atlas_pipeline.localization.tracker import SurfelModel
 
-        self._orig = {"fast": Relocalizer.relocalize_fast, "full": Relocalizer.relocalize,
-                      "index": PlaceIndex.add_keyframe, "start": SurfelModel.prepare_views}
+        # kind -> (class, method) timed as that kind
+        self._methods = {"fast": (Relocalizer, "relocalize_fast"), "full": (Relocalizer, "relocalize"),
+                         "index": (PlaceIndex, "add_keyframe"), "start": (SurfelModel, "prepare_views")}
+        self.seconds: dict[str, list[float]] = {kind: [] for kind in self._methods}
+
+    def __enter__(self):
+        self._orig = {kind: getattr(owner, name) for kind, (owner, name) in self._methods.items()}
 
         def timed(kind):
             orig = self._orig[kind]
@@ -153,19 +155,13 @@ class _AttemptTimer:
                     self.seconds[kind].append(time.perf_counter() - t0)
             return run
 
-        Relocalizer.relocalize_fast, Relocalizer.relocalize = timed("fast"), timed("full")
-        PlaceIndex.add_keyframe = timed("index")
-        SurfelModel.prepare_views = timed("start")
+        for kind, (owner, name) in self._methods.items():
+            setattr(owner, name, timed(kind))
         return self
 
     def __exit__(self, *exc):
-        from atlas_pipeline.localization.places import PlaceIndex
-        from atlas_pipeline.localization.relocalize import Relocalizer
-        from atlas_pipeline.localization.tracker import SurfelModel
-
-        Relocalizer.relocalize_fast, Relocalizer.relocalize = self._orig["fast"], self._orig["full"]
-        PlaceIndex.add_keyframe = self._orig["index"]
-        SurfelModel.prepare_views = self._orig["start"]
+        for kind, (owner, name) in self._methods.items():
+            setattr(owner, name, self._orig[kind])
 
     def mean_s(self, kind: str) -> float:
         t = self.seconds[kind]

@@ -33,13 +33,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_persistence import _slice, benchmark_config  # noqa: E402
+from benchmarks.bench_persistence import WARM_UP_FRAMES, _slice, benchmark_config  # noqa: E402
 from benchmarks.common import load_frames, shared_tum_manifest  # noqa: E402
 
 DATASET = "synthetic-suite"
 SHARED = (("tum_fr3_teddy_100", "freiburg3"), ("tum_fr1_xyz_10", "freiburg1"))
 TARGET_FRAMES_PER_S = 30.0
-WARM_UP_FRAMES = 5  # each step's kernels loaded before its clock starts
 
 
 def _sequences(n_frames: int, cfg) -> list[tuple[str, object]]:
