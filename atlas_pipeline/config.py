@@ -324,10 +324,22 @@ class PipelineConfig(Section):
 
     def with_overrides(self, overrides: dict[str, Any], source: str = "<overrides>") -> "PipelineConfig":
         """Copy with dotted-key overrides applied, e.g. ``{"localization.photometric_weight": 0.5}``;
-        the result is validated whole, as :meth:`from_dict` does."""
+        the result is validated whole, as :meth:`from_dict` does.
+
+        A section (``mapping``, ``mapping.fit``) given a mapping has those keys set, the others
+        kept; given anything else (``null``, a number) it is a ConfigError naming the key, never a
+        section of defaults. ``profile`` is the loaded profile's name, not a setting: an override
+        of it is a ConfigError pointing to ``--profile`` (the name would be recorded in the lineage
+        beside another profile's settings).
+        """
         data = self.to_dict()
         for dotted, value in overrides.items():
             parts = str(dotted).split(".")
+            if parts == ["profile"]:
+                name = value if isinstance(value, str) else "NAME"
+                raise ConfigError(f"{source}: profile must be chosen with --profile {name} (or $ATLAS_PROFILE), "
+                                  f"not set: got {_show(value)}; it names the profile whose settings are loaded, "
+                                  "and SECTION.KEY=VALUE overrides change those settings")
             node = data
             for p in parts[:-1]:
                 if not isinstance(node.get(p), dict):
@@ -335,8 +347,28 @@ class PipelineConfig(Section):
                 node = node[p]
             if parts[-1] not in node:
                 raise ConfigError(f"{source}: unknown config key '{dotted}'")
-            node[parts[-1]] = value
+            if isinstance(node[parts[-1]], dict):
+                _merge_section(node[parts[-1]], value, str(dotted), source)
+            else:
+                node[parts[-1]] = value
         return PipelineConfig.from_dict(data, source)
+
+
+def _merge_section(section: dict[str, Any], value: Any, dotted: str, source: str) -> None:
+    """Set the keys of the mapping ``value`` in ``section`` (the section ``dotted``), nested
+    sections key by key; a ``value`` that is no mapping is a ConfigError naming ``dotted``."""
+    if not isinstance(value, dict):
+        keys = ", ".join(f"{dotted}.{k}" for k in list(section)[:3])
+        shown = "null" if value is None else _show(value)  # as it was typed (YAML)
+        raise ConfigError(f"{source}: {dotted} is a section of settings, not a value: got {shown}; set its "
+                          f"keys ({keys} ...) or give a mapping of them ({dotted}={{key: value}})")
+    for key, v in value.items():
+        if key not in section:
+            raise ConfigError(f"{source}: unknown config key '{dotted}.{key}'")
+        if isinstance(section[key], dict):
+            _merge_section(section[key], v, f"{dotted}.{key}", source)
+        else:
+            section[key] = v
 
 
 _SHOW_MAX_CHARS = 80  # a value quoted in an error is cut to this length

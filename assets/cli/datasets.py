@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from assets.cli.output import EXIT_ERROR, out
+from atlas_pipeline.errors import ConfigError
 from atlas_pipeline.sensors.registry import (
     availability,
     dataset_on_disk,
@@ -48,6 +49,14 @@ def _add(args: argparse.Namespace) -> int:
     path = Path(args.path).expanduser()
     kind = recording_kind(path, args.kind)
     camera: Any = args.camera  # None: the kind's preset (TUM default, 7scenes, replica) or the data's own
+    given = [o for o, v in (("--width", args.width), ("--height", args.height), ("--depth-scale", args.depth_scale))
+             if v is not None]
+    if given and not args.intrinsics:  # a preset's size and depth scale are its own: never ignored silently
+        raise ConfigError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} used only with --intrinsics "
+                          "(a camera preset has its own image size and depth scale); give --intrinsics "
+                          "'fx fy cx cy' too, or leave them out")
+    if args.intrinsics and args.camera:
+        raise ConfigError("give --camera (a preset) or --intrinsics (your own), not both")
     if args.intrinsics:
         camera = intrinsics_camera(kind, args.intrinsics, args.width, args.height, args.depth_scale)
     params = {"fps": args.fps, "sequence": args.sequence, "rgb_topic": args.rgb_topic,

@@ -11,6 +11,18 @@ import numpy as np
 
 from atlas_pipeline.errors import ConfigError
 
+# The principal point lies in the image, [0, width] x [0, height] (pixel centres at whole numbers or
+# at halves: either convention); a point outside it (cx 900 on a 640-wide image) is a typo or another
+# camera's calibration.
+# A pinhole camera's horizontal and vertical fields of view: RGB-D sensors see 45-120 degrees; past
+# 170 the focal length is not in pixels (millimetres, or normalised by the image size: fx 0.9) or
+# the lens is a fisheye that needs a model of its own. Under 1 degree it has a digit too many.
+MAX_FIELD_OF_VIEW_DEG = 170.0
+MIN_FIELD_OF_VIEW_DEG = 1.0
+# Pixels of every RGB-D sensor are square to a few parts in a thousand (fx / fy); a ratio beyond 2
+# is fx, fy, cx, cy given in another order or a focal length of another image size.
+MAX_FOCAL_RATIO = 2.0
+
 
 @dataclass(frozen=True)
 class CameraIntrinsics:
@@ -41,6 +53,7 @@ class CameraIntrinsics:
             raise ConfigError(f"focal lengths must be finite and positive, got fx={self.fx} fy={self.fy}")
         if not (math.isfinite(self.cx) and math.isfinite(self.cy)):
             raise ConfigError(f"principal point must be finite, got cx={self.cx} cy={self.cy}")
+        self._check_meaning()
         if not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
             raise ConfigError(f"depth_scale must be finite and positive, got {self.depth_scale}")
         if not all(math.isfinite(k) for k in self.distortion):
@@ -49,6 +62,30 @@ class CameraIntrinsics:
             raise ConfigError(
                 f"distortion needs 0, 4 or 5 coefficients (k1 k2 p1 p2 [k3]), got {len(self.distortion)}"
             )
+
+    def _check_meaning(self) -> None:
+        """Refuse intrinsics that are numbers but no camera of this image size: the principal point
+        outside the image, a field of view outside [MIN, MAX]_FIELD_OF_VIEW_DEG, pixels far from
+        square. Each message names the field, its value and the image size."""
+        for name, c, size, axis in (("cx", self.cx, self.width, "wide"), ("cy", self.cy, self.height, "high")):
+            if not 0.0 <= c <= size:
+                raise ConfigError(f"principal point {name}={c:g} lies outside the image ({size} pixels {axis}: "
+                                  f"{name} must be in [0, {size}]); are fx fy cx cy in that order and of this "
+                                  f"{self.width}x{self.height} image?")
+        for name, f, size in (("fx", self.fx, self.width), ("fy", self.fy, self.height)):
+            fov_deg = math.degrees(2.0 * math.atan(size / (2.0 * f)))
+            if fov_deg > MAX_FIELD_OF_VIEW_DEG:
+                raise ConfigError(f"focal length {name}={f:g} gives a {fov_deg:.1f} degree field of view on "
+                                  f"{size} pixels (at most {MAX_FIELD_OF_VIEW_DEG:g}): focal lengths are in "
+                                  "pixels (not millimetres, not divided by the image size)")
+            if fov_deg < MIN_FIELD_OF_VIEW_DEG:
+                raise ConfigError(f"focal length {name}={f:g} gives a {fov_deg:.2f} degree field of view on "
+                                  f"{size} pixels (at least {MIN_FIELD_OF_VIEW_DEG:g}): a digit too many, or "
+                                  "the focal length of a larger image?")
+        ratio = max(self.fx, self.fy) / min(self.fx, self.fy)
+        if ratio > MAX_FOCAL_RATIO:
+            raise ConfigError(f"focal lengths fx={self.fx:g} and fy={self.fy:g} differ by a factor {ratio:.2f} (at "
+                              f"most {MAX_FOCAL_RATIO:g}: camera pixels are square); are fx fy cx cy in that order?")
 
     @property
     def K(self) -> np.ndarray:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import logging
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -34,6 +35,7 @@ from atlas_pipeline.sensors.layouts import (
     load_recording,
     recording_exists,
 )
+from atlas_pipeline.sensors.tum import file_problem
 
 logger = logging.getLogger(__name__)
 
@@ -41,6 +43,7 @@ if TYPE_CHECKING:
     from atlas_pipeline.config import PipelineConfig
     from atlas_pipeline.sensors.tum import FrameManifest
 
+LOCAL_REGISTRY_ENV = "ATLAS_LOCAL_REGISTRY"  # the user's registry file, instead of configs/datasets.local.yaml
 # Partition keys become folder names under artifacts/: keep them to a safe alphabet.
 DATASET_NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 
@@ -135,17 +138,29 @@ def local_registry_path() -> Path:
     """The user's registry file: ``$ATLAS_LOCAL_REGISTRY``, else ``configs/datasets.local.yaml`` of
     the user-state folder (:func:`~atlas_pipeline.config.project_root`: the checkout, or
     ``$ATLAS_GS_HOME`` / the working directory for an installed package; never the package)."""
-    env = os.environ.get("ATLAS_LOCAL_REGISTRY")
+    env = os.environ.get(LOCAL_REGISTRY_ENV)
     return Path(env) if env else project_root() / "configs" / "datasets.local.yaml"
 
 
 def registry_files() -> list[Path]:
     """The registry files in merge order (later entries override earlier ones): the built-in
-    ``datasets.yaml`` (the checkout's ``configs/`` or the installed package's copy), then the local file."""
+    ``datasets.yaml`` (the checkout's ``configs/`` or the installed package's copy), then the local file.
+
+    The local file may be absent (no local entries yet: ``dataset add`` creates it); a path that is
+    there but no regular file (a folder, a FIFO) is a ConfigError naming it and where it was set,
+    never read as "no local entries".
+    """
     files = [configs_dir() / "datasets.yaml"]
     local = local_registry_path()
-    if local.is_file():
+    problem = file_problem(local)
+    if problem is None:
         files.append(local)
+    elif problem != "not found":
+        where = (f"{LOCAL_REGISTRY_ENV}={local}" if os.environ.get(LOCAL_REGISTRY_ENV)
+                 else f"the local dataset registry {local}")
+        example = local / "datasets.local.yaml" if problem == "is a directory" else "datasets.local.yaml"
+        raise ConfigError(f"{where}: {problem}; it must name the registry's YAML file (such as {example}), "
+                          "which `atlas-gs dataset add` creates")
     return files
 
 
@@ -189,9 +204,8 @@ def resolve_camera(spec: Any, where: str) -> CameraIntrinsics:
 
 def camera_from_intrinsics(text: str, width: int, height: int, depth_scale: float,
                            where: str = "--intrinsics") -> dict[str, Any]:
-    """An inline camera mapping from ``"fx fy cx cy"`` and the image size (checked: 4 finite numbers)."""
-    import math
-
+    """An inline camera mapping from ``"fx fy cx cy"`` and the image size (checked: 4 finite numbers
+    that describe a camera of that size, :class:`CameraIntrinsics`)."""
     parts = str(text).replace(",", " ").split()
     try:
         vals = [float(x) for x in parts]
@@ -201,7 +215,10 @@ def camera_from_intrinsics(text: str, width: int, height: int, depth_scale: floa
         raise ConfigError(f"{where} needs 4 finite numbers (fx fy cx cy), got {text!r}")
     fx, fy, cx, cy = vals
     camera = {"width": width, "height": height, "fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale}
-    CameraIntrinsics.from_dict(camera)  # range checks, naming the field
+    try:
+        CameraIntrinsics.from_dict(camera)  # range and meaning checks, naming the field
+    except ConfigError as exc:
+        raise ConfigError(f"{where} {text!r} with a {width}x{height} image: {exc}") from None
     return camera
 
 
@@ -299,7 +316,7 @@ def _parse_entry(name: str, raw: Any, source: Path) -> DatasetEntry:
             raise ConfigError(f"{where}: 'path' is required")
         preset = default_camera_spec(kind)
         spec = raw.get("camera", preset)
-        camera = resolve_camera(spec, where) if spec is not None else None
+        camera = resolve_camera(spec, f"{where}.camera") if spec is not None else None
         path = _entry_path(raw, where)
         url = raw.get("url")
         if url is not None and not (isinstance(url, str) and re.match(r"^https?://", url)):
@@ -573,11 +590,19 @@ def intrinsics_camera(kind: str, intrinsics: str, width_px: int | None = None, h
                       depth_units_per_m: float | None = None) -> dict[str, Any]:
     """An inline camera from ``"fx fy cx cy"``: the image size and depth scale not given are the
     kind's preset's (a recording of that sensor), else the VGA / millimetre fallbacks."""
+    for option, value in (("--width", width_px), ("--height", height_px)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value <= 0):
+            raise ConfigError(f"{option} must be a positive whole number of pixels, got {value!r}")
+    if depth_units_per_m is not None and not (math.isfinite(depth_units_per_m) and depth_units_per_m > 0):
+        raise ConfigError(f"--depth-scale must be a finite positive number of raw depth units per metre (TUM "
+                          f"5000, millimetres 1000), got {depth_units_per_m!r}")
     preset = default_camera_spec(kind)
     base = resolve_camera(preset, "--kind") if preset else None
-    width = width_px or (base.width if base else FALLBACK_WIDTH_PX)
-    height = height_px or (base.height if base else FALLBACK_HEIGHT_PX)
-    scale = depth_units_per_m or (base.depth_scale if base else FALLBACK_DEPTH_UNITS_PER_M)
+    # "is None", not "or": a 0 given is an error above, never the default in disguise
+    width = width_px if width_px is not None else (base.width if base else FALLBACK_WIDTH_PX)
+    height = height_px if height_px is not None else (base.height if base else FALLBACK_HEIGHT_PX)
+    scale = depth_units_per_m if depth_units_per_m is not None else (
+        base.depth_scale if base else FALLBACK_DEPTH_UNITS_PER_M)
     return camera_from_intrinsics(intrinsics, width, height, scale)
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import posixpath
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +52,18 @@ MAX_TIMESTAMP_S = 1e11
 # Cameras and motion capture sample at 1 Hz - 1 kHz, frames 1 ms - 1 s apart; a median spacing
 # above 10 "s" is milliseconds (33 at 30 Hz), microseconds (33,000) or nanoseconds (3.3e7).
 MAX_MEDIAN_SPACING_S = 10.0
+# Ground truth gives unit quaternions printed to 4-9 digits (TUM: 4, norm within 2e-4 of 1); a norm
+# further from 1 is no rounding but a column missing or shifted, and normalising it would read
+# (0, 0, 1e-6, 1e-6) as a 90 degree turn.
+QUATERNION_NORM_TOLERANCE = 1e-2
+# The fastest a camera of this pipeline moves: hand-held cameras reach 1-2 m/s, indoor robots 2 m/s,
+# a running person 6 m/s, a car in town 15 m/s; 20 m/s covers them all, and a pose faster than that
+# is a wrong line (a marker swap, another recording's poses, a unit mix-up), which would map the
+# scene twice.
+MAX_CAMERA_SPEED_M_PER_S = 20.0
+# Motion capture jitters by millimetres; between stamps 0.1 ms apart that alone reads as 10 m/s, so
+# a step shorter than this is never called a jump.
+MIN_JUMP_M = 0.05
 # (unit, seconds per unit, smallest stamp of an epoch in it / smallest spacing of a 1 kHz sensor in it)
 _UNITS = (("nanoseconds", 1e-9, 1e17, 1e6), ("microseconds", 1e-6, 1e14, 1e3), ("milliseconds", 1e-3, 1e11, 1.0))
 
@@ -60,6 +73,9 @@ __all__ = [
     "increasing_timestamps",
     "check_timestamps_are_seconds",
     "read_groundtruth",
+    "check_groundtruth_speed",
+    "check_groundtruth_overlap",
+    "check_unique_files",
     "associate",
     "lookup_groundtruth",
     "load_tum_sequence",
@@ -185,8 +201,10 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``groundtruth.txt``: timestamps ``[M]`` and ``poses_se3`` ``[M, 4, 4]`` (camera-to-world).
 
     Rows are sorted by time (motion-capture exports are not always in order), but two rows with
-    the same timestamp are an error naming both lines; a non-numeric value or a zero quaternion
-    names its line; timestamps must be seconds (:func:`check_timestamps_are_seconds`).
+    the same timestamp are an error naming both lines; a non-numeric value or a quaternion whose
+    norm is not 1 within ``QUATERNION_NORM_TOLERANCE`` names its line; timestamps must be seconds
+    (:func:`check_timestamps_are_seconds`); the camera may not move faster than
+    ``MAX_CAMERA_SPEED_M_PER_S`` between two rows (:func:`check_groundtruth_speed`).
     """
     rows = read_list_file(path, 8)
     ts = np.empty(len(rows))
@@ -198,8 +216,11 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise DatasetError(path, "non-numeric value", lineno) from None
         if not np.all(np.isfinite(vals)):
             raise DatasetError(path, "non-finite value", lineno)
-        if np.linalg.norm(vals[4:8]) < 1e-6:
-            raise DatasetError(path, "quaternion has zero norm", lineno)
+        norm = float(np.linalg.norm(vals[4:8]))
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise DatasetError(path, f"quaternion qx qy qz qw ({', '.join(parts[4:8])}) has norm {norm:.6g}, not 1 "
+                                     f"(within {QUATERNION_NORM_TOLERANCE:g}): ground truth rows are 'timestamp tx ty "
+                                     "tz qx qy qz qw' with a unit quaternion; is a column missing or shifted?", lineno)
         ts[i] = vals[0]
         tq[i] = vals[1:]
     order = np.argsort(ts, kind="stable")
@@ -209,8 +230,79 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
         first, second = rows[order[same[0]]], rows[order[same[0] + 1]]
         raise DatasetError(path, f"timestamp {second[1][0][:40]} repeats line {first[0]}; ground truth "
                                  "needs one pose per time", second[0])
-    check_timestamps_are_seconds(path, [rows[k] for k in order], ts)
+    sorted_rows = [rows[k] for k in order]
+    check_timestamps_are_seconds(path, sorted_rows, ts)
+    check_groundtruth_speed(path, sorted_rows, ts, tq[:, :3])
     return ts, pose_from_tq(tq[:, :3], tq[:, 3:])
+
+
+def check_groundtruth_speed(path: Path, rows: list[tuple[int, list[str]]], ts: np.ndarray,
+                            t_world_cam_m: np.ndarray) -> None:
+    """Refuse ground truth in which the camera moves faster than ``MAX_CAMERA_SPEED_M_PER_S``
+    between two consecutive samples (by more than ``MIN_JUMP_M``).
+
+    ``rows`` ``[M]`` are the file's rows in time order, ``ts`` ``[M]`` their times (s, increasing),
+    ``t_world_cam_m`` ``[M, 3]`` the camera centres. The ``DatasetError`` names the file, both
+    lines and times, the distance and the speed of the first jump, and how many there are.
+    """
+    if len(ts) < 2:
+        return
+    step_m = np.linalg.norm(np.diff(t_world_cam_m, axis=0), axis=1)  # [M-1]
+    speed = step_m / np.diff(ts)
+    bad = np.flatnonzero((speed > MAX_CAMERA_SPEED_M_PER_S) & (step_m > MIN_JUMP_M))
+    if not len(bad):
+        return
+    k = int(bad[0])
+    (line_a, a), (line_b, b) = rows[k], rows[k + 1]
+    more = f"; {len(bad) - 1} more such jump(s) follow" if len(bad) > 1 else ""
+    raise DatasetError(path, f"the camera moves {step_m[k]:.3g} m in {ts[k + 1] - ts[k]:.3g} s from line {line_a} "
+                             f"(t = {a[0][:40]}) to this line (t = {b[0][:40]}): {speed[k]:.3g} m/s, faster than "
+                             f"the {MAX_CAMERA_SPEED_M_PER_S:g} m/s any hand-held or robot camera moves{more}; "
+                             "these poses are not one camera's path (a wrong or merged file): correct or remove "
+                             "those lines", line_b)
+
+
+def check_unique_files(path: Path, rows: list[tuple[int, list[str]]], kind: str) -> None:
+    """Refuse a list (``rows`` of :func:`read_list_file`, ``[timestamp, filename]``) naming one
+    image file on two lines (``rgb/1.png`` and ``./rgb/1.png`` are one file): each time needs its
+    own image, and a list repeating one would build the world from one view many times over.
+
+    Raises:
+        DatasetError: naming the list file, the later line and the line that named the file first.
+    """
+    first: dict[str, int] = {}
+    for lineno, parts in rows:
+        key = posixpath.normpath(parts[1])
+        if key in first:
+            raise DatasetError(path, f"{kind} image {parts[1][:80]!r} is also named on line {first[key]}: each "
+                                     "timestamp needs its own image file", lineno)
+        first[key] = lineno
+
+
+def check_groundtruth_overlap(gt_path: Path, gt_ts: np.ndarray, gt_poses: np.ndarray, frames_path: Path,
+                              frame_ts: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S) -> None:
+    """Refuse ground truth (times ``gt_ts`` ``[M]``, poses ``[M, 4, 4]``) that gives no pose at any
+    of the recording's frame times ``frame_ts`` ``[N]`` (from ``frames_path``): such a file is
+    another recording's, or its clock is offset, and the world would silently be mapped from
+    estimated poses with no ATE.
+
+    Raises:
+        DatasetError: naming the ground-truth file and both time spans (and the offset between them).
+    """
+    if len(gt_ts) == 0 or lookup_groundtruth(gt_ts, gt_poses, frame_ts, max_dt)[1].any():
+        return
+    t0, t1 = float(frame_ts.min()), float(frame_ts.max())
+    if gt_ts[-1] < t0:
+        where = f"; the poses end {t0 - gt_ts[-1]:.3f} s before the first frame"
+    elif gt_ts[0] > t1:
+        where = f"; the poses start {gt_ts[0] - t1:.3f} s after the last frame"
+    else:
+        where = (f" (no pose within {max_dt * 1000:.0f} ms of any frame, nor two around one at most "
+                 f"{MAX_GT_INTERPOLATION_GAP_S:g} s apart)")
+    raise DatasetError(gt_path, f"ground truth matches none of the {len(frame_ts)} frames: its poses span "
+                                f"{gt_ts[0]:.3f} - {gt_ts[-1]:.3f} s, the frames ({frames_path.name}) {t0:.3f} - "
+                                f"{t1:.3f} s{where}; it is another recording's ground truth, or its clock is "
+                                "offset: correct its timestamps, or remove the file to map from estimated poses")
 
 
 def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S) -> list[tuple[int, int]]:
@@ -502,7 +594,10 @@ def load_tum_sequence(
     """Read a TUM-layout folder into a :class:`FrameManifest`, checking every image header.
 
     Before any image is opened, rgb.txt and depth.txt must be in strictly increasing time order
-    (:func:`increasing_timestamps`). Every listed image must be a regular file (one that is
+    (:func:`increasing_timestamps`) and name each image file once (:func:`check_unique_files`), and
+    ``groundtruth.txt``, when there is one, must read (:func:`read_groundtruth`: unit quaternions,
+    physical speeds) and give a pose at one frame at least (:func:`check_groundtruth_overlap`).
+    Every listed image must be a regular file (one that is
     missing, a directory or a FIFO is named as such, :func:`file_problem`) with the camera's size
     (header only): 8-bit colour PNG or JPEG for RGB, 16-bit single-channel PNG for depth; the first
     offending file is named with its list line.
@@ -515,6 +610,8 @@ def load_tum_sequence(
     # drop a frame without saying why.
     rgb_ts = increasing_timestamps(root / "rgb.txt", rgb_rows)
     depth_ts = increasing_timestamps(root / "depth.txt", depth_rows)
+    check_unique_files(root / "rgb.txt", rgb_rows, "rgb")
+    check_unique_files(root / "depth.txt", depth_rows, "depth")
     _check_association_density(root / "rgb.txt", root / "depth.txt", rgb_rows, rgb_ts, depth_ts, max_dt)
     pairs = associate(rgb_ts, depth_ts, max_dt)
     if not pairs:
@@ -522,12 +619,30 @@ def load_tum_sequence(
     dropped = len(rgb_rows) - len(pairs)
     if dropped:
         logger.info("%s: %d RGB frames have no depth within %.0f ms and are skipped", root, dropped, max_dt * 1000)
+    all_depth_ts = depth_ts[[j for _, j in pairs]]  # every frame's time, for the ground truth's check
     if max_frames is not None:
         pairs = pairs[:max_frames]
     if len(pairs) < 2:
         raise DatasetError(root, f"need at least 2 RGB-D frames, found {len(pairs)}")
 
+    t_rgb = rgb_ts[[i for i, _ in pairs]]
+    t_depth = depth_ts[[j for _, j in pairs]]
+    # Ground truth is read and checked before any image is: a wrong file is named at once.
+    gt_file = root / "groundtruth.txt"
+    list_files = [root / "rgb.txt", root / "depth.txt"]
+    gt_problem = file_problem(gt_file)
+    if gt_problem is None:
+        gt_ts, gt_poses = read_groundtruth(gt_file)
+        check_groundtruth_overlap(gt_file, gt_ts, gt_poses, root / "depth.txt", all_depth_ts, max_dt)
+        T_gt, has_gt = lookup_groundtruth(gt_ts, gt_poses, t_depth, max_dt)  # at the frame (depth) times
+        list_files.append(gt_file)
+    elif gt_problem == "not found":  # optional: a recording without ground truth
+        T_gt, has_gt = np.full((len(pairs), 4, 4), np.nan), np.zeros(len(pairs), bool)
+    else:
+        raise DatasetError(gt_file, f"ground-truth file {gt_problem}")
+
     rgb_files, depth_files, used_paths, used_names = [], [], [], []
+    seen: dict[tuple[str, Path], int] = {}  # (list, resolved image) -> line: links and ".." naming one file twice
     for i, j in pairs:
         for rows, idx, kind, list_name, files in (
             (rgb_rows, i, "rgb", "rgb.txt", rgb_files),
@@ -536,6 +651,10 @@ def load_tum_sequence(
             lineno, parts = rows[idx]
             list_path = root / list_name
             path = _safe_member(root, parts[1], list_path, lineno)
+            earlier = seen.setdefault((list_name, path), lineno)
+            if earlier != lineno:
+                raise DatasetError(list_path, f"{kind} image {parts[1][:80]!r} is the file line {earlier} names "
+                                              f"({path}): each timestamp needs its own image file", lineno)
             problem = file_problem(path)
             if problem is not None:
                 raise DatasetError(list_path, f"{kind} image {parts[1]!r} {problem}", lineno)
@@ -547,16 +666,6 @@ def load_tum_sequence(
             used_paths.append(path)
             used_names.append(parts[1])
 
-    t_rgb = rgb_ts[[i for i, _ in pairs]]
-    t_depth = depth_ts[[j for _, j in pairs]]
-    gt_file = root / "groundtruth.txt"
-    list_files = [root / "rgb.txt", root / "depth.txt"]
-    if gt_file.is_file():
-        gt_ts, gt_poses = read_groundtruth(gt_file)
-        T_gt, has_gt = lookup_groundtruth(gt_ts, gt_poses, t_depth, max_dt)  # at the frame (depth) times
-        list_files.append(gt_file)
-    else:
-        T_gt, has_gt = np.full((len(pairs), 4, 4), np.nan), np.zeros(len(pairs), bool)
     content_hash = sha256_files(list_files + used_paths, [p.name for p in list_files] + used_names)
     logger.info(
         "%s: %d RGB-D frames, %d with ground truth, %.1f s", dataset, len(pairs), int(has_gt.sum()),
