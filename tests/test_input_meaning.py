@@ -161,6 +161,51 @@ def test_a_ground_truth_path_that_is_a_folder_is_named(tmp_path):
         _load(root)
 
 
+def _pose_rows(jump_m: float, at: int = 3) -> list[np.ndarray]:
+    """Camera-to-world poses of ``N_FRAMES`` frames at 30 Hz panning along x, leaping ``jump_m``
+    from frame ``at`` on."""
+    out = []
+    for k in range(N_FRAMES):
+        T = np.eye(4)
+        T[0, 3] = SPEED_M_PER_S * k / FPS + (jump_m if k >= at else 0.0)
+        out.append(T)
+    return out
+
+
+def _write_replica(root: Path, poses: list[np.ndarray]) -> Path:
+    (root / "results").mkdir(parents=True)
+    for k in range(N_FRAMES):
+        iio.imwrite(root / "results" / f"frame{k:06d}.png", np.full((H, W, 3), 40 * k, np.uint8))
+        iio.imwrite(root / "results" / f"depth{k:06d}.png", np.full((H, W), 6554, np.uint16))
+    (root / "traj.txt").write_text("".join(" ".join(f"{v:.6f}" for v in T.ravel()) + "\n" for T in poses))
+    return root
+
+
+def _write_7scenes(root: Path, poses: list[np.ndarray]) -> Path:
+    root.mkdir(parents=True)
+    for k in range(N_FRAMES):
+        iio.imwrite(root / f"frame-{k:06d}.color.png", np.full((H, W, 3), 40 * k, np.uint8))
+        iio.imwrite(root / f"frame-{k:06d}.depth.png", np.full((H, W), 1000, np.uint16))
+        (root / f"frame-{k:06d}.pose.txt").write_text("\n".join(" ".join(f"{v:.6f}" for v in r) for r in poses[k]))
+    return root
+
+
+@pytest.mark.parametrize("layout", ["replica", "7scenes"])
+def test_poses_of_other_layouts_moving_faster_than_a_camera_name_the_file(tmp_path, layout):
+    from atlas_pipeline.sensors.layouts import load_7scenes_sequence, load_replica_sequence
+
+    write, load = {"replica": (_write_replica, load_replica_sequence),
+                   "7scenes": (_write_7scenes, load_7scenes_sequence)}[layout]
+    assert load(write(tmp_path / "ok", _pose_rows(0.0)), CAM, "x").has_gt.all()
+    # 2 m between frames 2 and 3, 1/30 s apart at the default 30 fps: 60 m/s
+    root = write(tmp_path / "bad", _pose_rows(2.0))
+    where = r"traj\.txt:4: .*from frame 2 \(line 3\)" if layout == "replica" else \
+        r"frame-000003\.pose\.txt: .*from frame 2 \(frame-000002\.pose\.txt\)"
+    with pytest.raises(DatasetError, match=rf"{where} to frame 3, 0\.0333 s later at 30 fps \(registry key fps\): "
+                                           r"60\.\d m/s, faster than the 20 m/s"):
+        load(root, CAM, "x")
+
+
 # ---- intrinsics and scales -----------------------------------------------------------------------
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -43,7 +43,14 @@ from atlas_pipeline.errors import ConfigError, DatasetError
 from atlas_pipeline.io_utils import sha256_files
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.images import check_depth_header, check_rgb_header, image_header
-from atlas_pipeline.sensors.tum import FrameManifest, _is_file, _iter_lines, _safe_member
+from atlas_pipeline.sensors.tum import (
+    MAX_CAMERA_SPEED_M_PER_S,
+    MIN_JUMP_M,
+    FrameManifest,
+    _is_file,
+    _iter_lines,
+    _safe_member,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -265,6 +272,36 @@ def _check_fps(fps: float) -> float:
     return float(fps)
 
 
+def _check_frame_speeds(T: np.ndarray, has: np.ndarray, numbers: list[int], fps: float,
+                        pose_source: list[tuple[Path, int | None]]) -> None:
+    """Refuse poses in which the camera moves faster than ``MAX_CAMERA_SPEED_M_PER_S`` (by more
+    than ``MIN_JUMP_M``) between consecutive frames that both have one (as TUM ground truth is).
+
+    ``T`` ``[N, 4, 4]`` camera-to-world, ``has`` ``[N]``, ``numbers`` the frame numbers (frame ``n``
+    at ``n / fps`` s), ``pose_source`` ``[N]`` the file (and line) each pose came from. The
+    ``DatasetError`` names the later pose's file (and line), the earlier one, the distance, the
+    time at ``fps`` and the speed.
+    """
+    idx = np.flatnonzero(has)
+    if len(idx) < 2:
+        return
+    t = _frame_times([numbers[k] for k in idx], fps)
+    step_m = np.linalg.norm(np.diff(T[idx, :3, 3], axis=0), axis=1)  # [M-1]
+    speed = step_m / np.diff(t)
+    bad = np.flatnonzero((speed > MAX_CAMERA_SPEED_M_PER_S) & (step_m > MIN_JUMP_M))
+    if not len(bad):
+        return
+    a, b = int(idx[bad[0]]), int(idx[bad[0] + 1])
+    (path_a, line_a), (path_b, line_b) = pose_source[a], pose_source[b]
+    src_a = f"line {line_a}" if path_a == path_b and line_a is not None else f"{path_a.name}"
+    more = f"; {len(bad) - 1} more such jump(s) follow" if len(bad) > 1 else ""
+    raise DatasetError(path_b, f"the camera moves {step_m[bad[0]]:.3g} m from frame {numbers[a]} ({src_a}) to frame "
+                               f"{numbers[b]}, {t[bad[0] + 1] - t[bad[0]]:.3g} s later at {fps:g} fps (registry key "
+                               f"fps): {speed[bad[0]]:.3g} m/s, faster than the {MAX_CAMERA_SPEED_M_PER_S:g} m/s any "
+                               f"hand-held or robot camera moves{more}; these poses are not one camera's path: "
+                               "correct them, or the fps", line_b)
+
+
 def _finish(dataset: str, root: Path, camera: CameraIntrinsics, numbers: list[int], fps: float,
             rgb_files: list[str], depth_files: list[str], T_gt: np.ndarray, has_gt: np.ndarray,
             hashed: list[Path], source: dict) -> FrameManifest:
@@ -310,6 +347,7 @@ def load_7scenes_sequence(root: str | Path, camera: CameraIntrinsics, dataset: s
     if max_frames is not None:
         numbers = numbers[:max_frames]
     rgb_files, depth_files, hashed = [], [], []
+    pose_source: list[tuple[Path, int | None]] = []
     T = np.full((len(numbers), 4, 4), np.nan)
     has = np.zeros(len(numbers), bool)
     for k, n in enumerate(numbers):
@@ -321,6 +359,7 @@ def load_7scenes_sequence(root: str | Path, camera: CameraIntrinsics, dataset: s
         check_rgb_header(rgb, camera.width, camera.height)
         check_depth_header(depth, camera.width, camera.height)
         pose = _safe_member(folder, _7S_POSE.format(n), folder, None)
+        pose_source.append((pose, None))
         if _is_file(pose):
             T[k] = _check_pose(read_matrix_file(pose), pose, None)
             has[k] = True
@@ -330,6 +369,7 @@ def load_7scenes_sequence(root: str | Path, camera: CameraIntrinsics, dataset: s
         hashed += [rgb, depth]
     if not has.all():
         logger.info("%s: %d of %d frames have no pose file (no ground truth there)", folder, int((~has).sum()), len(has))
+    _check_frame_speeds(T, has, numbers, fps, pose_source)
     return _finish(dataset, folder, camera, numbers, fps, rgb_files, depth_files, T, has, hashed,
                    {"layout": "7scenes", "path": str(folder), "max_frames": max_frames, "fps": fps,
                     "depth_invalid_raw": [SEVEN_SCENES_DEPTH_INVALID]})
@@ -378,6 +418,7 @@ def load_replica_sequence(root: str | Path, camera: CameraIntrinsics, dataset: s
         hashed += [rgb, dep]
     T = poses[numbers]
     has = np.ones(len(numbers), bool)
+    _check_frame_speeds(T, has, numbers, fps, [(traj_path, pose_lines[n]) for n in numbers])
     return _finish(dataset, folder, camera, numbers, fps, rgb_files, depth_files, T, has, hashed,
                    {"layout": "replica", "path": str(folder), "max_frames": max_frames, "fps": fps})
 
@@ -423,6 +464,7 @@ def load_scannet_sequence(root: str | Path, dataset: str, max_frames: int | None
     except Exception as exc:  # ConfigError from the range checks
         raise DatasetError(folder / "intrinsic", f"invalid camera: {exc}") from None
     rgb_files, depth_files = [], []
+    pose_source: list[tuple[Path, int | None]] = []
     hashed = [folder / "intrinsic" / "intrinsic_color.txt", folder / "intrinsic" / "intrinsic_depth.txt"]
     T = np.full((len(numbers), 4, 4), np.nan)
     has = np.zeros(len(numbers), bool)
@@ -434,6 +476,7 @@ def load_scannet_sequence(root: str | Path, dataset: str, max_frames: int | None
         check_rgb_header(rgb, colour_camera.width, colour_camera.height)
         check_depth_header(dep, camera.width, camera.height)
         pose = _safe_member(folder, f"pose/{n}.txt", folder / "pose", None)
+        pose_source.append((pose, None))
         if _is_file(pose):
             M = read_matrix_file(pose)
             if np.all(np.isfinite(M)):
@@ -445,6 +488,7 @@ def load_scannet_sequence(root: str | Path, dataset: str, max_frames: int | None
         hashed += [rgb, dep]
     if not has.all():
         logger.info("%s: %d of %d frames have no valid pose (no ground truth there)", folder, int((~has).sum()), len(has))
+    _check_frame_speeds(T, has, numbers, fps, pose_source)
     same = (colour_camera.width, colour_camera.height, *kc) == (camera.width, camera.height, *kd)
     source = {"layout": "scannet", "path": str(folder), "max_frames": max_frames, "fps": fps}
     if not same:
