@@ -49,18 +49,20 @@ def test_read_lineage_reads_what_the_builder_wrote(tmp_path):
     assert back["created_utc"] == lin["created_utc"]
 
 
-META = {"dataset": {"name": "synth"}, "anchor": {"frame_index": 3, "T_world_cam": np.eye(4).tolist()}}
+META = {"dataset": {"name": "synth", "content_hash": "h0"},
+        "anchor": {"frame_index": 3, "T_world_cam": np.eye(4).tolist()}}
 
 
 def test_start_pose_is_the_anchor_for_the_same_dataset():
-    T, i = start_pose(META, "synth")
+    T, i = start_pose(META, "synth", content_hash="h0")
     assert i == 3 and np.allclose(T, np.eye(4))
 
 
 @pytest.mark.parametrize("dataset, relocalize, meta", [("other", False, META), ("synth", True, META),
-                                                       ("synth", False, {"dataset": {"name": "synth"}})])
+                                                       ("synth", False, {"dataset": {"name": "synth",
+                                                                                     "content_hash": "h0"}})])
 def test_start_pose_relocalizes_for_another_dataset_on_request_or_without_an_anchor(dataset, relocalize, meta):
-    assert start_pose(meta, dataset, relocalize=relocalize) == (None, 0)
+    assert start_pose(meta, dataset, relocalize=relocalize, content_hash="h1" if dataset == "other" else "h0") == (None, 0)
 
 
 def test_a_given_start_pose_wins_at_frame_zero():

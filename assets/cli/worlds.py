@@ -81,7 +81,7 @@ def cmd_lineage(args: argparse.Namespace) -> int:
     """Print the lineage of a world bundle (a folder, or a partition's Dagster bundle)."""
     from atlas_pipeline.scene_memory.bundle import format_lineage, read_lineage
 
-    lin = read_lineage(world_bundle_folder(args.bundle))
+    lin = read_lineage(world_bundle_folder(args.bundle), verify=True)  # map id and count from the Gaussians
     if not args.show_config and not args.json:
         lin = {k: v for k, v in lin.items() if k != "config"}
     out(json.dumps(lin, indent=2) if args.json else format_lineage(lin))

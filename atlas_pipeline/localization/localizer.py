@@ -120,6 +120,8 @@ class LocalizationReport:
         error_t_m, error_rot_deg: ``[N]`` per-frame errors after the ATE alignment, NaN without ground truth.
         summary: aggregate figures (RMSE, ATE, counts, rate), and ``outcome`` (``complete`` or
             ``stopped_world_mismatch``) with ``stopped_reason`` (None when complete).
+        camera: the intrinsics the frames were read with (``CameraIntrinsics.to_dict()``); None in
+            reports written before they were recorded (the file then has no ``camera``).
     """
 
     dataset: str
@@ -134,6 +136,7 @@ class LocalizationReport:
     error_t_m: np.ndarray
     error_rot_deg: np.ndarray
     summary: dict = field(default_factory=dict)
+    camera: dict | None = None
 
     @property
     def n_frames(self) -> int:
@@ -159,7 +162,10 @@ class LocalizationReport:
                 "time_s": num(self.time_s[i]), "has_ground_truth": bool(has_gt[i]),
                 "error_t_m": num(self.error_t_m[i]), "error_rot_deg": num(self.error_rot_deg[i]),
             })
-        return {"dataset": self.dataset, "map_id": self.map_id, "summary": _json_safe(self.summary), "frames": frames}
+        out = {"dataset": self.dataset, "map_id": self.map_id}
+        if self.camera is not None:
+            out["camera"] = _json_safe(self.camera)
+        return {**out, "summary": _json_safe(self.summary), "frames": frames}
 
     def save(self, directory: Path) -> list[Path]:
         """Write the report; timings (``time_s`` per frame, the summary's rates) are not written:
@@ -206,7 +212,8 @@ class LocalizationReport:
 
         return cls(d["dataset"], d["map_id"], np.array([f["timestamp_s"] for f in fr]), T,
                    [f["status"] for f in fr], arr("fitness"), arr("inlier_rmse_m"), arr("time_s"), T_gt,
-                   arr("error_t_m"), arr("error_rot_deg"), d.get("summary", {}))
+                   arr("error_t_m"), arr("error_rot_deg"), d.get("summary") or {},
+                   d["camera"] if isinstance(d.get("camera"), dict) else None)
 
     def aligned_poses(self) -> np.ndarray:
         """``[N, 4, 4]`` estimates moved onto the ground truth's frame by the ATE alignment (as
@@ -360,7 +367,8 @@ def localize_sequence(
     elif summary["n_lost"] >= n - 1 and n > 1:
         logger.warning("%s: every frame after the first was lost; check the world and the dataset match", manifest.dataset)
     return LocalizationReport(manifest.dataset, map_id, manifest.timestamps_s.copy(), T_est, status,
-                              fitness, rmse, times, manifest.T_world_cam_gt.copy(), err_t, err_r, summary)
+                              fitness, rmse, times, manifest.T_world_cam_gt.copy(), err_t, err_r, summary,
+                              camera=manifest.camera.to_dict())
 
 
 def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:

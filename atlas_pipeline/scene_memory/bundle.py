@@ -38,6 +38,7 @@ import logging
 import math
 import shutil
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -83,7 +84,8 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
     "read_metadata", "read_place_index", "verified_file", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
-    "verify_bundle_files", "check_bundle_update", "BundleMetadataSchema", "BUNDLE_KIND",
+    "map_id_of",
+    "verify_bundle_files", "check_bundle_update", "check_identity", "BundleMetadataSchema", "BUNDLE_KIND",
     "VOXEL_BYTES_PER_VOXEL", "bundle_disk_bytes", "world_memory_bytes", "save_peak_bytes", "load_peak_bytes",
 ]
 
@@ -96,6 +98,11 @@ MAX_METADATA_BYTES = 256 * 1024 * 1024
 _SHA256_HEX = r"^[0-9a-f]{64}$"
 # Files a bundle may list: plain names in the bundle folder (never a path, never hidden).
 _FILE_NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$"
+# A world's map id: this many hex digits of its Gaussians' content hash (64 bits: two worlds
+# sharing one by chance is out of the question, and it stays short enough to read).
+MAP_ID_HEX_DIGITS = 16
+# The map resolution assumed for a bundle that records none (the default profile's voxel size).
+DEFAULT_TRACKING_VOXEL_M = 0.02
 
 logger = logging.getLogger(__name__)
 
@@ -206,6 +213,12 @@ class BundleMetadataSchema(BaseModel):
         return v
 
 
+def map_id_of(field: GaussianField) -> str:
+    """The map id of the world state ``field``: derived from its arrays (``content_hash``), so a
+    bundle's id is a fact of its checksummed Gaussians, never a value copied from editable JSON."""
+    return field.content_hash()[:MAP_ID_HEX_DIGITS]
+
+
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -277,7 +290,7 @@ def write_bundle_files(
         "format": BUNDLE_FORMAT,
         "version": BUNDLE_VERSION,
         "created_at": _utc_now(),
-        "map_id": field.content_hash()[:16],
+        "map_id": map_id_of(field),
         "n_gaussians": len(field),
         **metadata,
         "files": _file_table(directory, parts),
@@ -525,16 +538,23 @@ def read_metadata(directory: Path) -> dict[str, Any]:
 @dataclass
 class WorldBundle:
     """A loaded bundle: the Gaussians and the metadata. ``verified``: every listed file's checksum
-    was checked when it was loaded, so its parts are read without hashing them again."""
+    was checked when it was loaded, so its parts are read without hashing them again, and
+    metadata.json's ``map_id`` and ``n_gaussians`` were checked against the Gaussians."""
 
     directory: Path
     field: GaussianField
     metadata: dict[str, Any]
     verified: bool = False
 
-    @property
+    @cached_property
     def map_id(self) -> str:
-        return self.metadata.get("map_id", "")
+        """The world's map id, derived from its Gaussians (:func:`map_id_of`; hashed once)."""
+        return map_id_of(self.field)
+
+    @property
+    def n_gaussians(self) -> int:
+        """How many Gaussians the world holds: those loaded, not metadata.json's figure."""
+        return len(self.field)
 
     def part(self, name: str) -> Path:
         """``directory / name``, a file metadata.json lists: present and of its recorded size, and
@@ -546,7 +566,8 @@ class WorldBundle:
         bundle has one, else surfels derived from the Gaussian centres (e.g. an imported PLY)."""
         from atlas_pipeline.localization.tracker import SurfelModel, VoxelAppearance
 
-        voxel = voxel_size_m or float(self.metadata.get("gaussians", {}).get("voxel_size_m", 0.02))
+        voxel = voxel_size_m or float((self.metadata.get("gaussians") or {}).get("voxel_size_m") or
+                                      DEFAULT_TRACKING_VOXEL_M)
         if "surfels.npz" in self.metadata.get("files", {}):
             model = SurfelModel.load(self.part("surfels.npz"))
         else:
@@ -633,7 +654,28 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
             raise BundleFormatError(directory / "metadata.json", f"no checksum recorded for {name}")
     path = directory / name
     field = read_gaussian_binary(path) if source == "bin" else read_gaussian_ply(path)
-    return WorldBundle(directory, field, meta, verified=verify)
+    bundle = WorldBundle(directory, field, meta, verified=verify)
+    if verify:
+        check_identity(bundle, name)
+    return bundle
+
+
+def check_identity(bundle: WorldBundle, source: str = "gaussians.bin") -> None:
+    """Refuse a bundle whose metadata.json states a ``n_gaussians`` or ``map_id`` other than its
+    checksum-verified Gaussians (read from ``source``) have: a hand-edited or mixed-up
+    metadata.json would otherwise be stamped into every report and transition made from it.
+    Raises BundleFormatError naming metadata.json and the field."""
+    path = bundle.directory / "metadata.json"
+    stated_n = bundle.metadata.get("n_gaussians")
+    if stated_n != bundle.n_gaussians:  # the cheap check first: no hashing for an edited count
+        raise BundleFormatError(path, f"field n_gaussians is {stated_n!r}, but {source} (checksum verified) holds "
+                                      f"{bundle.n_gaussians} Gaussians: metadata.json was edited or belongs to "
+                                      "another world; restore the bundle from a copy, or build it again")
+    stated_id = bundle.metadata.get("map_id")
+    if stated_id != bundle.map_id:
+        raise BundleFormatError(path, f"field map_id is {stated_id!r}, but the Gaussians of {source} (checksum "
+                                      f"verified) are map {bundle.map_id}: metadata.json was edited or belongs to "
+                                      "another world; restore the bundle from a copy, or build it again")
 
 
 def parent_reference(directory: str | Path) -> dict[str, Any]:
@@ -651,16 +693,23 @@ def parent_reference(directory: str | Path) -> dict[str, Any]:
     }
 
 
-def read_lineage(directory: str | Path) -> dict[str, Any]:
+def read_lineage(directory: str | Path, verify: bool = False) -> dict[str, Any]:
     """The lineage of a bundle: partition, upstream data versions, code versions, config, run id,
-    creation time and parent, gathered from its metadata.json."""
+    creation time and parent, gathered from its metadata.json. With ``verify`` every listed file
+    is checked first and the map id and count are the loaded Gaussians' (:func:`load_world_bundle`:
+    a metadata.json that disagrees with them is refused); else they are as metadata.json states."""
     directory = Path(directory)
-    meta = read_metadata(directory)
+    if verify:
+        bundle = load_world_bundle(directory)
+        meta, map_id, n_gaussians = bundle.metadata, bundle.map_id, bundle.n_gaussians
+    else:
+        meta = read_metadata(directory)
+        map_id, n_gaussians = meta.get("map_id"), meta.get("n_gaussians")
     lin = dict(meta.get("lineage") or {})
     return {
         "bundle": str(directory.resolve()),
-        "map_id": meta.get("map_id"),
-        "n_gaussians": meta.get("n_gaussians"),
+        "map_id": map_id,
+        "n_gaussians": n_gaussians,
         "partition": lin.get("partition", meta.get("partition")),
         "run_id": lin.get("run_id"),
         "created_utc": lin.get("created_utc", meta.get("created_at")),

@@ -4,13 +4,17 @@ log-transitions``), each written into the world's bundle. Whether the part may g
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from atlas_pipeline.config import PipelineConfig
-from atlas_pipeline.errors import ConfigError
+from atlas_pipeline.errors import BundleFormatError, ConfigError
+from atlas_pipeline.localization.localizer import OUTCOME_COMPLETE, OUTCOME_STOPPED_WORLD_MISMATCH
+from atlas_pipeline.localization.sequence import STATUS_ANCHOR, STATUS_NOT_ATTEMPTED
+from atlas_pipeline.sensors.camera import TUM_CAMERAS, CameraIntrinsics
 from atlas_pipeline.sensors.registry import DatasetEntry
 
 if TYPE_CHECKING:
@@ -18,12 +22,125 @@ if TYPE_CHECKING:
 
     from atlas_pipeline.localization.localizer import LocalizationReport
 
-__all__ = ["tracking_voxel_m", "localize_into_bundle", "log_bundle_transitions"]
+__all__ = ["tracking_voxel_m", "localize_into_bundle", "log_bundle_transitions", "camera_difference",
+           "check_camera", "check_start_pose", "world_camera"]
+
+logger = logging.getLogger(__name__)
+
+
+# Intrinsics of two calibrations that agree within these are one camera (recalibrations of one
+# sensor differ by a few tenths of a percent in focal length and a pixel or two in the principal
+# point); beyond them the recording was taken, or is read, with another camera.
+CAMERA_FOCAL_REL_TOL = 0.01  # fx, fy
+CAMERA_CENTRE_REL_TOL = 0.01  # cx, cy, as a share of the image width / height
+CAMERA_DISTORTION_TOL = 1e-3  # each radial-tangential coefficient
 
 
 def tracking_voxel_m(bundle: Any, cfg: PipelineConfig) -> float:
     """The map resolution a world was built at (the profile's where the bundle does not say)."""
-    return float(bundle.metadata.get("gaussians", {}).get("voxel_size_m", cfg.mapping.voxel_size_m))
+    voxel = (bundle.metadata.get("gaussians") or {}).get("voxel_size_m")  # either may be null
+    return float(voxel) if voxel is not None else float(cfg.mapping.voxel_size_m)
+
+
+def _camera_name(camera: CameraIntrinsics) -> str:
+    """``camera`` in words: the TUM preset it matches, its intrinsics and image size."""
+    preset = next((name for name, c in TUM_CAMERAS.items() if name != "default" and camera_difference(c, camera) is None),
+                  None)
+    words = (f"fx {camera.fx:g} fy {camera.fy:g} cx {camera.cx:g} cy {camera.cy:g}, {camera.width}x{camera.height}"
+             + (", with lens distortion" if camera.distortion else "")
+             + (f", depth scale {camera.depth_scale:g}" if camera.depth_scale != TUM_CAMERAS["default"].depth_scale
+                else ""))
+    return f"{preset} ({words})" if preset else words
+
+
+def camera_difference(world: CameraIntrinsics, recording: CameraIntrinsics) -> str | None:
+    """What differs between the camera a world was recorded with and a recording's, beyond the
+    tolerances above (image size, focal lengths, principal point, distortion, depth scale); None
+    when they are one camera."""
+    diffs = []
+    if (world.width, world.height) != (recording.width, recording.height):
+        diffs.append(f"image size {recording.width}x{recording.height} vs {world.width}x{world.height}")
+    for name in ("fx", "fy"):
+        a, b = getattr(world, name), getattr(recording, name)
+        if abs(b - a) > CAMERA_FOCAL_REL_TOL * a:
+            diffs.append(f"{name} {b:g} vs {a:g}")
+    for name, size in (("cx", world.width), ("cy", world.height)):
+        a, b = getattr(world, name), getattr(recording, name)
+        if abs(b - a) > CAMERA_CENTRE_REL_TOL * size:
+            diffs.append(f"{name} {b:g} vs {a:g}")
+    n_k = max(len(world.distortion), len(recording.distortion))
+    kw = list(world.distortion) + [0.0] * (n_k - len(world.distortion))
+    kr = list(recording.distortion) + [0.0] * (n_k - len(recording.distortion))
+    if any(abs(a - b) > CAMERA_DISTORTION_TOL for a, b in zip(kw, kr)):
+        diffs.append("lens distortion")
+    if not np.isclose(world.depth_scale, recording.depth_scale, rtol=1e-6):
+        diffs.append(f"depth scale {recording.depth_scale:g} vs {world.depth_scale:g}")
+    return ", ".join(diffs) if diffs else None
+
+
+def world_camera(metadata: dict[str, Any]) -> CameraIntrinsics | None:
+    """The camera the world's recording was taken with (metadata ``dataset.camera``); None for a
+    world with no recording (imported) or none recorded. A camera that cannot be read is a
+    BundleFormatError naming the field."""
+    ds = metadata.get("dataset")
+    cam = ds.get("camera") if isinstance(ds, dict) else None
+    if cam is None:
+        return None
+    try:
+        if not isinstance(cam, dict):
+            raise ConfigError(f"must be an object, found {type(cam).__name__}")
+        return CameraIntrinsics.from_dict(cam)
+    except ConfigError as exc:
+        raise BundleFormatError("metadata.json", f"field dataset.camera: {exc}") from exc
+
+
+def check_camera(metadata: dict[str, Any], entry_name: str, camera: CameraIntrinsics) -> str | None:
+    """Warn, naming both cameras, when the recording ``entry_name``'s ``camera`` is not the one the
+    world was recorded with (another sensor in the same place is legitimate; a wrong ``--camera``
+    is not, and places every frame wrongly). Returns the sentence logged, None when they agree."""
+    world = world_camera(metadata)
+    diff = camera_difference(world, camera) if world is not None else None
+    if diff is None:
+        return None
+    note = (f"'{entry_name}' is read with camera {_camera_name(camera)}, but this world was recorded with "
+            f"{_camera_name(world)} ({diff}); if that is not another sensor in the same place, give the "
+            "recording's own camera (--camera / --intrinsics)")
+    logger.warning("%s", note)
+    return note
+
+
+def check_start_pose(T_world_cam: np.ndarray, field: Any, max_depth_m: float) -> None:
+    """Refuse a ``--start-pose`` ``[4, 4]`` whose camera centre lies farther than ``max_depth_m``
+    (the farthest depth reading used) from the bounding box of the world's Gaussians ``field``:
+    from there no reading can land on the world, so no frame could be placed (and the pose would
+    be written as the anchor's). A ConfigError naming --start-pose, before any frame is read."""
+    centre = np.asarray(T_world_cam, np.float64)[:3, 3]
+    lo, hi = field.positions.min(axis=0).astype(np.float64), field.positions.max(axis=0).astype(np.float64)
+    distance_m = float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - centre, centre - hi))))
+    if distance_m > max_depth_m:
+        box = " .. ".join("(" + ", ".join(f"{v:.2f}" for v in b) + ")" for b in (lo, hi))
+        raise ConfigError(f"--start-pose: the camera centre ({', '.join(f'{v:g}' for v in centre)}) is {distance_m:.3g} m "
+                          f"from the world (its Gaussians lie within {box} m), farther than the {max_depth_m:g} m "
+                          "the depth readings reach (fusion.max_depth_m): no frame could be placed from there; "
+                          "give a pose in or near the world, or --relocalize")
+
+
+def _none_placed(report: LocalizationReport, name: str) -> str | None:
+    """Why a localization that ran to its end still did not place the recording ``name``: no frame
+    tracked or relocalized although some were tried (an anchor is given, not placed). None when a
+    frame was placed or nothing could be tried."""
+    s = report.summary
+    if s.get("outcome", OUTCOME_COMPLETE) != OUTCOME_COMPLETE or s.get("n_tracked", 0) + s.get("n_relocalized", 0):
+        return None
+    no_depth = set(s.get("no_depth_frames") or ())
+    tried = sum(1 for i, st in enumerate(report.status)
+                if st not in (STATUS_ANCHOR, STATUS_NOT_ATTEMPTED) and i not in no_depth)
+    if not tried:
+        return None
+    start = {"given": "started from the given pose", "relocalized": "no start pose: relocalized"}.get(
+        s.get("start"), "started from the given pose")
+    return (f"localized '{name}' in world '{report.map_id}': none of the {tried} frames tried could be placed "
+            f"({start}), so the world evidently does not contain this recording, or not where it started")
 
 
 def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineConfig,
@@ -32,8 +149,11 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
     """Track ``entry``'s frames through the world bundle at ``world`` and write the report into it
     (``drop_transitions``: the transitions of an earlier report leave with it). The start is
     :func:`atlas_pipeline.scene_memory.metadata.start_pose`'s (``start_pose``: a given
-    ``T_world_cam``). The world's own recording is never a mismatch; another that stops matching
-    the map ends early, and the report says so (``summary["outcome"]``)."""
+    ``T_world_cam``, refused before any frame is read when it is far from the world). The world's
+    own recordings (by content, never by name) are never a mismatch; another that stops matching
+    the map ends early, and one of which no frame was placed ends the same way: the report says
+    so (``summary["outcome"]``). A camera other than the world's is warned about and recorded
+    (``report.camera``, ``summary["world_camera_differs"]``)."""
     from atlas_pipeline.io_utils import check_writable
     from atlas_pipeline.localization.localizer import localize_sequence
     from atlas_pipeline.memory_estimate import check_localization_memory
@@ -44,21 +164,31 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
         update_world_bundle,
     )
     from atlas_pipeline.scene_memory.metadata import start_pose as anchor_pose
+    from atlas_pipeline.scene_memory.metadata import world_recording
     from atlas_pipeline.sensors.registry import load_dataset
 
-    bundle = load_world_bundle(world)  # verifies every file the bundle lists
+    bundle = load_world_bundle(world)  # verifies every file the bundle lists, and its map id and count
     check_bundle_update(world, entry.name, bundle.map_id, drop_transitions=drop_transitions, meta=bundle.metadata)
     check_writable(Path(world).parent)
+    if start_pose is not None:
+        check_start_pose(start_pose, bundle.field, cfg.fusion.max_depth_m)
     manifest = load_dataset(entry, cfg)
     check_localization_memory(cfg, manifest, len(bundle.field))
-    T0, anchor = anchor_pose(bundle.metadata, entry.name, start_pose, relocalize=relocalize)
+    camera_note = check_camera(bundle.metadata, entry.name, manifest.camera)
+    T0, anchor = anchor_pose(bundle.metadata, entry.name, start_pose, relocalize=relocalize,
+                             content_hash=manifest.content_hash)
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
-    own = bundle.metadata.get("dataset", {}).get("name") == entry.name
+    own = world_recording(bundle.metadata, manifest.content_hash) is not None
     report = localize_sequence(manifest, bundle.tracking_model(tracking_voxel_m(bundle, cfg)), cfg.localization,
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
                                prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own,
                                places=bundle.stored_places(manifest.camera))
+    if camera_note is not None:
+        report.summary["world_camera_differs"] = camera_note
+    if (why := _none_placed(report, entry.name)) is not None:
+        logger.warning("%s", why)
+        report.summary.update(outcome=OUTCOME_STOPPED_WORLD_MISMATCH, stopped_reason=why)
     update_world_bundle(world, localization=report, drop_transitions=drop_transitions)
     return report
 
@@ -68,12 +198,13 @@ def log_bundle_transitions(world: str | Path, entry: DatasetEntry, cfg: Pipeline
     ``entry`` it holds (ground-truth poses read again from the dataset when
     ``transitions.pose_source`` is ``ground_truth``); returns the table."""
     from atlas_pipeline.localization.localizer import LocalizationReport
-    from atlas_pipeline.scene_memory.bundle import check_bundle_update, update_world_bundle, verify_bundle_files
+    from atlas_pipeline.scene_memory.bundle import check_bundle_update, load_world_bundle, update_world_bundle
     from atlas_pipeline.sensors.registry import load_dataset
     from atlas_pipeline.transition_log.transitions import log_transitions
 
     world = Path(world)
-    meta = verify_bundle_files(world)
+    bundle = load_world_bundle(world)  # every listed file verified; the count is the Gaussians', not the JSON's
+    meta = bundle.metadata
     if not (world / "localization.json").is_file():
         spec = entry.name if entry.source_file else entry.path
         raise ConfigError(f"{world}: no localization.json; run `atlas-gs localize --world {world} --input {spec}` first")
@@ -83,6 +214,6 @@ def log_bundle_transitions(world: str | Path, entry: DatasetEntry, cfg: Pipeline
     check_bundle_update(world, transitions_of={"dataset": entry.name, "map_id": report.map_id}, meta=meta)
     if cfg.transitions.pose_source == "ground_truth":  # refresh GT from the dataset, not the report
         report.T_world_cam_gt = load_dataset(entry, cfg).T_world_cam_gt
-    table = log_transitions(report, entry.name, int(meta.get("n_gaussians", 0)), cfg)
+    table = log_transitions(report, entry.name, bundle.n_gaussians, cfg)
     update_world_bundle(world, transitions=table)
     return table

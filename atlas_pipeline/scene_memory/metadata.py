@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pyarrow as pa
 
+from atlas_pipeline.errors import BundleFormatError
 from atlas_pipeline.gaussian_world.field import GaussianField
 from atlas_pipeline.localization.localizer import LocalizationReport
 from atlas_pipeline.scene_memory.bundle import load_world_bundle, write_bundle_files
@@ -27,7 +28,7 @@ if TYPE_CHECKING:
     from atlas_pipeline.gaussian_world.builder import GaussianWorld
     from atlas_pipeline.sensors.tum import FrameManifest
 
-__all__ = ["WorldBundleArtifact", "bundle_metadata", "bundle_lineage", "start_pose"]
+__all__ = ["WorldBundleArtifact", "bundle_metadata", "bundle_lineage", "start_pose", "world_recording"]
 
 # The lineage keys every builder shares, in the order metadata.json lists them; provenance a
 # caller adds (upstream data versions, code versions ...) follows them, and ``parent`` comes last.
@@ -90,23 +91,93 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
     }
 
 
-def start_pose(metadata: dict[str, Any], dataset: str, T_world_cam: np.ndarray | None = None,
-               relocalize: bool = False) -> tuple[np.ndarray | None, int]:
-    """Where localizing ``dataset`` in the bundle with ``metadata`` starts: ``(T_world_cam, frame)``.
+def _section(metadata: dict[str, Any], key: str) -> dict[str, Any] | None:
+    """``metadata[key]`` when it is an object; None when absent, null (an imported world's
+    ``dataset``) or of another type."""
+    value = metadata.get(key)
+    return value if isinstance(value, dict) else None
 
-    A given ``T_world_cam`` (of frame 0), else the bundle's own anchor when the bundle was built
-    from the same dataset (and ``relocalize`` is off), else nowhere (``None, 0``): the first frame
-    is then relocalized in the world with no initial pose.
+
+def world_recording(metadata: dict[str, Any], content_hash: str) -> dict[str, Any] | None:
+    """The recording of the world with ``metadata`` whose frames have ``content_hash``
+    (``FrameManifest.content_hash``): its ``dataset``, or one of its ``recordings`` (every
+    recording an extended world was mapped from, where the bundle lists them). None for any other
+    recording, for an empty hash (nothing to prove identity with), and for a world with no recording
+    (imported from a PLY). Names are never compared: a copy under the world's name is another
+    recording unless its content is the same."""
+    if not content_hash:
+        return None
+    recordings = metadata.get("recordings")
+    candidates = [metadata.get("dataset"), *(recordings if isinstance(recordings, list) else ())]
+    for rec in candidates:
+        if isinstance(rec, dict) and rec.get("content_hash") == content_hash:
+            return rec
+    return None
+
+
+def _anchor_refused(metadata: dict[str, Any], dataset: str, content_hash: str) -> tuple[str, int] | None:
+    """Why the world's anchor is no start for the recording ``dataset`` with ``content_hash``, and
+    the level to log it at; None when the anchor is that recording's (its main ``dataset``, by
+    content, and the anchor is in it)."""
+    ds = _section(metadata, "dataset")
+    if ds is None:
+        return ("this world has no recording (imported from a PLY?), so no anchor: relocalizing the first frame "
+                f"of '{dataset}' with no prior pose (--start-pose gives one)"), logging.WARNING
+    anchor = _section(metadata, "anchor")
+    if anchor is None:
+        return f"this world records no anchor: relocalizing the first frame of '{dataset}'", logging.INFO
+    world_hash = ds.get("content_hash") if isinstance(ds.get("content_hash"), str) else ""
+    if not content_hash or content_hash != world_hash:
+        if ds.get("name") == dataset:  # the name says "the same recording", the content does not
+            return (f"'{dataset}' has the name of the recording this world was built from, but not its frames "
+                    f"(content hash {content_hash[:16] or 'unknown'}, the world's {world_hash[:16] or 'unknown'}): "
+                    "another recording, or another selection of its frames, so the world's anchor is no start "
+                    "for it; relocalizing its first frame"), logging.WARNING
+        return (f"no start pose for '{dataset}' in this world (built from '{ds.get('name')}'): relocalizing its "
+                "first frame"), logging.INFO
+    # The anchor belongs to the recording it names; one that does not name it is the first
+    # keyframe's, which in a world extended from another bundle lies in the parent's recording.
+    anchor_hash = anchor.get("content_hash")
+    extended = bool((_section(metadata, "lineage") or {}).get("parent"))
+    if (isinstance(anchor_hash, str) and anchor_hash != content_hash) or (anchor_hash is None and extended):
+        return (f"this world was extended from another bundle and its anchor is not recorded as a frame of "
+                f"'{dataset}': relocalizing its first frame"), logging.INFO
+    return None
+
+
+def start_pose(metadata: dict[str, Any], dataset: str, T_world_cam: np.ndarray | None = None,
+               relocalize: bool = False, content_hash: str = "") -> tuple[np.ndarray | None, int]:
+    """Where localizing the recording ``dataset`` (frames of ``content_hash``) in the bundle with
+    ``metadata`` starts: ``(T_world_cam, frame)``.
+
+    A given ``T_world_cam`` (of frame 0); else, unless ``relocalize``, the bundle's anchor when the
+    recording is provably the one the anchor is in (:func:`world_recording` of its main
+    ``dataset``, by content: a recording under the same name with other frames is not); else
+    nowhere (``None, 0``): the first frame is then relocalized in the world with no initial pose,
+    and one line says why (a warning where a user may have expected the anchor: an imported world,
+    a recording named as the world's but with other frames).
     """
     if T_world_cam is not None:
         return T_world_cam, 0
-    anchor = metadata.get("anchor")
-    if relocalize or metadata.get("dataset", {}).get("name") != dataset or anchor is None:
-        logging.getLogger("atlas_pipeline").info(
-            "no start pose for '%s' in this world (built from '%s'): relocalizing its first frame",
-            dataset, metadata.get("dataset", {}).get("name"))
+    log = logging.getLogger("atlas_pipeline")
+    if relocalize:
+        log.info("relocalizing the first frame of '%s' (asked for), not starting at the world's anchor", dataset)
         return None, 0
-    return np.asarray(anchor["T_world_cam"], np.float64), int(anchor["frame_index"])
+    refused = _anchor_refused(metadata, dataset, content_hash)
+    if refused is not None:
+        log.log(refused[1], "%s", refused[0])
+        return None, 0
+    anchor = _section(metadata, "anchor") or {}
+    try:
+        T_anchor = np.asarray(anchor.get("T_world_cam"), np.float64)
+    except (TypeError, ValueError):
+        T_anchor = np.zeros(0)
+    frame = anchor.get("frame_index")
+    if T_anchor.shape != (4, 4) or not np.isfinite(T_anchor).all():
+        raise BundleFormatError("metadata.json", "field anchor.T_world_cam must be a finite 4x4 matrix")
+    if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0:
+        raise BundleFormatError("metadata.json", f"field anchor.frame_index must be a frame number >= 0, got {frame!r}")
+    return T_anchor, frame
 
 
 @dataclass

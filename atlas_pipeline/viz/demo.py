@@ -195,7 +195,7 @@ def write_bundle_video(world: str | Path, cfg: PipelineConfig, video: str | Path
     check_writable(video.parent)
     bundle = load_world_bundle(world)
     dataset = bundle.metadata.get("dataset") or {}
-    cam = CameraIntrinsics.from_dict(dataset["camera"]) if "camera" in dataset else TUM_CAMERAS["default"]
+    cam = CameraIntrinsics.from_dict(dataset["camera"]) if dataset.get("camera") else TUM_CAMERAS["default"]
     if mode == "trajectory":
         if not (world / "localization.json").is_file():
             raise ConfigError(f"{world}: trajectory mode needs localization.json; run `atlas-gs localize` first")

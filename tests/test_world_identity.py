@@ -1,0 +1,365 @@
+"""A world knows what it holds: the anchor only for its own recording (by content, never by name),
+identity facts (map id, count) from its checksummed Gaussians, an imported world localized in, a
+recording's camera against the world's, and a start pose far from the world refused."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from assets.cli import main
+from atlas_pipeline.config import load_profile
+from atlas_pipeline.errors import BundleFormatError, ConfigError
+from atlas_pipeline.gaussian_world.field import GaussianField
+from atlas_pipeline.geometry import tq_from_pose
+from atlas_pipeline.localization.localizer import OUTCOME_COMPLETE, OUTCOME_STOPPED_WORLD_MISMATCH, LocalizationReport
+from atlas_pipeline.localization.sequence import STATUS_ANCHOR, STATUS_LOST
+from atlas_pipeline.scene_memory.bundle import load_world_bundle, map_id_of, read_lineage, write_world_bundle
+from atlas_pipeline.scene_memory.localize import camera_difference, check_camera, check_start_pose, tracking_voxel_m
+from atlas_pipeline.scene_memory.metadata import start_pose, world_recording
+from atlas_pipeline.sensors.camera import TUM_CAMERAS
+from atlas_pipeline.sensors.tum import load_tum_sequence
+
+from tests.conftest import tum_folder
+
+TEDDY = "tum_fr3_teddy_100"
+# Two stretches of the teddy recording: the world is mapped from A; B is another stretch of the
+# same room (the camera has moved on), which a copy under A's folder name must not pass for.
+FRAMES_A = (4, 16)  # teddy's ground truth starts at its frame 4
+FRAMES_B = (22, 34)
+MAX_PLACED_ERROR_M = 0.05  # a frame placed where it is (the world shares the ground truth's frame)
+
+
+def _json_out(capsys) -> dict:
+    return json.loads(capsys.readouterr().out)
+
+
+# ---- the anchor: the world's own recording, by content -----------------------------------------
+
+ANCHOR = {"frame_index": 3, "T_world_cam": np.eye(4).tolist()}
+BUILT = {"dataset": {"name": "a", "content_hash": "hA"}, "anchor": ANCHOR, "lineage": {"parent": None}}
+IMPORTED = {"dataset": None, "gaussians": {"voxel_size_m": 0.02, "pose_source": "imported"}}
+EXTENDED_OLD = {**BUILT, "lineage": {"parent": {"path": "/w/parent"}}}  # its anchor names no recording
+EXTENDED = {**BUILT, "anchor": {**ANCHOR, "content_hash": "hA"}, "lineage": {"parent": {"path": "/w/parent"}},
+            "recordings": [{"name": "p", "root": "/p", "content_hash": "hP"},
+                           {"name": "a", "root": "/a", "content_hash": "hA"}]}
+
+
+@pytest.mark.parametrize("meta, name, content_hash, anchored, says", [
+    (BUILT, "a", "hA", True, None),  # the world's own recording
+    (BUILT, "a-copy", "hA", True, None),  # the same frames under another name: content decides
+    (BUILT, "a", "hB", False, "has the name of the recording this world was built from, but not its frames"),
+    (BUILT, "b", "hB", False, None),  # another recording: relocalized, said at INFO
+    (BUILT, "a", "", False, "content hash unknown"),  # nothing to prove it with
+    ({**BUILT, "anchor": None}, "a", "hA", False, None),
+    ({"dataset": {"name": "a", "content_hash": None}, "anchor": ANCHOR}, "a", "hA", False, "not its frames"),
+    (IMPORTED, "a", "hA", False, "this world has no recording (imported from a PLY?)"),
+    (EXTENDED_OLD, "a", "hA", False, None),  # whose frame the anchor is cannot be proved
+    (EXTENDED, "a", "hA", True, None),
+    (EXTENDED, "p", "hP", False, None),  # one of its recordings, but not the one the anchor is in
+])
+def test_the_anchor_is_only_for_the_recording_it_is_in_by_content(caplog, meta, name, content_hash, anchored, says):
+    with caplog.at_level(logging.INFO, logger="atlas_pipeline"):
+        T, frame = start_pose(meta, name, content_hash=content_hash)
+    if anchored:
+        assert frame == 3 and np.array_equal(T, np.eye(4))
+    else:
+        assert (T, frame) == (None, 0)
+        assert len(caplog.records) == 1 and name in caplog.text  # one line says why
+    if says:
+        assert says in caplog.text and caplog.records[0].levelno == logging.WARNING
+
+
+@pytest.mark.parametrize("meta", [BUILT, IMPORTED, EXTENDED])
+def test_a_given_start_pose_or_relocalize_wins_in_every_world(meta):
+    T0 = np.diag([1.0, -1.0, -1.0, 1.0])
+    T, frame = start_pose(meta, "a", T0, content_hash="hA")
+    assert frame == 0 and T is T0
+    assert start_pose(meta, "a", relocalize=True, content_hash="hA") == (None, 0)
+
+
+@pytest.mark.parametrize("meta, content_hash, own", [
+    (BUILT, "hA", True), (BUILT, "hB", False), (BUILT, "", False), (IMPORTED, "hA", False),
+    (EXTENDED, "hP", True), ({"dataset": {"name": "a"}, "recordings": None}, "hA", False),
+    ({"dataset": {"name": "a"}, "recordings": [None, "x", {"content_hash": "hA"}]}, "hA", True),
+])
+def test_world_recording_matches_by_content_and_tolerates_missing_or_null_keys(meta, content_hash, own):
+    assert (world_recording(meta, content_hash) is not None) == own
+
+
+@pytest.mark.parametrize("anchor, field", [({"frame_index": 0, "T_world_cam": np.eye(3).tolist()}, "anchor.T_world_cam"),
+                                           ({"frame_index": 0, "T_world_cam": "x"}, "anchor.T_world_cam"),
+                                           ({"frame_index": -1, "T_world_cam": np.eye(4).tolist()}, "anchor.frame_index"),
+                                           ({"frame_index": "0", "T_world_cam": np.eye(4).tolist()}, "anchor.frame_index")])
+def test_a_malformed_anchor_names_the_field(anchor, field):
+    with pytest.raises(BundleFormatError, match=f"metadata.json: field {field}"):
+        start_pose({**BUILT, "anchor": anchor}, "a", content_hash="hA")
+
+
+# ---- identity facts from the checksummed Gaussians ---------------------------------------------
+
+def _field(n: int = 50, seed: int = 0) -> GaussianField:
+    """A small random field within the unit cube."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return GaussianField(rng.uniform(0, 1, (n, 3)), np.full((n, 3), 0.02), q / np.linalg.norm(q, axis=1, keepdims=True),
+                         rng.integers(0, 256, (n, 3)), np.full(n, 0.9), np.arange(n, dtype=np.uint64) + 1)
+
+
+@pytest.fixture
+def small_bundle(tmp_path) -> Path:
+    return write_world_bundle(tmp_path / "w", _field(), {"name": "w", "dataset": None})
+
+
+def _edit(bundle: Path, **fields) -> None:
+    path = bundle / "metadata.json"
+    meta = json.loads(path.read_text())
+    meta.update(fields)
+    path.write_text(json.dumps(meta))
+
+
+def test_a_bundle_states_the_identity_of_its_gaussians(small_bundle):
+    b = load_world_bundle(small_bundle)
+    assert b.map_id == map_id_of(_field()) == b.metadata["map_id"] and b.n_gaussians == 50
+    assert load_world_bundle(small_bundle, source="ply").map_id == b.map_id  # the PLY holds the same world
+    lin = read_lineage(small_bundle, verify=True)
+    assert (lin["map_id"], lin["n_gaussians"]) == (b.map_id, 50)
+
+
+@pytest.mark.parametrize("edit, field", [({"n_gaussians": 5}, "n_gaussians"), ({"map_id": "0123456789abcdef"}, "map_id"),
+                                         ({"map_id": ""}, "map_id"), ({"n_gaussians": 51}, "n_gaussians")])
+def test_edited_identity_facts_in_metadata_are_refused_naming_the_field(isolated, small_bundle, capsys, edit, field):
+    _edit(small_bundle, **edit)
+    for source in ("bin", "ply"):
+        with pytest.raises(BundleFormatError, match=rf"metadata.json: field {field} is .* \(checksum verified\)"):
+            load_world_bundle(small_bundle, source=source)
+    with pytest.raises(BundleFormatError, match=f"field {field}"):
+        read_lineage(small_bundle, verify=True)
+    assert main(["lineage", str(small_bundle)]) == 2
+    err = capsys.readouterr().err
+    assert "metadata.json" in err and f"field {field}" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("gaussians", [None, {"voxel_size_m": None}, {}])
+def test_null_sections_fall_back_to_the_profiles_voxel(small_bundle, gaussians):
+    _edit(small_bundle, gaussians=gaussians)
+    b = load_world_bundle(small_bundle)
+    cfg = load_profile("default")
+    assert tracking_voxel_m(b, cfg) == cfg.mapping.voxel_size_m
+    assert b.tracking_model().fixed  # the imported-world path (surfels from the Gaussian centres) reads it too
+
+
+# ---- a recording's camera against the world's --------------------------------------------------
+
+F1, F2, F3, DEFAULT = (TUM_CAMERAS[k] for k in ("freiburg1", "freiburg2", "freiburg3", "default"))
+
+
+@pytest.mark.parametrize("world, recording, differs", [
+    (F3, F3, None),
+    (F1, F1, None),
+    (F3, F1, "fx 517.306 vs 535.4"),
+    (F1, F2, "cx 325.141 vs 318.643"),
+    (F3, DEFAULT, "fx 525 vs 535.4"),
+    (F3, F3.scaled(0.5), "image size 320x240 vs 640x480"),
+    (F3, type(F3)(640, 480, 535.4 * 1.003, 539.2, 320.1 + 1.5, 247.6, 5000.0, ()), None),  # a recalibration
+    (F3, type(F3)(640, 480, 535.4, 539.2, 320.1, 247.6, 1000.0, ()), "depth scale 1000 vs 5000"),
+    (F3, type(F3)(640, 480, 535.4, 539.2, 320.1, 247.6, 5000.0, (0.2, 0.0, 0.0, 0.0, 0.0)), "lens distortion"),
+])
+def test_camera_difference(world, recording, differs):
+    got = camera_difference(world, recording)
+    assert got is None if differs is None else differs in got
+
+
+def test_another_camera_is_a_warning_naming_both(caplog):
+    meta = {"dataset": {"name": "a", "camera": F1.to_dict()}}
+    with caplog.at_level(logging.WARNING):
+        note = check_camera(meta, "teddy", F3)
+    assert note is not None and note in caplog.text
+    assert "'teddy' is read with camera freiburg3 (fx 535.4" in note and "recorded with freiburg1 (fx 517.306" in note
+    assert check_camera(meta, "teddy", F1) is None and check_camera(IMPORTED, "teddy", F3) is None
+    with pytest.raises(BundleFormatError, match="metadata.json: field dataset.camera"):
+        check_camera({"dataset": {"camera": {"fx": 1}}}, "teddy", F3)
+
+
+# ---- a start pose far from the world -----------------------------------------------------------
+
+def _pose(x: float, y: float = 0.5, z: float = 0.5) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+@pytest.mark.parametrize("x, refused", [(0.5, False), (-3.0, False), (1.0 + 3.9, False), (1.0 + 4.1, True),
+                                        (1e9, True), (-1e9, True)])
+def test_a_start_pose_farther_than_the_depth_range_from_the_world_is_refused(x, refused):
+    field = _field()  # Gaussians within the unit cube
+    margin_m = 4.0
+    if not refused:
+        check_start_pose(_pose(x), field, margin_m)
+        return
+    with pytest.raises(ConfigError, match=r"--start-pose: the camera centre .* m from the world .*\(fusion.max_depth_m\)"):
+        check_start_pose(_pose(x), field, margin_m)
+
+
+# ---- the camera in localization.json -----------------------------------------------------------
+
+@pytest.mark.parametrize("camera", [F3.to_dict(), None])
+def test_the_reports_camera_is_saved_and_old_reports_still_load(tmp_path, camera):
+    n = 3
+    nan = np.full(n, np.nan)
+    rep = LocalizationReport("a", "m", np.arange(n, dtype=float), np.tile(np.eye(4), (n, 1, 1)), ["tracked"] * n,
+                             nan, nan, nan, np.full((n, 4, 4), np.nan), nan, nan, {"outcome": OUTCOME_COMPLETE},
+                             camera=camera)
+    rep.save(tmp_path)
+    data = json.loads((tmp_path / "localization.json").read_text())
+    assert ("camera" in data) == (camera is not None)  # a report without one reads as before
+    assert LocalizationReport.load(tmp_path).camera == camera
+
+
+# ---- on real frames ----------------------------------------------------------------------------
+
+def _trim(src: Path, dst: Path, frames: tuple[int, int]) -> Path:
+    """A TUM folder holding frames ``frames[0] .. frames[1] - 1`` of ``src`` (images copied)."""
+    (dst / "rgb").mkdir(parents=True)
+    (dst / "depth").mkdir()
+    for name in ("rgb.txt", "depth.txt"):
+        lines = (src / name).read_text().splitlines()
+        rows = [ln for ln in lines if ln.strip() and not ln.startswith("#")][frames[0]:frames[1]]
+        (dst / name).write_text("\n".join([ln for ln in lines if ln.startswith("#")] + rows) + "\n")
+        for row in rows:
+            shutil.copy2(src / row.split()[1], dst / row.split()[1])
+    shutil.copy2(src / "groundtruth.txt", dst / "groundtruth.txt")
+    return dst
+
+
+@pytest.fixture(scope="module")
+def teddy_world(tmp_path_factory):
+    """World ``wA`` built from teddy's frames A (folder ``A``, named ``a``), and B's frames in a
+    folder also named ``A``: ``(root, world, A, other_A)``."""
+    from atlas_pipeline.scene_memory.build import build_world_bundle
+    from atlas_pipeline.sensors.registry import dataset_from_spec
+
+    src = tum_folder(TEDDY)
+    root = tmp_path_factory.mktemp("identity")
+    a = _trim(src, root / "A", FRAMES_A)
+    other = _trim(src, root / "other" / "A", FRAMES_B)
+    world = root / "wA"
+    build_world_bundle(dataset_from_spec(str(a), "freiburg3"), load_profile("default"), world)
+    return root, world, a, other
+
+
+def _localize(capsys, world: Path, recording: Path, *options: str) -> tuple[int, dict, str]:
+    code = main(["localize", "--world", str(world), "--input", str(recording), "--camera", "freiburg3", *options])
+    captured = capsys.readouterr()
+    return code, json.loads(captured.out) if captured.out.strip() else {}, captured.err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["own", "copy under another name", "other frames under the same name"])
+def test_a_recording_gets_the_worlds_anchor_only_when_its_frames_are_the_worlds(isolated, teddy_world, capsys, case):
+    root, world_a, a, other = teddy_world
+    world = isolated / "w"
+    shutil.copytree(world_a, world)
+    recording = {"own": a, "copy under another name": root / "a-copy",
+                 "other frames under the same name": other}[case]
+    if case == "copy under another name" and not recording.exists():
+        shutil.copytree(a, recording)
+    anchor = json.loads((world / "metadata.json").read_text())["anchor"]
+    code, summary, err = _localize(capsys, world, recording)
+    assert code == 0 and summary["outcome"] == OUTCOME_COMPLETE
+    rep = LocalizationReport.load(world)
+    anchored = case != "other frames under the same name"
+    assert (rep.status[anchor["frame_index"]] == STATUS_ANCHOR) == anchored
+    assert summary["start"] == ("given" if anchored else "relocalized")
+    i = anchor["frame_index"]
+    gt = load_tum_sequence(recording, TUM_CAMERAS["freiburg3"], "a").T_world_cam_gt  # the bundle keeps none
+    if not anchored:
+        assert "'a' has the name of the recording this world was built from, but not its frames" in err
+        # Where A's anchor would have put this frame is not where it was: the test can tell them apart.
+        assert np.linalg.norm(gt[i][:3, 3] - np.asarray(anchor["T_world_cam"])[:3, 3]) > \
+            2 * MAX_PLACED_ERROR_M
+    assert np.linalg.norm(rep.T_world_cam[i][:3, 3] - gt[i][:3, 3]) < MAX_PLACED_ERROR_M
+    # Every frame where it is (the world was mapped from ground truth, so errors are absolute).
+    assert summary["n_tracked"] + summary["n_relocalized"] >= len(rep.status) - 1
+    assert summary["rmse_t_unaligned_m"] < MAX_PLACED_ERROR_M
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["--relocalize", "--start-pose", "neither"])
+def test_an_imported_world_is_localized_in(isolated, teddy_world, capsys, how):
+    _, world_a, a, _ = teddy_world
+    imported = isolated / "imp"
+    assert main(["import-ply", str(world_a / "gaussians.ply"), "--output", str(imported)]) == 0
+    capsys.readouterr()
+    options = {"--relocalize": ["--relocalize"], "neither": []}.get(how)
+    if options is None:
+        gt = load_tum_sequence(a, TUM_CAMERAS["freiburg3"], "a").T_world_cam_gt[0]
+        assert np.isfinite(gt).all()  # FRAMES_A starts where the ground truth does
+        t, q = tq_from_pose(gt)
+        options = ["--start-pose", " ".join(f"{v:.6f}" for v in (*t, *q))]
+    code, summary, err = _localize(capsys, imported, a, *options)
+    assert code == 0 and summary["outcome"] == OUTCOME_COMPLETE, err
+    assert summary["start"] == ("given" if how == "--start-pose" else "relocalized")
+    assert ("this world has no recording (imported from a PLY?)" in err) == (how == "neither")
+    assert summary["n_tracked"] + summary["n_relocalized"] >= FRAMES_A[1] - FRAMES_A[0] - 1
+    assert summary["rmse_t_unaligned_m"] < MAX_PLACED_ERROR_M
+    assert json.loads((imported / "localization.json").read_text())["camera"]["fx"] == TUM_CAMERAS["freiburg3"].fx
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("camera, warned", [("freiburg3", False), ("freiburg1", True)])
+def test_the_camera_a_world_is_localized_with_is_recorded_and_another_is_named(isolated, teddy_world, capsys,
+                                                                               camera, warned):
+    _, world_a, a, _ = teddy_world
+    world = isolated / "w"
+    shutil.copytree(world_a, world)
+    code = main(["localize", "--world", str(world), "--input", str(a), "--camera", camera])
+    captured = capsys.readouterr()
+    assert code in (0, 3)  # another camera may well fail to place the frames; what counts is what is said
+    saved = json.loads((world / "localization.json").read_text())
+    assert saved["camera"] == TUM_CAMERAS[camera].to_dict()
+    said = "'a' is read with camera freiburg1 (fx 517.306"
+    assert (said in captured.err) == warned and ("recorded with freiburg3" in captured.err) == warned
+    assert ("world_camera_differs" in saved["summary"]) == warned
+
+
+@pytest.mark.slow
+def test_a_start_pose_far_from_the_world_is_refused_and_one_that_places_nothing_exits_3(isolated, teddy_world, capsys):
+    _, world_a, a, _ = teddy_world
+    world = isolated / "w"
+    shutil.copytree(world_a, world)
+    before = sorted(p.name for p in world.iterdir())
+    code, _, err = _localize(capsys, world, a, "--start-pose", "1e9 0 0 0 0 0 1")
+    assert code == 2 and "--start-pose: the camera centre (1e+09, 0, 0) is" in err and "Traceback" not in err
+    assert sorted(p.name for p in world.iterdir()) == before  # nothing written
+    # Within reach of the world but 2 m from where the recording starts, with relocalization off:
+    # tracking from there places no frame, and the run says the world does not hold the frames.
+    anchor = np.asarray(json.loads((world / "metadata.json").read_text())["anchor"]["T_world_cam"])
+    t, q = tq_from_pose(anchor)
+    start = " ".join(f"{v:.6f}" for v in (t[0] + 2.0, t[1], t[2], *q))
+    code, summary, err = _localize(capsys, world, a, "--start-pose", start, "--set", "localization.relocalize=false")
+    assert code == 3, err
+    assert summary["outcome"] == OUTCOME_STOPPED_WORLD_MISMATCH and "none of the" in summary["stopped_reason"]
+    rep = LocalizationReport.load(world)
+    assert rep.summary["outcome"] == OUTCOME_STOPPED_WORLD_MISMATCH
+    assert set(rep.status) <= {STATUS_ANCHOR, STATUS_LOST}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["localize", "log-transitions", "lineage"])
+def test_a_real_world_with_an_edited_count_is_refused_by_every_command(isolated, teddy_world, capsys, command):
+    _, world_a, a, _ = teddy_world
+    world = isolated / "w"
+    shutil.copytree(world_a, world)
+    _edit(world, n_gaussians=5)
+    args = [command, str(world)] if command == "lineage" else \
+        [command, "--world", str(world), "--input", str(a), "--camera", "freiburg3"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "metadata.json: field n_gaussians is 5, but gaussians.bin (checksum verified) holds" in err
+    assert not (world / "localization.json").exists() and not (world / "transitions.parquet").exists()
