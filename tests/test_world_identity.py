@@ -363,3 +363,37 @@ def test_a_real_world_with_an_edited_count_is_refused_by_every_command(isolated,
     err = capsys.readouterr().err
     assert "metadata.json: field n_gaussians is 5, but gaussians.bin (checksum verified) holds" in err
     assert not (world / "localization.json").exists() and not (world / "transitions.parquet").exists()
+
+
+@pytest.fixture(scope="module")
+def extended_world(teddy_world):
+    """``wA`` extended with B's frames (whose folder is also named ``A``): ``(world, A, B)``."""
+    from atlas_pipeline.scene_memory.build import build_world_bundle
+    from atlas_pipeline.sensors.registry import dataset_from_spec
+
+    root, world_a, a, other = teddy_world
+    world = root / "wAB"
+    if not world.exists():
+        build_world_bundle(dataset_from_spec(str(other), "freiburg3"), load_profile("default"), world, extend=world_a)
+    return world, a, other
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which", ["parent's recording", "extension's recording"])
+def test_in_an_extended_world_every_frame_is_placed_where_it_is(isolated, extended_world, capsys, which):
+    """Both recordings carry the name 'a'; the anchor (the extension's first keyframe) may start
+    only the extension's own frames, and no frame of either is put at the other's pose."""
+    world_ab, a, b = extended_world
+    world = isolated / "w"
+    shutil.copytree(world_ab, world)
+    recording = a if which == "parent's recording" else b
+    code, summary, err = _localize(capsys, world, recording)
+    assert code == 0 and summary["outcome"] == OUTCOME_COMPLETE, err
+    rep = LocalizationReport.load(world)
+    if which == "parent's recording":
+        assert STATUS_ANCHOR not in rep.status
+    gt = load_tum_sequence(recording, TUM_CAMERAS["freiburg3"], "a").T_world_cam_gt
+    placed = np.isfinite(rep.T_world_cam).all(axis=(1, 2))
+    assert placed.sum() >= len(rep.status) - 1
+    errors_m = np.linalg.norm(rep.T_world_cam[placed][:, :3, 3] - gt[placed][:, :3, 3], axis=1)
+    assert errors_m.max() < MAX_PLACED_ERROR_M
