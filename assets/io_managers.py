@@ -105,7 +105,9 @@ def artifacts_root() -> Path:
     env = os.environ.get("ATLAS_ARTIFACTS_DIR")
     if env and is_remote(env):
         return object_store(env).root
-    return Path(env).resolve() if env else project_root() / "artifacts"
+    from atlas_pipeline.io_utils import env_folder
+
+    return env_folder("ATLAS_ARTIFACTS_DIR", env) if env else project_root() / "artifacts"
 
 
 def artifact_dir(root: str | Path, asset: str, partition: str) -> Path:

@@ -14,6 +14,7 @@ import functools
 import json
 import logging
 import os
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -168,12 +169,17 @@ def stale_partitions(launch: Launch) -> dict[str, dict[str, list[str]]]:
     return {p: stale_assets(launch.defs, launch.instance, p, launch.atlas) for p in launch.partitions}
 
 
+# How Dagster starts the message of an error it caught: its class's qualified name. For the
+# library's own errors, whose message says everything, the name is left out.
+LIBRARY_ERROR_PREFIX = re.compile(r"^atlas_pipeline\.errors\.\w+: ")
+
+
 def step_error(ev: Any) -> str:
     """The message of a failed step's error (the cause's, where the step wrapped one)."""
     err = getattr(ev.event_specific_data, "error", None)
     if err is None:
         return "failed"
-    return (err.cause.message if err.cause else err.message).strip()
+    return LIBRARY_ERROR_PREFIX.sub("", (err.cause.message if err.cause else err.message).strip())
 
 
 def ran(result) -> dict[str, list[str]]:

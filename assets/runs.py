@@ -161,41 +161,54 @@ def signal_dispositions_kept() -> Iterator[None]:
                 signal.signal(s, handler)
 
 
-# ---- Ctrl-C: one line and status 130 -------------------------------------------------------------
+# ---- Ctrl-C and SIGTERM: one line and status 130 or 143 ------------------------------------------
 
 INTERRUPTED_EXIT = 130  # 128 + SIGINT: what a shell reports for a command Ctrl-C ended
 INTERRUPTED_MESSAGE = "interrupted; nothing half-written is left"
+TERMINATED_EXIT = 143  # 128 + SIGTERM: what a shell reports for a command `kill` (or a supervisor) ended
+TERMINATED_MESSAGE = "terminated (SIGTERM); nothing half-written is left"
+# How a signal ends a command: (exit status, its one line).
+_ENDINGS = {signal.SIGINT: (INTERRUPTED_EXIT, INTERRUPTED_MESSAGE),
+            signal.SIGTERM: (TERMINATED_EXIT, TERMINATED_MESSAGE)}
+# How long the children a SIGTERM is passed on to (pool workers) get to end themselves, removing
+# their own staging, before they are killed.
+CHILD_GRACE_S = 10.0
+_CHILD_POLL_S = 0.05
 
 
-def end_interrupted(say: bool = True) -> None:
-    """Ctrl-C's end of a command: this process's staging removed, one line (unless ``say`` is
-    False: a pool worker, whose parent says it), status 130, at once.
+def end_interrupted(say: bool = True, signum: int = signal.SIGINT) -> None:
+    """The end of a command that Ctrl-C (``signum`` SIGINT) or SIGTERM stopped: this process's
+    staging removed, one line (unless ``say`` is False: a pool worker, whose parent says it), status
+    130 or 143, at once.
 
     Raising KeyboardInterrupt instead (Python's default, and Dagster's interrupt inside a step)
     lands in whatever runs: inside numba's kernels and compiler callbacks it is dropped (the command
     goes on), turns into a SystemError, or crashes the process. Every output is written under a
     temporary name and renamed whole, and a folder swap under way is repaired by the next open, so
-    ending here leaves no half-written file; a Dagster run left in progress is marked failed when
-    atlas-gs next opens the instance (:func:`reap_dead_runs`). Children in process groups of their
-    own, which the Ctrl-C did not reach, are stopped first (:func:`stop_detached_children`)."""
+    ending here leaves no half-written file and starts no later step; a Dagster run left in
+    progress is marked failed when atlas-gs next opens the instance (:func:`reap_dead_runs`).
+    Children in process groups of their own, which a Ctrl-C does not reach, are stopped first
+    (:func:`stop_detached_children`); a SIGTERM, sent to this process alone, is passed on to the
+    children of its own group (pool workers, :func:`stop_group_children`)."""
+    if signum != signal.SIGINT:
+        stop_group_children(signum)
     stop_detached_children()
     discard_own_staging()
+    code, message = _ENDINGS.get(signum, _ENDINGS[signal.SIGINT])
     if say:
         with contextlib.suppress(OSError):
-            os.write(2, (INTERRUPTED_MESSAGE + "\n").encode())
-    os._exit(INTERRUPTED_EXIT)
+            os.write(2, (message + "\n").encode())
+    os._exit(code)
 
 
-def detached_children(pid: int | None = None) -> list[int]:
-    """Process ids of the children of ``pid`` (this process) that run in a process group other than
-    its own, from ``/proc`` (empty where there is none)."""
-    pid = os.getpid() if pid is None else pid
-    group = os.getpgid(pid)
+def _children(pid: int) -> dict[int, int]:
+    """The children of process ``pid``, each with its process group, from ``/proc`` (empty where
+    there is none)."""
     try:
         entries = os.listdir("/proc")
     except OSError:
-        return []
-    found = []
+        return {}
+    found = {}
     for entry in entries:
         if not entry.isdigit():
             continue
@@ -204,9 +217,17 @@ def detached_children(pid: int | None = None) -> list[int]:
         except OSError:  # gone meanwhile, or not ours to read
             continue
         fields = stat.rsplit(")", 1)[-1].split()  # after "pid (comm)": state ppid pgrp ...
-        if len(fields) >= 3 and int(fields[1]) == pid and int(fields[2]) != group:
-            found.append(int(entry))
+        if len(fields) >= 3 and int(fields[1]) == pid:
+            found[int(entry)] = int(fields[2])
     return found
+
+
+def detached_children(pid: int | None = None) -> list[int]:
+    """Process ids of the children of ``pid`` (this process) that run in a process group other than
+    its own, from ``/proc`` (empty where there is none)."""
+    pid = os.getpid() if pid is None else pid
+    group = os.getpgid(pid)
+    return [child for child, pgrp in _children(pid).items() if pgrp != group]
 
 
 def stop_detached_children() -> None:
@@ -222,20 +243,64 @@ def stop_detached_children() -> None:
             os.waitpid(child, 0)
 
 
+def _signals_ignored(pid: int) -> int:
+    """The mask of signals process ``pid`` ignores (bit ``n - 1`` for signal ``n``; 0 when unknown)."""
+    try:
+        for line in Path("/proc", str(pid), "status").read_text().splitlines():
+            if line.startswith("SigIgn:"):
+                return int(line.split()[1], 16)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def stop_group_children(signum: int) -> None:
+    """Pass ``signum`` on to this process's children in its own process group (pool workers, which
+    end themselves as this process does) but those that ignore it (multiprocessing's resource
+    tracker, which ends with this process); kill those still running after :data:`CHILD_GRACE_S`."""
+    import time
+
+    group = os.getpgid(0)
+    mask = 1 << (signum - 1)
+    children = []
+    for child, pgrp in _children(os.getpid()).items():
+        if pgrp != group or _signals_ignored(child) & mask:
+            continue
+        try:
+            os.kill(child, signum)
+        except OSError:  # gone meanwhile
+            continue
+        children.append(child)
+    deadline = time.monotonic() + CHILD_GRACE_S
+    while (children := [c for c in children if process_alive(c)]) and time.monotonic() < deadline:
+        time.sleep(_CHILD_POLL_S)
+    for child in children:
+        with contextlib.suppress(OSError):
+            os.kill(child, signal.SIGKILL)
+
+
 @contextmanager
 def interrupts_end_the_command(say: bool = True) -> Iterator[None]:
-    """Within the block, SIGINT ends the command (:func:`end_interrupted`), also during a Dagster
-    run executed in this process (whose own interrupt handling is kept off meanwhile). Outside the
-    main thread, or where SIGINT is ignored (a background job), nothing changes."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    """Within the block, SIGINT and SIGTERM end the command (:func:`end_interrupted`), also during a
+    Dagster run executed in this process (whose own interrupt handling is kept off meanwhile). A
+    signal ignored when the block starts stays ignored (SIGINT of a background job). Outside the
+    main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
+    handled = [s for s in _ENDINGS if signal.getsignal(s) is not signal.SIG_IGN]
     try:
         from dagster._utils import interrupts as dagster_interrupts
     except ImportError:  # another Dagster layout: its runs handle Ctrl-C themselves
         dagster_interrupts = None
     replace = getattr(dagster_interrupts, "_replace_interrupt_signal", None)
-    previous = signal.signal(signal.SIGINT, lambda _signo, _frame: end_interrupted(say))
+    owner = os.getpid()
+
+    def ended(signum: int, _frame) -> None:
+        # A forked pool worker inherits this handler until it sets its own: its parent says the line.
+        end_interrupted(say and os.getpid() == owner, signum)
+
+    previous = {s: signal.signal(s, ended) for s in handled}
     if replace is not None:
         dagster_interrupts._replace_interrupt_signal = lambda _handler: None
     try:
@@ -243,7 +308,9 @@ def interrupts_end_the_command(say: bool = True) -> Iterator[None]:
     finally:
         if replace is not None:
             dagster_interrupts._replace_interrupt_signal = replace
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            if handler is not None:  # None: set outside Python, cannot be put back from here
+                signal.signal(s, handler)
 
 
 class _DetachedSubprocess:

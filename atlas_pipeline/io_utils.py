@@ -32,7 +32,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from atlas_pipeline.errors import AtlasError, OutputPolicyError, WriteError
+from atlas_pipeline.errors import AtlasError, ConfigError, OutputPolicyError, WriteError
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +53,7 @@ __all__ = [
     "check_output_dir",
     "check_output_file",
     "check_writable",
+    "env_folder",
     "ProcessLock",
     "LockedError",
     "process_alive",
@@ -307,11 +308,39 @@ def atomic_dir(path: str | Path, kind: str = "folder", marker_extra: dict[str, A
         try:
             yield tmp
         except OSError as exc:
-            raise _write_error(Path(exc.filename) if exc.filename else path, exc) from exc
+            raise _write_error(_failed_path(exc, tmp, path), exc) from exc
+        except WriteError as exc:
+            staged = _as_target(exc.path, tmp, path)
+            if staged is None:
+                raise
+            said = str(exc)
+            reason = said[len(f"{exc.path}: "):] if said.startswith(f"{exc.path}: ") else said
+            raise WriteError(staged, reason, exc.errno) from exc
         commit_dir(tmp, path, kind, marker_extra)
     finally:
         if tmp.exists():
             discard_dir(tmp)
+
+
+def _as_target(p: str | Path, staged: Path, target: Path) -> Path | None:
+    """Where ``p``, a path inside the staging folder ``staged``, ends up once ``staged`` becomes
+    ``target``; None for a path outside it."""
+    try:
+        return target / Path(os.path.abspath(p)).relative_to(os.path.abspath(staged))
+    except ValueError:
+        return None
+
+
+def _failed_path(exc: OSError, staged: Path, target: Path) -> Path:
+    """The path an OS error met while a folder was staged should name: the output being written
+    (as the user will know it, under ``target``) when the error names one (``shutil.copyfile``
+    names its source first, its destination second), else the file it names (an input that could
+    not be read), else ``target``."""
+    named = [Path(os.fsdecode(n)) for n in (exc.filename, exc.filename2) if isinstance(n, (str, bytes, os.PathLike))]
+    for name in named:
+        if (out := _as_target(name, staged, target)) is not None:
+            return out
+    return named[0] if named else target
 
 
 # ---- output policy -----------------------------------------------------------------------------
@@ -481,6 +510,22 @@ def check_writable(folder: str | Path, min_free_bytes: int = MIN_FREE_BYTES) -> 
     if free < min_free_bytes:
         raise WriteError(folder, f"only {free / 2**20:.0f} MiB free, at least {min_free_bytes / 2**20:.0f} MiB "
                                  "needed for this output", errno.ENOSPC)
+
+
+def env_folder(name: str, value: str) -> Path:
+    """The folder the environment variable ``name`` (set to ``value``) names, absolute; made later
+    when missing. A ConfigError naming the variable and the path when that path, or the first part
+    of it that exists, is not a folder (a file: every folder made under it would fail naming a
+    child path instead)."""
+    path = Path(value).expanduser().resolve()
+    existing = path
+    while not os.path.lexists(existing) and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        what = "a file" if existing.is_file() else "not a folder"
+        where = f"{existing} is {what}" if existing == path else f"{existing}, a part of that path, is {what}"
+        raise ConfigError(f"{name}={value}: {where}; point {name} at a folder (it is made when missing)")
+    return path
 
 
 # ---- process locks -----------------------------------------------------------------------------

@@ -25,7 +25,7 @@ logger = logging.getLogger("atlas_gs.cli")
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; its exit status: 0, ``EXIT_ERROR`` for a clear error (one line on stderr),
-    ``EXIT_INCOMPLETE``, 1 for a failed run, 130 after Ctrl-C, ``EXIT_BROKEN_PIPE``."""
+    ``EXIT_INCOMPLETE``, 1 for a failed run, 130 after Ctrl-C, 143 after SIGTERM, ``EXIT_BROKEN_PIPE``."""
     try:
         args = build_parser().parse_args(argv)  # --help prints here
     except BrokenPipeError:
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
 
     with CliOutput(args.verbose), signal_dispositions_kept():  # a Dagster run changes them (assets.runs)
         try:
-            with interrupts_end_the_command():  # Ctrl-C: one line, status 130
+            with interrupts_end_the_command():  # Ctrl-C, SIGTERM: one line, status 130 or 143
                 return int(args.func(args) or 0)
         except AtlasError as exc:
             logger.error("%s", exc)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import sys
 from typing import Any
 
@@ -34,6 +35,9 @@ WARNINGS_LOGGER = "py.warnings"  # where logging.captureWarnings sends them (-v)
 # Loggers whose INFO lines the default (quiet) output keeps: the command's own and its runs'.
 QUIET_INFO_LOGGERS = ("atlas_gs.cli", "atlas_gs.launch", RUN_LOGGER)
 DAGSTER_META_ATTR = "dagster_meta"  # what Dagster's log manager attaches to the records it passes on
+# Dagster's line for each step left out after another failed ("Dependencies for step keyframes
+# failed: ['fused_frames']. Not executing."): one per later stage, shown with -v only.
+SKIPPED_STEP = re.compile(r"^Dependencies for step \S+ (failed|were not executed)")
 SECONDS_PER_MS = 1e-3
 SECONDS_PER_MINUTE = 60
 
@@ -148,6 +152,8 @@ class CliHandler(logging.Handler):
             return True
         if self.verbose:
             return True
+        if isinstance(meta, dict) and SKIPPED_STEP.match(str(meta.get("orig_message", ""))):
+            return False  # follows from the failed step's own line
         if _under(name, DAGSTER_LOGGERS):
             return record.levelno >= logging.ERROR  # instance notices and migrations: -v only
         if record.levelno >= logging.WARNING:

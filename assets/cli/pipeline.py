@@ -100,7 +100,8 @@ def _run_in_worker(args: argparse.Namespace, tty: bool, partition: str) -> tuple
     captured = _Captured(tty)
     with CliOutput(job.verbose, prefix=f"{partition}: "), contextlib.redirect_stdout(captured):
         try:
-            with interrupts_end_the_command(say=False):  # Ctrl-C reaches the whole group: the parent says it
+            # the parent says the line (Ctrl-C reaches the whole group; the parent passes SIGTERM on)
+            with interrupts_end_the_command(say=False):
                 code = int(cmd_run(job) or 0)
         except AtlasError as exc:
             logger.error("%s", exc)
@@ -195,8 +196,52 @@ def status_words(partition: str, stale: dict[str, list[str]], options: str = "")
     return "\n".join(lines)
 
 
+# Ports after a taken --port tried for the one the error suggests.
+FREE_PORT_SEARCH = 100
+MAX_PORT = 65535
+
+
+def _port_error(host: str, port: int) -> OSError | None:
+    """Why a server could not listen on ``host:port`` now (None: it could), found by binding a
+    socket there as the web server will (``SO_REUSEADDR``: a port left in TIME_WAIT is free)."""
+    import socket
+
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except socket.gaierror as exc:
+        return OSError(exc.errno, exc.strerror)
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            return exc
+    return None
+
+
+def check_ui_port(host: str, port: int) -> None:
+    """A ConfigError naming ``--port`` (or ``--host``) when the web UI could not listen on
+    ``host:port``: ``dagster dev`` would log "address already in use" and stay up serving nothing."""
+    import errno
+
+    if not 1 <= port <= MAX_PORT:
+        raise ConfigError(f"--port {port}: must be 1 to {MAX_PORT}")
+    exc = _port_error(host, port)
+    if exc is None:
+        return
+    if exc.errno != errno.EADDRINUSE:
+        raise ConfigError(f"--host {host} --port {port}: the web UI cannot listen there: {exc.strerror or exc}")
+    free = next((p for p in range(port + 1, min(port + FREE_PORT_SEARCH, MAX_PORT) + 1)
+                 if _port_error(host, p) is None), None)
+    hint = f", e.g. --port {free}" if free is not None else ""
+    raise ConfigError(f"--port {port}: {host}:{port} is already in use (another Dagster UI or server); "
+                      f"stop that one, or give another --port{hint}")
+
+
 def cmd_ui(args: argparse.Namespace) -> int:
-    """Replace this process with ``dagster dev`` on the project's DAGSTER_HOME."""
+    """Replace this process with ``dagster dev`` on the project's DAGSTER_HOME, once the port is
+    known to be free."""
+    check_ui_port(args.host, args.port)
     home = use_project_dagster_home()
     cmd = dagster_dev_command(args.host, args.port)
     logger.info("DAGSTER_HOME=%s; starting %s", home, " ".join(cmd))

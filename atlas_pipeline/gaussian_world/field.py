@@ -155,7 +155,8 @@ class GaussianField:
             arr = getattr(self, name)
             h.update(name.encode())
             h.update(str(arr.shape).encode())
-            h.update(memoryview(np.ascontiguousarray(arr)).cast("B"))
+            if arr.size:  # an empty array has no bytes, and a memoryview of it cannot be cast
+                h.update(memoryview(np.ascontiguousarray(arr)).cast("B"))
         return h.hexdigest()
 
     def equals(self, other: "GaussianField") -> bool:

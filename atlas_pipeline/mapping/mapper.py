@@ -289,16 +289,23 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
     history = list(world.history)
     progress = Progress("tracking into the saved world", n, log)
     no_depth: list[int] = []
+    out_of_range: list[int] = []  # readings, none within depth_range_m
+    seen_m = (np.inf, -np.inf)  # the nearest and farthest reading of those frames
     for i, rgb, depth in read_ahead(manifest, range(n)):
         if not np.any(depth > 0):
             no_depth.append(i)
+        elif not np.any((depth > depth_range_m[0]) & (depth < depth_range_m[1])):
+            out_of_range.append(i)
+            read = depth[depth > 0]
+            seen_m = (min(seen_m[0], float(read.min())), max(seen_m[1], float(read.max())))
         est = st.process(i, rgb, depth, timestamp_s=float(manifest.timestamps_s[i]),
                          colour_delay_s=manifest.colour_delay_s(i))
         poses[i] = est.T_world_cam
         status.append(est.status)
         progress.update(extra=est.status)
     if not depth_checked:
-        check_usable_depth(manifest, no_depth)  # a recording short of depth: that error names its images
+        # a recording short of depth: that error names its images
+        check_usable_depth(manifest, no_depth, out_of_range, depth_range_m, seen_m if out_of_range else None)
     if status.count(STATUS_LOST) == n:
         raise DatasetError(manifest.root, "no frame could be placed in the saved world (relocalization failed "
                                           "everywhere): is it a world of the same place?")

@@ -147,11 +147,25 @@ MIN_DEPTH_FRAMES = 2
 MIN_DEPTH_SHARE = 0.5
 
 
-def check_usable_depth(manifest: FrameManifest, no_depth: list[int]) -> None:
-    """Refuse a recording whose frames ``no_depth`` (depth images with no valid pixel) leave too
-    few with depth; otherwise say which frames will be lost."""
+def check_usable_depth(manifest: FrameManifest, no_depth: list[int], out_of_range: list[int] | tuple[int, ...] = (),
+                       depth_range_m: tuple[float, float] | None = None,
+                       seen_m: tuple[float, float] | None = None) -> None:
+    """Refuse a recording whose frames ``no_depth`` (depth images with no valid pixel) and
+    ``out_of_range`` (readings, none within ``depth_range_m``; ``seen_m``: the nearest and farthest
+    of those readings) leave too few with depth; otherwise say which frames will be lost."""
     n = manifest.n_frames
-    usable = n - len(no_depth)
+    usable = n - len(no_depth) - len(out_of_range)
+    if out_of_range and (usable < MIN_DEPTH_FRAMES or usable < MIN_DEPTH_SHARE * n):
+        lo, hi = depth_range_m if depth_range_m is not None else (float("nan"), float("nan"))
+        seen = f" (from {seen_m[0]:.3g} to {seen_m[1]:.3g} m)" if seen_m is not None else ""
+        empty = f", {len(no_depth)} none at all" if no_depth else ""
+        raise DatasetError(manifest.root, f"recording '{manifest.dataset}': {len(out_of_range)} of its {n} depth "
+                                          f"images have readings{seen} but none within the depth range "
+                                          f"{lo:g}-{hi:g} m (fusion.min_depth_m, fusion.max_depth_m){empty}; "
+                                          f"{usable} frames with usable depth are too few to map (first out of "
+                                          f"range: {manifest.depth_path(out_of_range[0]).name}). Check the depth "
+                                          f"scale ({manifest.camera.depth_scale:g} raw units per metre; `dataset "
+                                          f"add --depth-scale`) or the depth range")
     if not no_depth:
         return
     first = manifest.depth_path(no_depth[0])
@@ -379,6 +393,8 @@ class FrameFuser:
         self._counts: list[int] = []
         self._valid: list[float] = []
         self._no_depth: list[int] = []
+        self._out_of_range: list[int] = []  # frames with readings, none within the depth range
+        self._seen_m = (math.inf, -math.inf)  # nearest and farthest reading of those frames
         self._handed_over = False  # finish() gave the spool to its artifact, which removes it
 
     def __enter__(self) -> "FrameFuser":
@@ -396,13 +412,19 @@ class FrameFuser:
             self._no_depth.append(i)
         pts, cols = backproject(depth_m, rgb, self.manifest.camera, self.cfg.stride, self.cfg.min_depth_m,
                                 self.cfg.max_depth_m)
+        if not len(pts) and i not in self._no_depth[-1:]:
+            read = depth_m[depth_m > 0]
+            self._out_of_range.append(i)
+            self._seen_m = (min(self._seen_m[0], float(read.min())), max(self._seen_m[1], float(read.max())))
         self._spool.add(pts, cols)
         self._counts.append(len(pts))
         self._valid.append(len(pts) / self._n_sampled)
 
     def check_depth(self) -> None:
         """:func:`check_usable_depth` of the frames given so far."""
-        check_usable_depth(self.manifest, self._no_depth)
+        check_usable_depth(self.manifest, self._no_depth, self._out_of_range,
+                           (self.cfg.min_depth_m, self.cfg.max_depth_m),
+                           self._seen_m if self._out_of_range else None)
 
     def finish(self) -> FusedFrames:
         """The artifact of every frame of the sequence (all given); refused when too few have depth."""

@@ -44,7 +44,8 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     out = prepare_output_dir(output, BUNDLE_KIND, inputs, force)  # creates nothing; an input is never an output
     check_entry_memory(cfg, entry)  # before any frame is read
     if extend:
-        load_world_bundle(extend)  # every listed file verified (world.npz, surfels.npz ...) before any work
+        # every listed file verified (world.npz, surfels.npz ...) before any work
+        _check_extension_voxel(load_world_bundle(extend).metadata, extend, cfg)
     manifest = load_dataset(entry, cfg)
     parent = None
     if extend:
@@ -60,3 +61,21 @@ def build_world_bundle(entry: DatasetEntry, cfg: PipelineConfig, output: str | P
     model, places = bundle_tracking_files(world, manifest.camera, cfg.localization)
     write_world_bundle(out, world.field, meta, extras=(world,), surfels=model, places=places, inputs=inputs)
     return BuiltWorld(out, len(world.field), int(n_keyframes), world.map_id, parent)
+
+
+# Voxel sizes this close are the same setting (a profile's value read back from JSON).
+VOXEL_MATCH_TOL_M = 1e-12
+
+
+def _check_extension_voxel(metadata: dict[str, Any], extend: str | Path, cfg: PipelineConfig) -> None:
+    """An extension maps at the voxel size its world was built with: a ConfigError naming
+    ``mapping.voxel_size_m`` and both sizes otherwise, before any frame is read."""
+    from atlas_pipeline.errors import ConfigError
+
+    built_m = (metadata.get("gaussians") or {}).get("voxel_size_m")
+    asked_m = cfg.mapping.voxel_size_m
+    if built_m is not None and abs(float(built_m) - asked_m) > VOXEL_MATCH_TOL_M:
+        raise ConfigError(f"--extend {extend}: the world was built with mapping.voxel_size_m={float(built_m):g} m; "
+                          f"this build would map it at mapping.voxel_size_m={asked_m:g} m. An extended world keeps "
+                          f"its voxel size: leave mapping.voxel_size_m at {float(built_m):g} (drop that --set, or "
+                          "use the profile the world was built with)")

@@ -166,8 +166,10 @@ def registry_files() -> list[Path]:
 
 def data_dir() -> Path:
     """Where downloaded and generated datasets live (``$ATLAS_DATA_DIR`` or ``<project>/data``)."""
+    from atlas_pipeline.io_utils import env_folder
+
     env = os.environ.get("ATLAS_DATA_DIR")
-    return Path(env).resolve() if env else project_root() / "data"
+    return env_folder("ATLAS_DATA_DIR", env) if env else project_root() / "data"
 
 
 def bag_cache_root() -> Path:
