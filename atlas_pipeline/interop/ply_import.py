@@ -4,9 +4,10 @@ Spherical harmonics (``f_rest_*``, view-dependent colour up to degree 3) are kep
 PLY and ``gaussians.bin`` carry them and the renderer evaluates them per view. The keyframe fit
 and colour refinement are degree 0 and keep them unchanged.
 
-The imported world has no recording behind it: no dataset, no keyframes, poses "imported". It can be
-localized in, relocalized against, rendered and extended like a built one; ``voxel_m`` is the map
-resolution the tracker assumes when it samples the world.
+The imported world has no recording behind it: no dataset (``null`` in metadata.json), no
+keyframes, no anchor, poses "imported". It can be localized in (the first frame relocalized with no
+prior pose, or started at a given ``--start-pose``), relocalized against, rendered and extended like
+a built one; ``voxel_m`` is the map resolution the tracker assumes when it samples the world.
 """
 
 from __future__ import annotations
