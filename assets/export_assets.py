@@ -101,4 +101,6 @@ def _keyframe_source(raw_dataset: FrameManifest, gaussian_world: GaussianWorld):
     """The world's keyframes at their mapping poses, with the dataset's frames: what the mesh and
     the occupancy grid are built from."""
     return source_from_world(gaussian_world.field, raw_dataset, gaussian_world.keyframe_indices,
-                             gaussian_world.T_world_cam_keyframes, None, "keyframes", map_id=gaussian_world.map_id)
+                             gaussian_world.T_world_cam_keyframes, None, "keyframes", map_id=gaussian_world.map_id,
+                             recordings=gaussian_world.recordings,
+                             keyframe_recording=gaussian_world.keyframe_recording)

@@ -371,6 +371,13 @@ def build_pipeline_assets(partitions_def: PartitionsDefinition, cfg: PipelineCon
         cfg = atlas.load()
         dep_partitions = {FIRST_VISIT_WORLD: first}
         if (out := reuse(context, cfg, dep_partitions=dep_partitions)) is None:
+            if first_visit_world.keyframe_recording is None:  # cached before keyframes named their recording
+                from dataclasses import replace
+
+                from atlas_pipeline.scene_memory.recordings import world_keyframe_recordings
+
+                recs, rec_idx = world_keyframe_recordings(first_visit_world, load_dataset(load_registry()[first], cfg))
+                first_visit_world = replace(first_visit_world, recordings=recs, keyframe_recording=rec_idx)
             world, n_new = extend_world_with_visit(first_visit_world, raw_dataset, fused_frames, cfg, context.log.info)
             model, places = bundle_tracking_files(world, raw_dataset.camera, cfg.localization)
             report = localize_visit(raw_dataset, world, cfg, log=context.log.info, tracking=(model, places))

@@ -294,6 +294,9 @@ _WORLD_MEMBERS = {
     "history": ("iu", 1),
 }
 _SH_MEMBER = "sh_rest"  # optional: [N, K, 3] SH coefficients of a field with view-dependent colour
+# optional: [K] index of each keyframe's recording into world.json's ``recordings`` (worlds saved
+# before keyframes named their recording lack it)
+_RECORDING_MEMBER = "keyframe_recording"
 # The mapping statistics (optional: worlds saved before mapping had its own depth range lack them).
 _MAP_PREFIX = "map_voxel_"
 _MAP_MEMBERS = {
@@ -323,6 +326,11 @@ class GaussianWorld:
             the keyframe fit's own record, ``optimize.OptimizationResult.record`` (steps and passes
             that ran, ``stop_reason``, ``final_loss``, the coarse level, Gaussians cloned, split and
             pruned). Content only: timings are run metadata, never part of the world.
+        recordings: the recordings the keyframes come from, JSON records
+            (:func:`atlas_pipeline.scene_memory.recordings.recording_record`: name, root,
+            content_hash, n_frames, camera).
+        keyframe_recording: ``[K]`` int64 index of each keyframe's recording into ``recordings``
+            (``keyframe_indices[k]`` is a frame of that recording), or None when not recorded.
     """
 
     field: GaussianField
@@ -333,6 +341,8 @@ class GaussianWorld:
     history: np.ndarray
     fit: dict = field(default_factory=dict)
     map_voxels: VoxelGaussianBuilder | None = None
+    recordings: list = field(default_factory=list)
+    keyframe_recording: np.ndarray | None = None
 
     @property
     def map_id(self) -> str:
@@ -359,12 +369,15 @@ class GaussianWorld:
                 history=self.history, **self._mapping_members(),
                 # view-dependent colour only when the field has it: degree-0 worlds keep their bytes
                 **({_SH_MEMBER: self.field.sh_rest} if self.field.sh_degree else {}),
+                **({_RECORDING_MEMBER: np.asarray(self.keyframe_recording, np.int64)}
+                   if self.keyframe_recording is not None else {}),
             )
         meta = write_json_atomic(directory / "world.json", {
             "map_id": self.map_id, "n_gaussians": len(self.field), "voxel_size_m": b.voxel_size_m,
             "n_keyframes": int(len(self.keyframe_indices)), "pose_source": self.pose_source,
             # timings are run metadata, not content (equal worlds give equal bytes)
             "fit": {k: v for k, v in self.fit.items() if k != "seconds"},
+            **({"recordings": list(self.recordings)} if self.keyframe_recording is not None else {}),
         })
         return [path, meta]
 
@@ -397,10 +410,13 @@ class GaussianWorld:
         with zipfile.ZipFile(path) as zf:  # already checked as an archive by load_npz_checked
             has_map = any(name.startswith(_MAP_PREFIX) for name in zf.namelist())
             has_sh = f"{_SH_MEMBER}.npy" in zf.namelist()
+            has_rec = f"{_RECORDING_MEMBER}.npy" in zf.namelist()
         if has_map:
             z.update(load_npz_checked(path, _MAP_MEMBERS, error_type=ArtifactError))
         if has_sh:
             z.update(load_npz_checked(path, {_SH_MEMBER: ("f", 3)}, error_type=ArtifactError))
+        if has_rec:
+            z.update(load_npz_checked(path, {_RECORDING_MEMBER: ("iu", 1)}, error_type=ArtifactError))
 
         def bad(msg: str) -> ArtifactError:
             return ArtifactError(f"{path}: {msg}")
@@ -417,6 +433,14 @@ class GaussianWorld:
         for name, shape in want.items():
             if z[name].shape != shape:
                 raise bad(f"{name} has shape {list(z[name].shape)}, expected {list(shape)}")
+        recordings = meta.get("recordings", [])
+        if has_rec:
+            if not isinstance(recordings, list) or not all(isinstance(r, dict) for r in recordings):
+                raise ArtifactError(f"{meta_path}: recordings must be a list of objects, one per recording")
+            if z[_RECORDING_MEMBER].shape != (k,):
+                raise bad(f"{_RECORDING_MEMBER} has shape {list(z[_RECORDING_MEMBER].shape)}, expected [{k}]")
+            if k and (z[_RECORDING_MEMBER].min() < 0 or z[_RECORDING_MEMBER].max() >= len(recordings)):
+                raise bad(f"{_RECORDING_MEMBER} must index the {len(recordings)} recordings of {meta_path.name}")
         if has_sh and not (z[_SH_MEMBER].shape[::2] == (n, 3) and sh_degree_of_rest_count(z[_SH_MEMBER].shape[1])):
             raise bad(f"{_SH_MEMBER} has shape {list(z[_SH_MEMBER].shape)}, expected [{n}, K, 3] with K in 3, 8, 15")
         finite = ["positions", "scales", "rotations_xyzw", "opacities", "voxel_sum_xyz", "voxel_sum_rgb",
@@ -460,4 +484,6 @@ class GaussianWorld:
                 f64("map_voxel_sum_xyz"), f64("map_voxel_sum_rgb"), f64("map_voxel_sum_sq"),
                 counts("map_voxel_n_keyframes", np.int32), f64("map_voxel_weight"))
         return cls(fld, builder, counts("keyframe_indices", np.int64), f64("T_world_cam_keyframes"),
-                   pose_source, counts("history", np.int64), dict(fit), mapping)
+                   pose_source, counts("history", np.int64), dict(fit), mapping,
+                   [dict(r) for r in recordings] if has_rec else [],
+                   z[_RECORDING_MEMBER].astype(np.int64) if has_rec else None)

@@ -243,8 +243,10 @@ def evaluate_rendering(manifest: FrameManifest, world: GaussianWorld, report: Lo
     A colour image taken at another time than its depth image (``localization.colour_delay_compensation``)
     is compared with a render at the estimated trajectory's pose at its own time."""
     from atlas_pipeline.perception.colour_timing import colour_time_poses
+    from atlas_pipeline.scene_memory.recordings import keyframe_indices_of
 
-    held = np.setdiff1d(np.arange(manifest.n_frames), world.keyframe_indices)
+    # held out: not a keyframe of this recording (an extended world's other keyframes are frames of others)
+    held = np.setdiff1d(np.arange(manifest.n_frames), keyframe_indices_of(world, manifest))
     held = held[np.isfinite(report.T_world_cam[held]).all(axis=(1, 2))][:: cfg.evaluation.view_stride]
     if cfg.evaluation.max_views is not None:
         held = held[: cfg.evaluation.max_views]

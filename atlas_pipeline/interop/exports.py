@@ -52,7 +52,7 @@ def write_export(output: str | Path, src: ExportSource, fmt: str, force: bool = 
     check_voxel(voxel_m)
     check_resolution(resolution_m)
     output = Path(output).expanduser()
-    check_output_dir(output, EXPORT_KIND, [*inputs, src.manifest.root], force)
+    check_output_dir(output, EXPORT_KIND, [*inputs, *(m.root for m in src.recordings)], force)
     check_writable(output.parent)
     with atomic_dir(output, kind=EXPORT_KIND) as tmp:
         if fmt in TRAINER_FORMATS:

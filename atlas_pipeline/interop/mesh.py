@@ -32,7 +32,7 @@ import numpy as np
 
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.errors import ArtifactError, ConfigError
-from atlas_pipeline.interop.frames import ExportSource, undistorted_depth_m, undistorted_rgb
+from atlas_pipeline.interop.frames import ExportSource
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic
 
 logger = logging.getLogger(__name__)
@@ -114,15 +114,15 @@ def tsdf_mesh(src: ExportSource, voxel_m: float = MESH_VOXEL_M, max_depth_m: flo
     voxel_m = check_voxel(voxel_m)
     trunc = SDF_TRUNC_VOXELS * voxel_m
     step_m = (BLOCK_VOXELS - 1) * voxel_m  # block spacing: one shared voxel plane
-    cam = src.manifest.camera
+    cam = src.camera  # every frame undistorted onto it
     intrinsic = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
     v, u = np.mgrid[0:cam.height:BLOCK_PROBE_STRIDE_PX, 0:cam.width:BLOCK_PROBE_STRIDE_PX]
     ray = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u, np.float64)], axis=-1)
     blocks: dict[tuple[int, int, int], Any] = {}
     color = o3d.pipelines.integration.TSDFVolumeColorType.RGB8
-    for k, (i, T) in enumerate(zip(src.frame_indices.tolist(), src.T_world_cam)):
-        rgb = np.ascontiguousarray(undistorted_rgb(src.manifest.read_rgb(i), cam))
-        depth = np.ascontiguousarray(undistorted_depth_m(src.manifest.read_depth_m(i, allow_empty=True), cam))
+    for k, T in enumerate(src.T_world_cam):
+        rgb = np.ascontiguousarray(src.pinhole_rgb(k))  # frame k of its own recording
+        depth = np.ascontiguousarray(src.pinhole_depth_m(k))
         d = depth[v, u].astype(np.float64)
         ok = (d > 0) & (d <= max_depth_m)
         if not ok.any():
@@ -320,4 +320,5 @@ def mesh_info(mesh: TriangleMesh, src: ExportSource, voxel_m: float) -> dict[str
     return {"n_vertices": int(len(mesh.vertices)), "n_triangles": int(len(mesh.triangles)), "voxel_m": voxel_m,
             "sdf_trunc_m": SDF_TRUNC_VOXELS * voxel_m, "bounds_min_m": lo, "bounds_max_m": hi,
             "map_id": src.map_id, "dataset": src.manifest.dataset, "pose_source": src.pose_source,
-            "frame_indices": [int(i) for i in src.frame_indices], "glb_up_axis": "world z shown as glTF +y"}
+            "frame_indices": [int(i) for i in src.frame_indices], "glb_up_axis": "world z shown as glTF +y",
+            "recordings": src.recordings_summary(), "frame_recordings": [int(j) for j in src.frame_recording]}

@@ -2,7 +2,9 @@
 
 Both layouts (``atlas-gs export WORLD --format colmap|nerfstudio --output DIR``)::
 
-    DIR/images/frame_000123.png     colour, undistorted (copied as is when already so)
+    DIR/images/frame_000123.png     colour, undistorted (copied as is when already so); a frame of
+                                    another recording than the bundle's own (an extended world's
+                                    keyframes) carries its tag: a-1b2c3d4e_frame_000004.png
     DIR/depths/frame_000123.png     depth, 16-bit PNG, millimetres (0 = no reading)
     DIR/sparse/0/cameras.{txt,bin}  colmap: one PINHOLE camera
     DIR/sparse/0/images.{txt,bin}   colmap: each frame's world-to-camera pose
@@ -31,8 +33,7 @@ import numpy as np
 
 from atlas_pipeline.errors import ArtifactError, ConfigError
 from atlas_pipeline.interop.colmap import write_colmap_model
-from atlas_pipeline.interop.frames import (ExportSource, frame_name, pinhole_camera, undistorted_depth_m,
-                                           undistorted_rgb)
+from atlas_pipeline.interop.frames import ExportSource
 from atlas_pipeline.interop.nerfstudio import nerfstudio_transforms
 from atlas_pipeline.io_utils import atomic_dir, atomic_path, check_output_dir, check_writable, write_json_atomic
 
@@ -71,22 +72,21 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 def _write_frames(directory: Path, src: ExportSource, log: Callable[[str], None]) -> tuple[list[str], list[str]]:
     """Colour and depth of every exported frame into ``images/`` and ``depths/``; returns their
     paths relative to ``directory``."""
-    m = src.manifest
-    cam = m.camera
     (directory / "images").mkdir()
     (directory / "depths").mkdir()
-    copy_colour = not cam.distortion and m.colour_camera == cam
     images, depths = [], []
     for k, i in enumerate(src.frame_indices.tolist()):
-        name = frame_name(i)
+        m = src.manifest_of(k)  # the recording this frame is one of
+        cam = m.camera
+        name = src.frame_name(k)
         rgb_out, depth_out = directory / "images" / name, directory / "depths" / name
         source = m.rgb_path(i)
-        if copy_colour and source.suffix.lower() in _COPYABLE_SUFFIXES:
+        if not cam.distortion and m.colour_camera == cam and source.suffix.lower() in _COPYABLE_SUFFIXES:
             m.read_rgb(i)  # checked (size, type) as every reader of the frames checks it
             shutil.copyfile(source, rgb_out)
         else:
-            _write_png(rgb_out, undistorted_rgb(m.read_rgb(i), cam))
-        depth_m = undistorted_depth_m(m.read_depth_m(i, allow_empty=True), cam)
+            _write_png(rgb_out, src.pinhole_rgb(k))
+        depth_m = src.pinhole_depth_m(k)
         raw = np.clip(np.rint(depth_m.astype(np.float64) * DEPTH_PNG_UNITS_PER_M), 0, DEPTH_PNG_MAX)
         _write_png(depth_out, raw.astype(np.uint16))
         images.append(f"images/{name}")
@@ -115,7 +115,7 @@ def write_trainer_files(directory: Path, src: ExportSource, fmt: str,
     log = log or logger.info
     if fmt not in TRAINER_FORMATS:
         raise ConfigError(f"--format must be one of {', '.join(TRAINER_FORMATS)}, got {fmt!r}")
-    cam = pinhole_camera(src.manifest.camera)
+    cam = src.camera
     images, depths = _write_frames(directory, src, log)
     xyz, rgb = seed_points(src.field)
     if fmt == "colmap":
@@ -129,6 +129,9 @@ def write_trainer_files(directory: Path, src: ExportSource, fmt: str,
         "n_images": int(len(images)), "n_points3D": int(len(xyz)), "camera": cam.to_dict(),
         "depth": {"folder": "depths", "format": "png uint16", "units_per_m": DEPTH_PNG_UNITS_PER_M, "no_reading": 0},
         "frame_indices": [int(i) for i in src.frame_indices],
+        # which recording each frame is one of (an extended world's keyframes come from several)
+        "recordings": src.recordings_summary(),
+        "frame_recordings": [int(j) for j in src.frame_recording],
     }
     write_json_atomic(directory / "export.json", summary)
     return summary
@@ -141,7 +144,7 @@ def write_trainer_export(output: str | Path, src: ExportSource, fmt: str, force:
     if fmt not in TRAINER_FORMATS:
         raise ConfigError(f"--format must be one of {', '.join(TRAINER_FORMATS)}, got {fmt!r}")
     output = Path(output).expanduser()
-    check_output_dir(output, EXPORT_KIND, [*inputs, src.manifest.root], force)
+    check_output_dir(output, EXPORT_KIND, [*inputs, *(m.root for m in src.recordings)], force)
     check_writable(output.parent)
     with atomic_dir(output, kind=EXPORT_KIND) as tmp:
         summary = write_trainer_files(tmp, src, fmt, log)

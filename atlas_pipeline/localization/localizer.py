@@ -122,6 +122,9 @@ class LocalizationReport:
             ``stopped_world_mismatch``) with ``stopped_reason`` (None when complete).
         camera: the intrinsics the frames were read with (``CameraIntrinsics.to_dict()``); None in
             reports written before they were recorded (the file then has no ``camera``).
+        recording: the recording the frames are (name, root, content_hash, n_frames, camera:
+            :func:`atlas_pipeline.scene_memory.recordings.recording_record`), so a reader of the
+            report finds its frames by content; None in reports written before it was recorded.
     """
 
     dataset: str
@@ -137,6 +140,7 @@ class LocalizationReport:
     error_rot_deg: np.ndarray
     summary: dict = field(default_factory=dict)
     camera: dict | None = None
+    recording: dict | None = None
 
     @property
     def n_frames(self) -> int:
@@ -165,6 +169,8 @@ class LocalizationReport:
         out = {"dataset": self.dataset, "map_id": self.map_id}
         if self.camera is not None:
             out["camera"] = _json_safe(self.camera)
+        if self.recording is not None:
+            out["recording"] = _json_safe(self.recording)
         return {**out, "summary": _json_safe(self.summary), "frames": frames}
 
     def save(self, directory: Path) -> list[Path]:
@@ -213,7 +219,8 @@ class LocalizationReport:
         return cls(d["dataset"], d["map_id"], np.array([f["timestamp_s"] for f in fr]), T,
                    [f["status"] for f in fr], arr("fitness"), arr("inlier_rmse_m"), arr("time_s"), T_gt,
                    arr("error_t_m"), arr("error_rot_deg"), d.get("summary") or {},
-                   d["camera"] if isinstance(d.get("camera"), dict) else None)
+                   d["camera"] if isinstance(d.get("camera"), dict) else None,
+                   d["recording"] if isinstance(d.get("recording"), dict) else None)
 
     def aligned_poses(self) -> np.ndarray:
         """``[N, 4, 4]`` estimates moved onto the ground truth's frame by the ATE alignment (as
@@ -366,9 +373,11 @@ def localize_sequence(
             log(stopped)
     elif summary["n_lost"] >= n - 1 and n > 1:
         logger.warning("%s: every frame after the first was lost; check the world and the dataset match", manifest.dataset)
+    from atlas_pipeline.scene_memory.recordings import recording_record
+
     return LocalizationReport(manifest.dataset, map_id, manifest.timestamps_s.copy(), T_est, status,
                               fitness, rmse, times, manifest.T_world_cam_gt.copy(), err_t, err_r, summary,
-                              camera=manifest.camera.to_dict())
+                              camera=manifest.camera.to_dict(), recording=recording_record(manifest))
 
 
 def grade(timestamps_s: np.ndarray, T_est: np.ndarray, status: list[str], T_gt: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -232,6 +232,7 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
                     "(drift before a loop)", n_refused)
     prev_idx = np.zeros(0, np.int64) if world is None else world.keyframe_indices
     prev_T = np.zeros((0, 4, 4)) if world is None else world.T_world_cam_keyframes
+    recordings, keyframe_recording = _joined_recordings(world, manifest, len(keyframes.indices))
     return GaussianWorld(
         field=mapping.to_field(),
         tracking_voxels=tracking,
@@ -240,7 +241,20 @@ def extend_world(world: GaussianWorld | None, fused: FusedFrames, keyframes: Key
         pose_source=keyframes.pose_source,
         history=np.asarray(history, dtype=np.int64),
         map_voxels=mapping,
+        recordings=recordings,
+        keyframe_recording=keyframe_recording,
     )
+
+
+def _joined_recordings(world: GaussianWorld | None, manifest: FrameManifest | None, n_new: int):
+    """``(recordings, [K] recording of each keyframe)`` of ``world`` (None: a new one) after
+    ``n_new`` keyframes of ``manifest`` (None: a recording not known) are merged into it."""
+    from atlas_pipeline.scene_memory.recordings import join_recordings, recording_record
+
+    new = recording_record(manifest) if manifest is not None else None
+    if world is None:
+        return join_recordings([], np.zeros(0, np.int64) if new is not None else None, 0, new, n_new)
+    return join_recordings(world.recordings, world.keyframe_recording, len(world.keyframe_indices), new, n_new)
 
 
 def build_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: MappingConfig,
@@ -321,11 +335,13 @@ def extend_world_by_tracking(world: GaussianWorld, manifest, mapping: MappingCon
                                 manifest.camera, fusion_stride, depth_range_m[0], max(mapping.max_depth_m, depth_range_m[1]))
         _integrate_mapping(map_voxels, pts, cols, poses[i], mapping.voxel_size_m, mapping.noise_adaptive_cells)
         history.append(len(map_voxels))
+    recordings, keyframe_recording = _joined_recordings(world, manifest, len(idx))
     extended = GaussianWorld(
         field=map_voxels.to_field(), tracking_voxels=tracking, map_voxels=map_voxels,
         keyframe_indices=np.concatenate([world.keyframe_indices, idx]).astype(np.int64),
         T_world_cam_keyframes=np.concatenate([world.T_world_cam_keyframes, poses[idx]]) if len(idx) else world.T_world_cam_keyframes,
         pose_source="estimated", history=np.asarray(history, np.int64),
+        recordings=recordings, keyframe_recording=keyframe_recording,
     )
     logger.info("extended world: %d -> %d Gaussians, %d new keyframes, %d frames lost, %d of %d placed by the "
                 "saved world alone", len(world.field), len(extended.field), len(idx), status.count(STATUS_LOST),
@@ -387,7 +403,12 @@ def build_gaussian_world(fused: FusedFrames, keyframes: KeyframeSet, cfg: Pipeli
     optimize = mc.fit.epochs > 0
     if manifest is None or not len(world.field) or not (fit_colours or optimize):
         return world
-    idx = [int(i) for i in world.keyframe_indices]
+    from atlas_pipeline.scene_memory.recordings import keyframe_indices_of
+
+    idx = [int(i) for i in keyframe_indices_of(world, manifest)]  # the fit reads each keyframe's images there
+    if len(idx) != len(world.keyframe_indices):
+        raise ValueError(f"the fit reads keyframe images from '{manifest.dataset}', but {len(world.keyframe_indices) - len(idx)} "
+                         "keyframes of this world are frames of another recording")
     cam = manifest.camera
     # In memory while small; a long sequence's keyframes are read again at each use instead, so the
     # fit holds its downsampled working copies, not every raw frame.
@@ -452,6 +473,14 @@ def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: F
     except AtlasError as exc:
         raise ConfigError(f"{bundle_dir}: cannot extend this bundle, it has no voxel statistics "
                           f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
+    if previous.keyframe_recording is None:
+        # a world saved before keyframes named their recording: its bundle's metadata says which
+        from atlas_pipeline.scene_memory.bundle import read_metadata
+        from atlas_pipeline.scene_memory.recordings import bundle_keyframe_sources
+
+        ks = bundle_keyframe_sources(read_metadata(Path(bundle_dir)), Path(bundle_dir) / "metadata.json")
+        if len(ks) == len(previous.keyframe_indices) and np.array_equal(ks.indices, previous.keyframe_indices):
+            previous.recordings, previous.keyframe_recording = ks.recordings, ks.recording
     return extend_world_with_visit(previous, manifest, fused, cfg, log, read_place_index(bundle_dir, manifest.camera))
 
 

@@ -69,9 +69,14 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
     :func:`atlas_pipeline.scene_memory.bundle.parent_reference`), when given, overrides its
     ``parent``: the bundle this world was extended from, recorded as ``lineage.parent``.
     """
+    from atlas_pipeline.scene_memory.recordings import recording_index, recording_record, world_keyframe_recordings
+
     lineage = dict(lineage or {})
     if parent is not None or "parent" not in lineage:
         lineage["parent"] = parent
+    recordings, keyframe_recording = world_keyframe_recordings(world, manifest)
+    own = recording_index(recordings, recording_record(manifest))
+    own_keyframes = [k for k, j in enumerate(keyframe_recording) if j == own]
     return {
         "name": name,
         "partition": partition,
@@ -79,13 +84,19 @@ def bundle_metadata(name: str, partition: str, world: GaussianWorld, manifest: F
                     "content_hash": manifest.content_hash, "camera": manifest.camera.to_dict()},
         "gaussians": {"voxel_size_m": world.tracking_voxels.voxel_size_m, "isotropic": world.field.is_isotropic,
                       "n_keyframes": int(len(world.keyframe_indices)), "pose_source": world.pose_source},
-        # Where a session on the same sequence starts: the first keyframe's frame and pose.
-        "anchor": {"frame_index": int(world.keyframe_indices[0]),
-                   "timestamp_s": float(manifest.timestamps_s[world.keyframe_indices[0]]),
-                   "T_world_cam": world.T_world_cam_keyframes[0].tolist()},
-        # Viewpoints the world was mapped from: relocalization priors for later sessions.
+        # Where a session on the same sequence starts: the first keyframe of this recording (an
+        # extended world's first keyframes are frames of its parent's), with the recording's hash.
+        "anchor": ({"frame_index": int(world.keyframe_indices[own_keyframes[0]]),
+                    "timestamp_s": float(manifest.timestamps_s[world.keyframe_indices[own_keyframes[0]]]),
+                    "T_world_cam": world.T_world_cam_keyframes[own_keyframes[0]].tolist(),
+                    "content_hash": manifest.content_hash} if own_keyframes else None),
+        # The recordings the keyframes are frames of (by content hash; name and root are hints).
+        "recordings": recordings,
+        # Viewpoints the world was mapped from: relocalization priors for later sessions; each a
+        # frame of recordings[recording[k]].
         "keyframes": {"indices": [int(i) for i in world.keyframe_indices],
-                      "T_world_cam": [T.tolist() for T in world.T_world_cam_keyframes]},
+                      "T_world_cam": [T.tolist() for T in world.T_world_cam_keyframes],
+                      "recording": [int(j) for j in keyframe_recording]},
         "config": cfg.to_dict(),
         "lineage": lineage,
     }

@@ -104,6 +104,7 @@ MAX_SPLAT_SIGMA_M = 200.0  # float16's largest value is 65504 (m^2): no map Gaus
 # Robust extent: the 2nd..98th percentile box of the Gaussian centres (floaters far out would
 # otherwise set the frustum size and the starting view).
 EXTENT_PERCENTILES = (2.0, 98.0)
+REPORT_TIME_TOLERANCE_S = 1e-3  # a report's frame times and its recording's agree to this
 MAX_REPORT_BYTES = 256 * 1024 * 1024  # a localization.json of a 100k-frame session is ~40 MB
 KNOWN_STATUSES = (STATUS_ANCHOR, STATUS_TRACKED, STATUS_RELOCALIZED, STATUS_LOST, STATUS_NOT_ATTEMPTED)
 
@@ -130,8 +131,10 @@ class ViewerData:
         ground_truth_note: how the ground truth got into the world frame (or why there is none).
         report_source: the folder the localization report was read from ("" without one).
         report_timestamps_s: ``[N]`` the report's frame times, or None.
-        keyframe_manifest, report_manifest: the recordings of the keyframes and of the report's
-            frames when on disk and unchanged (the slider's images), else None.
+        keyframe_manifest, report_manifest: the recordings of the bundle's dataset and of the
+            report's frames when on disk and unchanged (the slider's images), else None.
+        keyframe_manifests: ``K`` the recording each keyframe is a frame of (an extended world's
+            keyframes come from several), None where it is not available.
         mesh, occupancy: the layers (:mod:`atlas_pipeline.viz.viewer_layers`), or None.
         notes: what could not be shown and why (logged, and listed in the viewer's panel).
     """
@@ -152,6 +155,7 @@ class ViewerData:
     report_timestamps_s: np.ndarray | None = None
     keyframe_manifest: Any = None
     report_manifest: Any = None
+    keyframe_manifests: list[Any] = field(default_factory=list)
     mesh: MeshLayer | None = None
     occupancy: OccupancyLayer | None = None
     notes: list[str] = field(default_factory=list)
@@ -253,6 +257,44 @@ def _dataset_manifest(name: str | None, root: str | None, camera: dict | None, c
     return manifest
 
 
+def _keyframe_manifests(meta: dict[str, Any], where: Path, n: int, own_manifest: Any, notes: list[str]) -> list[Any]:
+    """``n`` recordings, one per keyframe: the one each keyframe names in ``meta`` (the bundle's
+    dataset's manifest ``own_manifest`` for its own), None where it is not on disk or holds other
+    frames (with a note)."""
+    from atlas_pipeline.scene_memory.recordings import bundle_keyframe_sources, recording_index
+
+    try:
+        ks = bundle_keyframe_sources(meta, where)
+    except AtlasError as exc:
+        _note(notes, "keyframe images not shown: %s", exc)
+        return [None] * n
+    if len(ks) != n:
+        return [None] * n
+    ds = meta.get("dataset")
+    own = recording_index(ks.recordings, ds) if isinstance(ds, dict) else None
+    opened: dict[int, Any] = {}
+    for u in sorted(set(ks.recording.tolist())):
+        r = ks.recordings[u]
+        if u == own:
+            opened[u] = own_manifest
+        elif not r.get("name") and not r.get("root"):
+            _note(notes, "%d keyframes come from a recording this world does not record: frusta without images",
+                  int((ks.recording == u).sum()))
+            opened[u] = None
+        else:
+            opened[u] = _dataset_manifest(r.get("name"), r.get("root"), r.get("camera"), r.get("content_hash"),
+                                          r.get("n_frames"), notes)
+    return [opened[u] for u in ks.recording.tolist()]
+
+
+def _same_frame_times(manifest: Any, rep: Any) -> bool:
+    """Whether the report ``rep``'s frames are the first frames of ``manifest``, by their times
+    (within :data:`REPORT_TIME_TOLERANCE_S`; no relative tolerance: Unix times are ~1.3e9 s)."""
+    n = rep.n_frames
+    return manifest.n_frames >= n and bool(np.allclose(manifest.timestamps_s[:n], rep.timestamps_s, rtol=0.0,
+                                                       atol=REPORT_TIME_TOLERANCE_S))
+
+
 def _thumbnail(rgb: np.ndarray) -> np.ndarray:
     """``[H, W, 3]`` uint8 to at most THUMBNAIL_MAX_WIDTH_PX wide, by block averaging (no aliasing
     of fine texture as plain striding would give)."""
@@ -339,15 +381,16 @@ def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, re
     elif len(T_kf):
         _note(data.notes, "dataset not read: keyframe frusta without images")
     data.keyframe_manifest = manifest
-    if manifest is not None:
-        for k in controls.thinned_indices(len(T_kf), MAX_FRUSTA):  # images on the frusta drawn
-            i = int(idx[k])
-            if not 0 <= i < manifest.n_frames:
-                continue
-            try:
-                data.keyframe_images[k] = _thumbnail(manifest.read_rgb(i))
-            except (AtlasError, OSError) as exc:
-                logger.warning("keyframe %d (frame %d): image not shown (%s)", k, i, exc)
+    data.keyframe_manifests = (_keyframe_manifests(meta, world_dir / "metadata.json", len(T_kf), manifest, data.notes)
+                               if read_dataset and len(T_kf) else [None] * len(T_kf))
+    for k in controls.thinned_indices(len(T_kf), MAX_FRUSTA):  # images on the frusta drawn
+        m, i = data.keyframe_manifests[k], int(idx[k])  # frame i of keyframe k's own recording
+        if m is None or not 0 <= i < m.n_frames:
+            continue
+        try:
+            data.keyframe_images[k] = _thumbnail(m.read_rgb(i))
+        except (AtlasError, OSError) as exc:
+            logger.warning("keyframe %d (frame %d of '%s'): image not shown (%s)", k, i, m.dataset, exc)
 
     # The localization report: --report, else the bundle's own (verified with the bundle).
     rep_dir = Path(report) if report is not None else (world_dir if "localization.json" in meta["files"] else None)
@@ -363,19 +406,25 @@ def load_viewer_data(world_dir: str | Path, report: str | Path | None = None, re
         data.status = list(rep.status)
         data.T_world_cam_est = rep.T_world_cam
         data.report_timestamps_s = rep.timestamps_s
-        if manifest is not None and rep.dataset == name and manifest.n_frames >= rep.n_frames and np.allclose(
-                manifest.timestamps_s[:rep.n_frames], rep.timestamps_s, atol=1e-3):
-            data.report_manifest = manifest
+        # the report's frames: the bundle's dataset, or another recording of its keyframes (an
+        # extended world's parent's), whichever holds frames at the report's times
+        opened = [m for m in [manifest, *data.keyframe_manifests] if m is not None and m.dataset == rep.dataset]
+        data.report_manifest = next((m for m in opened if _same_frame_times(m, rep)), None)
+        r = rep.recording or {}
+        if data.report_manifest is None and read_dataset and (r.get("root") or r.get("name")):
+            # the recording the report names (by content), e.g. one localized in an imported world
+            m = _dataset_manifest(r.get("name"), r.get("root"), r.get("camera"), r.get("content_hash"),
+                                  r.get("n_frames"), [])
+            data.report_manifest = m if m is not None and _same_frame_times(m, rep) else None
         T_gt = rep.T_world_cam_gt
         if not np.isfinite(T_gt).all(axis=(1, 2)).any():
             # Bundles keep no ground truth: take it from the dataset when its frames are on disk.
-            gt_manifest = manifest if (manifest is not None and rep.dataset == name) else None
+            gt_manifest = data.report_manifest or (manifest if (manifest is not None and rep.dataset == name) else None)
             if gt_manifest is None and read_dataset:
                 gt_manifest = _dataset_manifest(rep.dataset, root if rep.dataset == name else None,
                                                 cam_dict if rep.dataset == name else None,
                                                 content_hash if rep.dataset == name else None, None, [])
-            if gt_manifest is not None and gt_manifest.n_frames >= rep.n_frames and np.allclose(
-                    gt_manifest.timestamps_s[:rep.n_frames], rep.timestamps_s, atol=1e-3):
+            if gt_manifest is not None and _same_frame_times(gt_manifest, rep):
                 T_gt = gt_manifest.T_world_cam_gt[:rep.n_frames]
         gaussians_info = meta.get("gaussians") if isinstance(meta.get("gaussians"), dict) else {}
         same_frame = gaussians_info.get("pose_source") == "ground_truth" and rep.dataset == name
@@ -529,7 +578,7 @@ def build_scene(server: Any, data: ViewerData) -> dict[str, Any]:
     }
     track = controls.frame_track(data.T_world_cam_est, data.T_world_cam_gt, data.status, data.report_timestamps_s,
                                  data.report_manifest, data.T_world_cam_keyframes, data.keyframe_indices,
-                                 data.keyframe_manifest)
+                                 data.keyframe_manifests)
     widgets = _add_panel(server, summary, handles)
     widgets["frame"] = controls.add_frame_slider(
         server, track, data.camera_fov_y_rad, data.camera_aspect, frustum_m, marker_m, _thumbnail,

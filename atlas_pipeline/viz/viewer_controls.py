@@ -146,8 +146,9 @@ def reset_camera(camera: Any, view: OrbitView) -> None:
 @dataclass
 class FrameTrack:
     """What the slider walks: ``T_world_cam`` ``[N, 4, 4]`` (NaN: not known), ``status`` (N
-    strings), ``frame_indices`` ``[N]`` (into ``manifest``, -1: none), ``timestamps_s`` ``[N]`` or
-    None, and ``manifest`` (the frames' recording, or None: no images)."""
+    strings), ``frame_indices`` ``[N]`` (into the frame's recording, -1: none), ``timestamps_s``
+    ``[N]`` or None, and ``manifest``: the frames' recording, or a list of N (each frame's own: the
+    keyframes of an extended world come from several recordings), None for no images."""
 
     T_world_cam: np.ndarray
     status: list[str]
@@ -159,12 +160,16 @@ class FrameTrack:
     def __len__(self) -> int:
         return len(self.status)
 
+    def manifest_of(self, k: int) -> Any:
+        """The recording frame ``k`` is one of (None: its images are not available)."""
+        return self.manifest[k] if isinstance(self.manifest, list) else self.manifest
+
 
 def frame_track(T_est: np.ndarray, T_gt: np.ndarray | None, status: list[str], timestamps_s: np.ndarray | None,
                 report_manifest: Any, keyframe_T: np.ndarray, keyframe_indices: np.ndarray,
                 keyframe_manifest: Any) -> FrameTrack:
     """The localization report's frames (each at its estimate, else its ground truth) when there is
-    one, else the keyframes."""
+    one, else the keyframes (``keyframe_manifest``: their recording, or a list of each one's)."""
     if len(status):
         T = np.array(T_est, np.float64)
         if T_gt is not None and len(T_gt) == len(T):
@@ -203,15 +208,17 @@ def add_frame_slider(server: Any, track: FrameTrack, fov_y: float, aspect: float
         image = gui.add_image(np.full((12, 16, 3), 235, np.uint8), visible=False)
 
     @functools.lru_cache(maxsize=THUMBNAIL_CACHE)
-    def frame_image(i: int) -> np.ndarray | None:
+    def frame_image(k: int) -> np.ndarray | None:
+        """Thumbnail of track entry ``k``: frame ``frame_indices[k]`` of its own recording."""
         from atlas_pipeline.errors import AtlasError
 
-        if track.manifest is None or not 0 <= i < track.manifest.n_frames:
+        m, i = track.manifest_of(k), int(track.frame_indices[k])
+        if m is None or not 0 <= i < m.n_frames:
             return None
         try:
-            return thumbnail(track.manifest.read_rgb(i))
+            return thumbnail(m.read_rgb(i))
         except (AtlasError, OSError, ValueError) as exc:
-            logger.warning("frame %d: image not shown (%s)", i, exc)
+            logger.warning("frame %d of '%s': image not shown (%s)", i, m.dataset, exc)
             return None
 
     def show(k: int) -> None:
@@ -228,9 +235,11 @@ def add_frame_slider(server: Any, track: FrameTrack, fov_y: float, aspect: float
         when = f", t = {track.timestamps_s[k]:.2f} s" if track.timestamps_s is not None else ""
         where = "" if known else " (no pose: not drawn)"
         i = int(track.frame_indices[k])
-        text.content = (f"{track.label} **{k}** of {len(track)} (dataset frame {i}{when}): "
+        m = track.manifest_of(k)
+        of = f" of '{m.dataset}'" if isinstance(track.manifest, list) and m is not None else ""
+        text.content = (f"{track.label} **{k}** of {len(track)} (dataset frame {i}{of}{when}): "
                         f"{swatch}**{st}**{where}")
-        img = frame_image(i) if i >= 0 else None
+        img = frame_image(k) if i >= 0 else None
         if img is not None:
             image.image = img
         image.visible = img is not None

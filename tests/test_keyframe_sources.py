@@ -1,0 +1,289 @@
+"""A bundle knows which recording each keyframe is a frame of, and every consumer reads it there.
+
+On real TUM frames: teddy split into two recordings, the second mapped into the first's world
+(``build --extend``); the export pairs every image with its own frame's pose, a recording missing
+or replaced by other frames has its keyframes left out (never paired with other frames), the
+viewer and the evaluation read each keyframe from its own recording. The metadata reading itself
+(older bundles, malformed fields) is tested without frames.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from atlas_pipeline.errors import BundleFormatError
+from atlas_pipeline.scene_memory.recordings import (UNKNOWN_RECORDING, bundle_keyframe_sources, join_recordings,
+                                                    recording_tag)
+from tests.conftest import isolate_project, tum_folder
+
+TEDDY = "tum_fr3_teddy_100"
+SPLIT = 40  # recording A: teddy frames 0..39, recording B: 40..79
+FAST = ["--camera", "freiburg3", "--set", "mapping.fit.epochs=0", "--set", "mapping.colour_refinement.iterations=0"]
+# B's keyframes are tracked into A's world (mapped at A's ground truth): within a few cm of B's
+# ground truth; A's keyframes are at their ground truth exactly. Another frame's pose is >= 10 cm off.
+POSE_TOLERANCE_M = 0.03
+
+
+def _split(src: Path, dst: Path, lo: int, hi: int) -> Path:
+    """Frames ``lo..hi-1`` of the TUM folder ``src`` as a TUM folder ``dst`` (images copied, lists
+    and ground truth trimmed to them)."""
+    (dst / "rgb").mkdir(parents=True)
+    (dst / "depth").mkdir()
+    times = []
+    for name in ("rgb.txt", "depth.txt"):
+        lines = (src / name).read_text().splitlines()
+        head = [ln for ln in lines if ln.startswith("#")]
+        body = [ln for ln in lines if ln and not ln.startswith("#")][lo:hi]
+        for ln in body:
+            rel = ln.split()[1]
+            shutil.copyfile(src / rel, dst / rel)
+            times.append(float(ln.split()[0]))
+        (dst / name).write_text("\n".join(head + body) + "\n")
+    lines = (src / "groundtruth.txt").read_text().splitlines()
+    t0, t1 = min(times) - 0.05, max(times) + 0.05
+    keep = [ln for ln in lines if ln.startswith("#") or (ln and t0 <= float(ln.split()[0]) <= t1)]
+    (dst / "groundtruth.txt").write_text("\n".join(keep) + "\n")
+    return dst
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def worlds(tmp_path_factory):
+    """``{root, A, B, wA, wB, teddy}``: A and B (B in a folder also named ``A``: a recording is told
+    apart by content, not by name), the world of A and that world extended with B."""
+    from assets.cli import main
+    from atlas_pipeline.sensors.registry import read_dataset_manifest
+    from atlas_pipeline.sensors.registry import dataset_from_spec
+
+    src = tum_folder(TEDDY)
+    root = tmp_path_factory.mktemp("keyframe_sources")
+    with pytest.MonkeyPatch.context() as mp:
+        isolate_project(root, mp)
+        a = _split(src, root / "A", 0, SPLIT)
+        b = _split(src, root / "second" / "A", SPLIT, 2 * SPLIT)
+        assert main(["build", "--input", str(a), "--output", str(root / "wA"), *FAST]) == 0
+        assert main(["build", "--input", str(b), "--extend", str(root / "wA"), "--output", str(root / "wB"),
+                     *FAST]) == 0
+        teddy = read_dataset_manifest(dataset_from_spec(str(src), "freiburg3"))
+        yield {"root": root, "A": a, "B": b, "wA": root / "wA", "wB": root / "wB", "teddy": teddy, "mp": mp}
+
+
+def _export(world: Path, out: Path, *argv: str) -> dict:
+    from assets.cli import main
+
+    assert main(["export", str(world), "--format", "colmap", "--output", str(out), *argv]) == 0
+    return json.loads((out / "export.json").read_text())
+
+
+def _images_and_poses(out: Path) -> list[tuple[str, np.ndarray]]:
+    """``(name, T_world_cam [4, 4])`` of every image of the COLMAP model in ``out``."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    return [(img.name, np.linalg.inv(np.vstack([img.cam_from_world().matrix(), [0, 0, 0, 1]])))
+            for img in sorted(rec.images.values(), key=lambda im: im.name)]
+
+
+def _check_pairs(out: Path, teddy) -> list[int]:
+    """Every exported image is a teddy frame (by its bytes) and its pose is that frame's ground
+    truth; returns the teddy frame of each image."""
+    by_digest = {_digest(teddy.rgb_path(i)): i for i in range(teddy.n_frames)}
+    frames = []
+    for name, T in _images_and_poses(out):
+        t = by_digest[_digest(out / "images" / name)]
+        assert teddy.has_gt[t], name
+        err = np.linalg.norm(T[:3, 3] - teddy.T_world_cam_gt[t][:3, 3])
+        assert err < POSE_TOLERANCE_M, f"{name} is teddy frame {t} but its pose is {err:.3f} m from that frame's"
+        frames.append(t)
+    return frames
+
+
+@pytest.mark.slow
+def test_extended_bundle_names_each_keyframes_recording_by_content(worlds):
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+    from atlas_pipeline.sensors.registry import dataset_from_spec, read_dataset_manifest
+
+    meta = json.loads((worlds["wB"] / "metadata.json").read_text())
+    hashes = [read_dataset_manifest(dataset_from_spec(str(worlds[k]), "freiburg3")).content_hash for k in "AB"]
+    recs = meta["recordings"]
+    assert [r["content_hash"] for r in recs] == hashes and [r["name"] for r in recs] == ["a", "a"]
+    assert [r["root"] for r in recs] == [str(worlds["A"]), str(worlds["B"])]
+    parent = json.loads((worlds["wA"] / "metadata.json").read_text())["keyframes"]
+    n_a = len(parent["indices"])
+    kf = meta["keyframes"]
+    assert kf["indices"][:n_a] == parent["indices"] and kf["recording"] == [0] * n_a + [1] * (len(kf["indices"]) - n_a)
+    # the anchor is a frame of the bundle's own recording (B), never A's first keyframe
+    assert meta["anchor"]["content_hash"] == hashes[1] and meta["anchor"]["frame_index"] == kf["indices"][n_a]
+    # the saved world carries the same record through the next --extend
+    w = GaussianWorld.load(worlds["wB"])
+    assert w.keyframe_recording.tolist() == kf["recording"] and w.recordings == recs
+
+
+@pytest.mark.slow
+def test_export_of_an_extended_world_pairs_every_image_with_its_own_frame(worlds):
+    out = worlds["root"] / "export_ab"
+    summary = _export(worlds["wB"], out)
+    meta = json.loads((worlds["wB"] / "metadata.json").read_text())
+    kf = meta["keyframes"]
+    frames = _check_pairs(out, worlds["teddy"])
+    # every keyframe is there once, as the teddy frame it is: A's index i is teddy i, B's is teddy 40 + i
+    want = sorted(i + SPLIT * j for i, j in zip(kf["indices"], kf["recording"]))
+    assert sorted(frames) == want and summary["n_images"] == len(want)
+    names = [n for n, _ in _images_and_poses(out)]
+    tag = recording_tag(meta["recordings"][0], 0)
+    assert len(set(names)) == len(names)
+    assert {n for n in names if n.startswith(tag + "_")} == {f"{tag}_frame_{i:06d}.png" for i, j in
+                                                             zip(kf["indices"], kf["recording"]) if j == 0}
+    assert [r["n_frames"] for r in summary["recordings"]] == [kf["recording"].count(1), kf["recording"].count(0)]
+
+
+@pytest.mark.slow
+def test_a_copy_of_the_worlds_own_recording_gives_no_duplicate_names(worlds):
+    from assets.cli import main
+
+    copy = worlds["root"] / "copy" / "A"
+    shutil.copytree(worlds["A"], copy)
+    w2 = worlds["root"] / "wA2"
+    # merged at ground truth, the copy's keyframes are the same frames as the world's own
+    assert main(["build", "--input", str(copy), "--extend", str(worlds["wA"]), "--output", str(w2), *FAST,
+                 "--set", "mapping.pose_source=ground_truth"]) == 0
+    meta = json.loads((w2 / "metadata.json").read_text())
+    assert len(meta["recordings"]) == 1 and set(meta["keyframes"]["recording"]) == {0}  # one recording, by content
+    assert len(meta["keyframes"]["indices"]) > len(set(meta["keyframes"]["indices"]))
+    out = worlds["root"] / "export_copy"
+    _export(w2, out)
+    names = [n for n, _ in _images_and_poses(out)]
+    assert len(names) == len(set(names)) == len(set(meta["keyframes"]["indices"]))
+    assert all(n.startswith("frame_") for n in names)
+    _check_pairs(out, worlds["teddy"])
+
+
+@pytest.mark.slow
+def test_a_missing_or_replaced_recording_has_its_keyframes_left_out(worlds, caplog):
+    a, away = worlds["A"], worlds["root"] / "A.away"
+    kf = json.loads((worlds["wB"] / "metadata.json").read_text())["keyframes"]
+    n_b = kf["recording"].count(1)
+    a.rename(away)
+    try:
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            summary = _export(worlds["wB"], worlds["root"] / "export_missing")
+        lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert len(lines) == 1 and f"keyframes of recording 'a'" in lines[0] and str(a) in lines[0], lines
+        assert summary["n_images"] == n_b
+        _check_pairs(worlds["root"] / "export_missing", worlds["teddy"])
+        # other frames where A was (B's, under A's name and folder): told apart by content, left out
+        shutil.copytree(worlds["B"], a)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            summary = _export(worlds["wB"], worlds["root"] / "export_replaced")
+        assert "holds other frames" in caplog.text and summary["n_images"] == n_b
+        _check_pairs(worlds["root"] / "export_replaced", worlds["teddy"])
+        shutil.rmtree(a)
+    finally:
+        away.rename(a)
+
+
+@pytest.mark.slow
+def test_estimated_export_reads_the_localized_recording_not_the_one_of_its_name(worlds, caplog):
+    """B (its folder named as A's) localized in A's world: its placed frames are read from B, the
+    recording the report names by content; with B gone, never from A (the world's own recording,
+    of B's name), but an error asking for B."""
+    from assets.cli import main
+
+    world = worlds["root"] / "wA_loc"
+    shutil.copytree(worlds["wA"], world)
+    assert main(["localize", "--world", str(world), "--input", str(worlds["B"]), "--camera", "freiburg3"]) in (0, 3)
+    out = worlds["root"] / "export_loc"
+    summary = _export(world, out)
+    assert summary["pose_source"] == "estimated" and summary["n_images"] > 0
+    assert min(_check_pairs(out, worlds["teddy"])) >= SPLIT  # B's frames, each at its own pose
+    b, away = worlds["B"], worlds["root"] / "B.away"
+    b.rename(away)
+    try:
+        caplog.clear()
+        assert main(["export", str(world), "--format", "colmap", "--output", str(worlds["root"] / "x")]) == 2
+        assert "the frames of dataset 'a' are not available" in caplog.text and "holds other frames" in caplog.text
+        summary = _export(world, worlds["root"] / "export_loc_input", "--input", str(away), "--camera", "freiburg3")
+        assert summary["n_images"] > 0 and min(_check_pairs(worlds["root"] / "export_loc_input", worlds["teddy"])) >= SPLIT
+    finally:
+        away.rename(b)
+
+
+@pytest.mark.slow
+def test_viewer_and_evaluation_read_each_keyframe_from_its_recording(worlds):
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+    from atlas_pipeline.scene_memory.recordings import keyframe_indices_of
+    from atlas_pipeline.sensors.registry import dataset_from_spec, read_dataset_manifest
+    from atlas_pipeline.viz.viewer import _thumbnail, load_viewer_data
+
+    data = load_viewer_data(worlds["wB"])
+    kf = json.loads((worlds["wB"] / "metadata.json").read_text())["keyframes"]
+    a, b = (read_dataset_manifest(dataset_from_spec(str(worlds[k]), "freiburg3")) for k in "AB")
+    assert [m.content_hash for m in data.keyframe_manifests] == [(a, b)[j].content_hash for j in kf["recording"]]
+    for k, (i, j) in enumerate(zip(kf["indices"], kf["recording"])):
+        if data.keyframe_images[k] is not None:
+            assert np.array_equal(data.keyframe_images[k], _thumbnail((a, b)[j].read_rgb(i))), k
+    assert sum(img is not None for img in data.keyframe_images) == len(kf["indices"])
+    # held-out frames of B are the frames that are no keyframe of B (A's keyframe indices are A's frames)
+    world = GaussianWorld.load(worlds["wB"])
+    assert keyframe_indices_of(world, b).tolist() == [i for i, j in zip(kf["indices"], kf["recording"]) if j == 1]
+
+
+# ---- the metadata, without frames ------------------------------------------------------------
+
+
+def _meta(**extra) -> dict:
+    T = np.eye(4).tolist()
+    return {"dataset": {"name": "a", "root": "/x/a", "content_hash": "f" * 64, "n_frames": 10, "camera": None},
+            "keyframes": {"indices": [2, 5], "T_world_cam": [T, T]}, **extra}
+
+
+def test_an_older_bundle_reads_every_keyframe_as_a_frame_of_its_dataset():
+    ks = bundle_keyframe_sources(_meta())
+    assert ks.recordings == [_meta()["dataset"]] and ks.recording.tolist() == [0, 0] and ks.indices.tolist() == [2, 5]
+    imported = bundle_keyframe_sources({"dataset": None, "keyframes": {}})
+    assert len(imported) == 0 and imported.recordings == []
+
+
+@pytest.mark.parametrize("extra, field", [
+    ({"recordings": [{"name": "a"}], "keyframes": {"indices": [2, 5], "T_world_cam": [np.eye(4).tolist()] * 2,
+                                                   "recording": [0, 1]}}, "keyframes.recording"),
+    ({"recordings": [{"name": "a"}], "keyframes": {"indices": [2, 5], "T_world_cam": [np.eye(4).tolist()] * 2,
+                                                   "recording": [0]}}, "keyframes.recording"),
+    ({"recordings": [{"name": "a"}], "keyframes": {"indices": [2, 5], "T_world_cam": [np.eye(4).tolist()] * 2}},
+     "keyframes.recording"),
+    ({"recordings": [{"name": "a", "content_hash": 7}], "keyframes": {
+        "indices": [2], "T_world_cam": [np.eye(4).tolist()], "recording": [0]}}, "recordings[0].content_hash"),
+    ({"recordings": {"name": "a"}}, "recordings"),
+    ({"keyframes": {"indices": [2, -1], "T_world_cam": [np.eye(4).tolist()] * 2}}, "keyframes.indices"),
+])
+def test_a_malformed_keyframe_source_names_its_field(extra, field, tmp_path):
+    where = tmp_path / "metadata.json"
+    with pytest.raises(BundleFormatError, match=r"field " + field.replace("[", r"\[").replace("]", r"\]")) as e:
+        bundle_keyframe_sources(_meta(**extra), where)
+    assert str(where) in str(e.value)
+
+
+def test_joining_recordings_tells_them_apart_by_content():
+    a = {"name": "a", "root": "/x/a", "content_hash": "1" * 64, "n_frames": 40, "camera": None}
+    same_elsewhere = {**a, "root": "/y/a"}
+    other_same_name = {**a, "content_hash": "2" * 64}
+    recs, idx = join_recordings([], np.zeros(0, np.int64), 0, a, 3)
+    recs, idx = join_recordings(recs, idx, 3, same_elsewhere, 2)
+    assert recs == [a] and idx.tolist() == [0] * 5
+    recs, idx = join_recordings(recs, idx, 5, other_same_name, 1)
+    assert recs == [a, other_same_name] and idx.tolist() == [0] * 5 + [1]
+    # keyframes whose recording was never recorded stay unknown: never taken for the new one's
+    recs, idx = join_recordings([], None, 4, a, 2)
+    assert recs == [UNKNOWN_RECORDING, a] and idx.tolist() == [0] * 4 + [1] * 2
