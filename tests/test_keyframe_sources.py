@@ -221,6 +221,38 @@ def test_estimated_export_reads_the_localized_recording_not_the_one_of_its_name(
 
 
 @pytest.mark.slow
+def test_extending_an_older_bundle_takes_its_keyframes_recording_from_its_dataset(worlds):
+    """A bundle written before keyframes named their recording (no ``recordings``, no
+    ``keyframe_recording`` in world.npz): extended, its keyframes are frames of its dataset."""
+    from assets.cli import main
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+    from atlas_pipeline.io_utils import sha256_file
+
+    old = worlds["root"] / "wA_old"
+    shutil.copytree(worlds["wA"], old)
+    w = GaussianWorld.load(old)
+    w.recordings, w.keyframe_recording = [], None
+    w.save(old)
+    meta = json.loads((old / "metadata.json").read_text())
+    own = meta.pop("recordings")[0]
+    del meta["keyframes"]["recording"]
+    for name in ("world.npz", "world.json"):  # as that older writer listed them
+        meta["files"][name].update(bytes=(old / name).stat().st_size, sha256=sha256_file(old / name))
+    (old / "metadata.json").write_text(json.dumps(meta))
+    assert GaussianWorld.load(old).keyframe_recording is None
+    out = worlds["root"] / "wAB_old"
+    assert main(["build", "--input", str(worlds["B"]), "--extend", str(old), "--output", str(out), *FAST,
+                 "--set", "mapping.pose_source=ground_truth"]) == 0
+    ext = json.loads((out / "metadata.json").read_text())
+    n_a = len(meta["keyframes"]["indices"])
+    assert ext["recordings"][0] == own and ext["recordings"][1]["root"] == str(worlds["B"])
+    assert ext["keyframes"]["recording"] == [0] * n_a + [1] * (len(ext["keyframes"]["indices"]) - n_a)
+    export_dir = worlds["root"] / "export_old"
+    _export(out, export_dir)
+    _check_pairs(export_dir, worlds["teddy"])
+
+
+@pytest.mark.slow
 def test_viewer_and_evaluation_read_each_keyframe_from_its_recording(worlds):
     from atlas_pipeline.gaussian_world.builder import GaussianWorld
     from atlas_pipeline.scene_memory.recordings import keyframe_indices_of
