@@ -9,12 +9,24 @@ map server loads.
 2. *Map frame*: z the floor's normal (towards the cameras), x the world's x projected onto the floor
    (y where x is nearly vertical), the origin the world origin's projection onto the floor; heights
    are measured from the floor. ``occupancy.json`` gives ``T_world_map`` (4x4).
-3. *Obstacles*: the frames' depth points (at the frames' poses) whose height lies in the band
-   ``[OBSTACLE_MIN_HEIGHT_M, OBSTACLE_MAX_HEIGHT_M]`` (above floor noise, below a ceiling) mark
-   their cell; :data:`MIN_OBSTACLE_HITS` marks make it occupied.
-4. *Free space*, from the camera rays: every cell a ray from a camera to its depth point crosses
+3. *Floor, region by region* (:func:`fit_floor`): real depth does not lie on one plane (a pose a
+   fraction of a degree off, a depth bias growing with range lift the far floor by centimetres per
+   metre). The frames' depth points near the plane vote, one vote per 5-cm cell, for the floor's
+   height in regions of :data:`FLOOR_TILE_M` (the lowest strong peak of their heights, smoothed by
+   the depth noise model); each frame's own tilt against that floor is fitted and taken out, and
+   the floor fitted again.
+4. *Obstacles*: a depth point whose height above that floor (as its frame sees it) lies in the band
+   from :func:`obstacle_min_height_m` (:data:`OBSTACLE_MIN_HEIGHT_M` near the camera, rising with
+   the depth noise model's std, ``sensors.depth_noise``: 3 std, 12 cm at 5 m) to
+   :data:`OBSTACLE_MAX_HEIGHT_M` is a hit. A cell is occupied with :data:`MIN_OBSTACLE_HITS` hits
+   that are at least :data:`OBSTACLE_MIN_SHARE` of its readings, from two frames where two read it
+   (:meth:`CellEvidence.occupied`).
+5. *Free space*, from the camera rays: every cell a ray from a camera to its depth point crosses
    below the band's top, and every cell whose floor was seen, is observed; observed cells that
    are not occupied are free. The rest is unknown.
+
+Frames are read through :func:`keyframe_depths` alone (depth without lens distortion, at the
+export source's poses).
 
 The map's cells are ``resolution_m`` wide (default :data:`OCCUPANCY_RESOLUTION_M`, 5 cm: Nav2's
 usual costmap resolution). The PGM (binary P5) holds 0 for occupied, 254 for free and 205 for
@@ -29,24 +41,34 @@ import io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.errors import ArtifactError, AtlasError, ConfigError
-from atlas_pipeline.interop.frames import ExportSource, undistorted_depth_m
+from atlas_pipeline.interop.frames import ExportSource, pinhole_camera, undistorted_depth_m
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic, write_text_atomic
+from atlas_pipeline.sensors.camera import CameraIntrinsics
+from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["OCCUPANCY_RESOLUTION_M", "OccupancyGrid", "occupancy_grid", "find_floor", "map_frame", "grid_evidence",
-           "write_ros_map", "read_pgm", "OccupancyMap", "FREE", "OCCUPIED", "UNKNOWN", "check_resolution"]
+           "cell_evidence", "CellEvidence", "FloorSurface", "FramePoints", "fit_floor", "fit_floor_surface",
+           "fit_frame_tilts", "obstacle_min_height_m", "keyframe_depths", "frame_points", "write_ros_map", "read_pgm",
+           "OccupancyMap", "FREE", "OCCUPIED", "UNKNOWN", "check_resolution"]
 
 OCCUPANCY_RESOLUTION_M = 0.05
 MIN_RESOLUTION_M, MAX_RESOLUTION_M = 0.01, 1.0
-OBSTACLE_MIN_HEIGHT_M = 0.05  # above the floor's depth noise and the Gaussians' thickness there
+OBSTACLE_MIN_HEIGHT_M = 0.05  # the band's bottom at close range, where the depth noise is millimetres
+OBSTACLE_NOISE_SIGMAS = 3.0  # farther, the bottom is 3 std of the depth noise: 0.1 % of floor points above it
 OBSTACLE_MAX_HEIGHT_M = 2.0  # a person-sized robot; the ceiling (and lamps) stay out
 MIN_OBSTACLE_HITS = 2  # one stray depth point does not block a cell
+MIN_OBSTACLE_FRAMES = 2  # nor one frame's stray cluster, where other frames read the cell too
+# A floor cell's readings above the band are the noise's tail: 0.1 % of them at 3 std if it were
+# Gaussian, a few % on real structured-light depth (a heavier tail); an obstacle is most of its cell's.
+OBSTACLE_MIN_SHARE = 0.1
 FLOOR_MIN_SHARE = 0.03  # of the map's Gaussians in one floor height bin
 FLOOR_BIN_M = 0.02
 FLOOR_BAND_M = 0.04  # Gaussians within this of the floor height fit its plane
@@ -54,6 +76,25 @@ FLOOR_BELOW_CAMERAS_M = 0.3  # the floor is at least this far below the lowest c
 MIN_FLOOR_OPACITY = 0.3
 FLAT_SCALE_RATIO = 0.5  # a Gaussian is flat (has a normal) when its shortest axis is under half the next
 HORIZONTAL_MAX_TILT_DEG = 35.0
+# The floor, region by region: a tilted pose or a depth bias that grows with range lifts the far
+# floor off the plane by centimetres per metre; regions of 0.5 m follow that, and the 1.5-m window
+# each is fitted over sees floor beside anything a robot must drive around.
+FLOOR_TILE_M = 0.5
+FLOOR_MAX_DEPARTURE_M = 0.3  # farther from the plane is another level (a step, a table), not this floor
+FLOOR_HIST_BIN_M = 0.01
+FLOOR_PEAK_SHARE = 0.3  # the floor's peak holds this much of the window's strongest height
+FLOOR_CELL_M = 0.05  # the points vote for the floor's height one cell of this size at a time
+FLOOR_MIN_CELLS = 20  # floor cells in a window (of 900) for its floor to be fitted
+FLOOR_MIN_SIGMA_M = 0.005  # the floor's own unevenness, under the sensor's noise at close range
+FLOOR_INLIER_SIGMAS = 2.0
+FLOOR_AGREE_SIGMAS = 3.0  # a region's floor within this many std of its neighbours' median
+FLOOR_MIN_NEIGHBOURS = 3
+TILT_MIN_POINTS = 200  # floor points of a frame to fit its tilt (3 parameters) to
+TILT_ITERATIONS = 4
+TILT_MIN_SPREAD_M = FLOOR_TILE_M  # the floor points' std across their narrowest direction, for slopes
+MAD_TO_SIGMA = 1.4826  # a normal distribution's std per median absolute deviation
+OCCUPANCY_MAX_DEPTH_M = MappingConfig().max_depth_m  # the map's own depth range
+ORIGIN_DECIMALS = 9  # nanometres: the origin is a whole number of cells, free of float residue
 HIT_STRIDE_PX = 2  # obstacle and floor points from every 2nd pixel
 RAY_STRIDE_PX = 8  # free-space rays from every 8th pixel (each crosses many cells)
 GRID_MARGIN_CELLS = 2
@@ -160,54 +201,370 @@ class GridSpec:
         return c[:, 1], c[:, 0], inside
 
 
-def _frame_points(src: ExportSource, T_map_world: np.ndarray, stride: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per frame: ``(camera centre [3], depth points [M, 3])`` in the map frame."""
+def grid_around(xy: np.ndarray, resolution_m: float) -> GridSpec:
+    """The grid holding the map-frame points ``xy`` ``[N, 2]`` with :data:`GRID_MARGIN_CELLS` to
+    spare, its origin a whole number of cells."""
+    lo = np.floor(xy.min(axis=0) / resolution_m - GRID_MARGIN_CELLS) * resolution_m
+    hi = np.ceil(xy.max(axis=0) / resolution_m + GRID_MARGIN_CELLS) * resolution_m
+    shape = (int(round((hi[1] - lo[1]) / resolution_m)), int(round((hi[0] - lo[0]) / resolution_m)))
+    return GridSpec(lo, resolution_m, shape)
+
+
+def written_origin_xy(grid: GridSpec) -> list[float]:
+    """The grid's origin as the YAML and JSON give it: rounded to :data:`ORIGIN_DECIMALS` (a whole
+    number of cells reads ``-8.45``, not ``-8.450000000000001``)."""
+    return [round(float(v), ORIGIN_DECIMALS) for v in grid.origin_xy]
+
+
+# ---- frames ------------------------------------------------------------------------------------
+
+
+def keyframe_depths(src: ExportSource) -> Iterator[tuple[np.ndarray, np.ndarray, CameraIntrinsics]]:
+    """Per frame of ``src``: ``(T_world_cam [4, 4], depth_m [H, W] float32 without lens distortion,
+    its pinhole camera)``. The one place this module reads frames."""
     cam = src.manifest.camera
-    v, u = np.mgrid[0:cam.height:stride, 0:cam.width:stride]
-    out = []
+    pinhole = pinhole_camera(cam)
     for i, T in zip(src.frame_indices.tolist(), src.T_world_cam):
-        d = undistorted_depth_m(src.manifest.read_depth_m(i, allow_empty=True), cam)[v, u].astype(np.float64)
-        ok = d > 0
-        p_cam = np.stack([(u[ok] - cam.cx) / cam.fx * d[ok], (v[ok] - cam.cy) / cam.fy * d[ok], d[ok]], axis=1)
-        T_map_cam = T_map_world @ T
-        out.append((T_map_cam[:3, 3], p_cam @ T_map_cam[:3, :3].T + T_map_cam[:3, 3]))
+        yield T, undistorted_depth_m(src.manifest.read_depth_m(i, allow_empty=True), cam), pinhole
+
+
+@dataclass
+class FramePoints:
+    """One frame's depth points in the map frame: the camera centre ``[3]``, the points ``[M, 3]``
+    and each point's depth reading ``depth_m`` ``[M]`` (what its noise grows with)."""
+
+    centre: np.ndarray
+    points: np.ndarray
+    depth_m: np.ndarray
+    # the frame's own floor error ``[3]``: offset (m) at the camera, slopes along map x and y
+    # (m/m), fitted by :func:`fit_frame_tilts` (a pose a fraction of a degree off lifts the far floor)
+    tilt: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def heights(self, floor: "FloorSurface", xyz: np.ndarray | None = None) -> np.ndarray:
+        """Heights ``[N]`` above ``floor`` as this frame sees it, of its points or of ``xyz`` ``[N, 3]``."""
+        p = self.points if xyz is None else xyz
+        dx, dy = p[:, 0] - self.centre[0], p[:, 1] - self.centre[1]
+        return p[:, 2] - floor.height_at(p[:, :2]) - (self.tilt[0] + self.tilt[1] * dx + self.tilt[2] * dy)
+
+
+def frame_points(T_map_cam: np.ndarray, depth_m: np.ndarray, camera: CameraIntrinsics, stride: int,
+                 max_depth_m: float = OCCUPANCY_MAX_DEPTH_M) -> FramePoints:
+    """Every ``stride``-th pixel's depth point of ``depth_m`` ``[H, W]`` (readings in
+    ``(0, max_depth_m]``) in the map frame, the camera at ``T_map_cam`` ``[4, 4]``."""
+    v, u = np.mgrid[0:depth_m.shape[0]:stride, 0:depth_m.shape[1]:stride]
+    d = depth_m[v, u].astype(np.float64)
+    ok = (d > 0) & (d <= max_depth_m)
+    d = d[ok]
+    p_cam = np.stack([(u[ok] - camera.cx) / camera.fx * d, (v[ok] - camera.cy) / camera.fy * d, d], axis=1)
+    return FramePoints(T_map_cam[:3, 3].copy(), p_cam @ T_map_cam[:3, :3].T + T_map_cam[:3, 3], d)
+
+
+def _as_frame_points(frames) -> list[FramePoints]:
+    """``FramePoints``, or ``(centre, points)`` pairs of an ideal sensor (depth noise 0)."""
+    out = []
+    for f in frames:
+        if isinstance(f, FramePoints):
+            out.append(f)
+        else:
+            centre, pts = f
+            out.append(FramePoints(np.asarray(centre, np.float64), np.asarray(pts, np.float64), np.zeros(len(pts))))
     return out
 
 
-def grid_evidence(hits_frames: list[tuple[np.ndarray, np.ndarray]], ray_frames: list[tuple[np.ndarray, np.ndarray]],
-                  grid: GridSpec, band_m: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """``(obstacle hits [H, W] int64, observed [H, W] bool)`` from map-frame depth points: hits
-    of points in the height ``band_m``; observed where such a hit, a floor point, or a ray from a
-    camera to a point (sampled every half cell, below the band's top) lies."""
+# ---- the floor, region by region ---------------------------------------------------------------
+
+
+@dataclass
+class FloorSurface:
+    """The floor's height above the map frame's ``z = 0`` plane, region by region: ``height_m``
+    ``[Ht, Wt]`` at the centres of tiles ``tile_m`` wide (tile ``(0, 0)`` from ``origin_xy``),
+    bilinear between them (constant beyond the outer centres); ``fitted`` ``[Ht, Wt]`` marks the
+    tiles whose floor was seen (the others are filled in from them)."""
+
+    origin_xy: np.ndarray
+    tile_m: float
+    height_m: np.ndarray
+    fitted: np.ndarray
+
+    @classmethod
+    def flat(cls) -> "FloorSurface":
+        """The plane ``z = 0`` itself."""
+        return cls(np.zeros(2), 1.0, np.zeros((1, 1)), np.ones((1, 1), bool))
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        """The floor's height ``[N]`` under map-frame points ``xy`` ``[N, 2]``."""
+        h = self.height_m
+        f = (np.asarray(xy, np.float64) - self.origin_xy) / self.tile_m - 0.5  # in tile centres
+        fx = np.clip(f[:, 0], 0, h.shape[1] - 1)
+        fy = np.clip(f[:, 1], 0, h.shape[0] - 1)
+        x0 = np.minimum(np.floor(fx).astype(np.int64), max(h.shape[1] - 2, 0))
+        y0 = np.minimum(np.floor(fy).astype(np.int64), max(h.shape[0] - 2, 0))
+        x1, y1 = np.minimum(x0 + 1, h.shape[1] - 1), np.minimum(y0 + 1, h.shape[0] - 1)
+        ax, ay = fx - x0, fy - y0
+        return ((1 - ay) * ((1 - ax) * h[y0, x0] + ax * h[y0, x1]) + ay * ((1 - ax) * h[y1, x0] + ax * h[y1, x1]))
+
+    def summary(self) -> dict[str, Any]:
+        fitted = self.height_m[self.fitted]
+        return {"tile_m": self.tile_m, "tiles_fitted": int(self.fitted.sum()), "tiles": int(self.fitted.size),
+                "height_range_m": [round(float(fitted.min()), 4), round(float(fitted.max()), 4)] if len(fitted)
+                else [0.0, 0.0]}
+
+
+def _box3(a: np.ndarray) -> np.ndarray:
+    """Sums over the 3 x 3 tiles around each tile of ``a`` ``[Ht, Wt, ...]`` (zero outside)."""
+    p = np.pad(a, [(1, 1), (1, 1)] + [(0, 0)] * (a.ndim - 2))
+    return sum(p[i:i + a.shape[0], j:j + a.shape[1]] for i in range(3) for j in range(3))
+
+
+def _lowest_peak(density: np.ndarray) -> int:
+    """The lowest bin of ``density`` ``[B]`` that is a local maximum holding at least
+    :data:`FLOOR_PEAK_SHARE` of the highest (the floor lies under whatever stands on it)."""
+    d = np.concatenate([[-1.0], density, [-1.0]])
+    peak = (d[1:-1] >= d[:-2]) & (d[1:-1] >= d[2:]) & (density >= FLOOR_PEAK_SHARE * density.max())
+    return int(np.flatnonzero(peak)[0])
+
+
+def _cell_medians(pts: np.ndarray, sig: np.ndarray, lo: np.ndarray, cell_m: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per floor cell (``cell_m`` wide from ``lo``) holding points ``[N, 3]`` (x, y, height):
+    ``(cell [C, 2] int64 column and row, median height [C], the noise std of that point [C])``."""
+    cell = np.floor((pts[:, :2] - lo) / cell_m).astype(np.int64)
+    key = cell[:, 1] * (int(cell[:, 0].max()) + 1) + cell[:, 0]
+    order = np.lexsort((pts[:, 2], key))
+    k = key[order]
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    counts = np.diff(np.r_[starts, len(k)])
+    mid = order[starts + (counts - 1) // 2]
+    return cell[mid], pts[mid, 2], sig[mid]
+
+
+def fit_floor_surface(frames: list[FramePoints], tile_m: float = FLOOR_TILE_M) -> FloorSurface:
+    """The floor's height region by region, from the depth points within
+    :data:`FLOOR_MAX_DEPARTURE_M` of the map's floor plane (each frame's tilt taken out).
+
+    The points vote by :data:`FLOOR_CELL_M` cell, each cell its median height: a wall holds many
+    points but few cells, the floor many cells. Per tile, over the window of it and its 8
+    neighbours, the cells' heights are histogrammed (:data:`FLOOR_HIST_BIN_M` bins) and smoothed by
+    the depth noise model's std (the window's median); the lowest strong peak is the floor there
+    (whatever stands on the floor is above it), refined to the mean of the cells within
+    :data:`FLOOR_INLIER_SIGMAS` std of it (each weighted by its ``1 / sigma^2``). A tile's floor
+    that departs from the median of its fitted neighbours by more than the noise allows (a low
+    platform, a wall's foot taken for floor) is dropped; tiles with no floor take their
+    neighbours' (repeated 3 x 3 averaging), or the plane's where none was seen.
+    """
+    if not frames:
+        return FloorSurface.flat()
+    flat = FloorSurface.flat()
+    pts = np.concatenate([np.column_stack([f.points[:, :2], f.heights(flat)]) for f in frames])
+    dep = np.concatenate([f.depth_m for f in frames])
+    near = np.abs(pts[:, 2]) <= FLOOR_MAX_DEPARTURE_M
+    pts, sig = pts[near], np.maximum(depth_sigma_m(dep[near]), FLOOR_MIN_SIGMA_M)
+    if len(pts) == 0:
+        return FloorSurface.flat()
+    lo = np.floor(pts[:, :2].min(axis=0) / tile_m) * tile_m
+    cell, h, sig = _cell_medians(pts, sig, lo, FLOOR_CELL_M)
+    t = (cell * FLOOR_CELL_M + FLOOR_CELL_M / 2) // tile_m  # the tile of each cell's centre
+    t = t.astype(np.int64)
+    shape = (int(t[:, 1].max()) + 1, int(t[:, 0].max()) + 1)
+    n_bins = int(round(2 * FLOOR_MAX_DEPARTURE_M / FLOOR_HIST_BIN_M)) + 1
+    b = np.clip(np.rint((h + FLOOR_MAX_DEPARTURE_M) / FLOOR_HIST_BIN_M).astype(np.int64), 0, n_bins - 1)
+    tile = t[:, 1] * shape[1] + t[:, 0]
+    hist = np.bincount(tile * n_bins + b, minlength=shape[0] * shape[1] * n_bins).reshape(*shape, n_bins)
+    window = _box3(hist.astype(np.float64))  # [Ht, Wt, B] cells per height bin
+    height = np.zeros(shape)
+    tile_sigma = np.zeros(shape)
+    fitted = np.zeros(shape, bool)
+    centres = np.arange(n_bins) * FLOOR_HIST_BIN_M - FLOOR_MAX_DEPARTURE_M
+    kernel_m = np.arange(-n_bins + 1, n_bins) * FLOOR_HIST_BIN_M
+    order = np.argsort(tile, kind="stable")
+    starts = np.searchsorted(tile[order], np.arange(shape[0] * shape[1] + 1))
+    for r, c in zip(*np.nonzero(window.sum(axis=2) >= FLOOR_MIN_CELLS)):
+        idx = np.concatenate([order[starts[rr * shape[1] + cc]:starts[rr * shape[1] + cc + 1]]
+                              for rr in range(max(r - 1, 0), min(r + 2, shape[0]))
+                              for cc in range(max(c - 1, 0), min(c + 2, shape[1]))])
+        s = float(np.median(sig[idx]))  # the window's noise
+        density = np.convolve(window[r, c], np.exp(-0.5 * (kernel_m / s) ** 2))[n_bins - 1:2 * n_bins - 1]
+        peak = centres[_lowest_peak(density)]
+        w = 1.0 / sig[idx] ** 2
+        inl = np.abs(h[idx] - peak) <= FLOOR_INLIER_SIGMAS * np.maximum(sig[idx], s)
+        if inl.sum() < FLOOR_MIN_CELLS:
+            continue
+        height[r, c] = float((h[idx][inl] * w[inl]).sum() / w[inl].sum())
+        tile_sigma[r, c] = s
+        fitted[r, c] = True
+    # a tile's floor agrees with its fitted neighbours' median, within the noise of both
+    keep = fitted.copy()
+    for r, c in zip(*np.nonzero(fitted)):
+        nb = [(rr, cc) for rr in range(max(r - 1, 0), min(r + 2, shape[0]))
+              for cc in range(max(c - 1, 0), min(c + 2, shape[1])) if (rr, cc) != (r, c) and fitted[rr, cc]]
+        if len(nb) >= FLOOR_MIN_NEIGHBOURS:
+            med = np.median([height[x] for x in nb])
+            if abs(height[r, c] - med) > FLOOR_AGREE_SIGMAS * tile_sigma[r, c]:
+                keep[r, c] = False
+    fitted = keep
+    filled = np.where(fitted, height, 0.0)
+    have = fitted.astype(np.float64)
+    for _ in range(max(shape)):
+        if have.all():
+            break
+        s_h, s_n = _box3(filled * (have > 0)), _box3((have > 0).astype(np.float64))
+        grow = (have == 0) & (s_n > 0)
+        if not grow.any():
+            break
+        filled[grow] = s_h[grow] / s_n[grow]
+        have[grow] = 1.0
+    return FloorSurface(lo, tile_m, filled, fitted)
+
+
+def fit_frame_tilts(frames: list[FramePoints], floor: FloorSurface) -> None:
+    """Each frame's own floor error (:attr:`FramePoints.tilt`), a plane through its floor points'
+    heights above ``floor``: the points below the obstacle band's bottom, refitted
+    :data:`TILT_ITERATIONS` times to those within :data:`FLOOR_INLIER_SIGMAS` std (the depth noise
+    model's, or the residuals' own robust std where larger) of the plane. A frame with under
+    :data:`TILT_MIN_POINTS` floor points keeps a zero tilt; one whose floor points spread less than
+    :data:`TILT_MIN_SPREAD_M` across gets an offset alone."""
+    for f in frames:
+        f.tilt = np.zeros(3)
+        e = f.heights(floor)
+        sig = np.maximum(depth_sigma_m(f.depth_m), FLOOR_MIN_SIGMA_M)
+        inl = np.abs(e) < obstacle_min_height_m(f.depth_m)
+        if inl.sum() < TILT_MIN_POINTS:
+            continue
+        A = np.stack([np.ones(len(e)), f.points[:, 0] - f.centre[0], f.points[:, 1] - f.centre[1]], axis=1)
+        # a slope needs floor spread out along it: a small patch's slope would tip the far points
+        spread = np.sqrt(np.linalg.eigvalsh(np.cov(A[inl, 1:].T)).min())
+        if spread < TILT_MIN_SPREAD_M:
+            A[:, 1:] = 0.0
+        coef = np.zeros(3)
+        for _ in range(TILT_ITERATIONS):
+            w = 1.0 / sig[inl]
+            coef = np.linalg.lstsq(A[inl] * w[:, None], e[inl] * w, rcond=None)[0]
+            res = e - A @ coef
+            scale = MAD_TO_SIGMA * float(np.median(np.abs(res[inl])))
+            inl = np.abs(res) <= FLOOR_INLIER_SIGMAS * np.maximum(sig, scale)
+            if inl.sum() < TILT_MIN_POINTS:
+                break
+        else:
+            f.tilt = coef
+
+
+def fit_floor(frames: list[FramePoints]) -> FloorSurface:
+    """The floor region by region (:func:`fit_floor_surface`) and each frame's own tilt against it
+    (:func:`fit_frame_tilts`), twice: the second floor is fitted to the points with their frame's
+    tilt taken out, so one frame's error does not lift the others' floor."""
+    floor = fit_floor_surface(frames)
+    fit_frame_tilts(frames, floor)
+    floor = fit_floor_surface(frames)
+    fit_frame_tilts(frames, floor)
+    return floor
+
+
+# ---- evidence ----------------------------------------------------------------------------------
+
+
+def obstacle_min_height_m(depth_m: np.ndarray, band_bottom_m: float = OBSTACLE_MIN_HEIGHT_M) -> np.ndarray:
+    """The lowest height above the floor ``[N]`` at which a point of depth reading ``depth_m``
+    ``[N]`` is an obstacle: ``band_bottom_m``, or :data:`OBSTACLE_NOISE_SIGMAS` times the depth noise
+    model's std where that is more (a floor point read with that noise stays below it)."""
+    d = np.asarray(depth_m, np.float64)
+    return np.where(d > 0, np.maximum(band_bottom_m, OBSTACLE_NOISE_SIGMAS * depth_sigma_m(d)), band_bottom_m)
+
+
+@dataclass
+class CellEvidence:
+    """Per cell ``[H, W]``: ``hits`` (int64), the depth points in the obstacle band; ``readings``
+    (int64), the depth points below the band's top (floor and obstacle); ``hit_frames`` and
+    ``reading_frames`` (int64), the frames with a hit, a reading there; ``seen`` (bool), observed
+    (a reading, or a camera ray below the band's top, crossed it)."""
+
+    hits: np.ndarray
+    readings: np.ndarray
+    hit_frames: np.ndarray
+    reading_frames: np.ndarray
+    seen: np.ndarray
+
+    def occupied(self) -> np.ndarray:
+        """``[H, W]`` bool: at least :data:`MIN_OBSTACLE_HITS` hits, at least
+        :data:`OBSTACLE_MIN_SHARE` of the cell's readings, and from two frames unless one frame
+        alone read the cell. A frame's noise is correlated over a few pixels (the sensor's matching
+        window), so its stray readings come in clusters; another frame's are independent of them."""
+        agreed = (self.hit_frames >= MIN_OBSTACLE_FRAMES) | (self.reading_frames < MIN_OBSTACLE_FRAMES)
+        return (self.hits >= MIN_OBSTACLE_HITS) & (self.hits >= OBSTACLE_MIN_SHARE * self.readings) & agreed
+
+
+def cell_evidence(hits_frames, ray_frames, grid: GridSpec, band_m: tuple[float, float],
+                  floor: FloorSurface | None = None) -> CellEvidence:
+    """The evidence of map-frame depth points (:class:`FramePoints`, or ``(centre [3], points [M,
+    3])`` pairs of an ideal sensor) on ``grid``'s cells: a point is an obstacle hit when its height
+    above ``floor`` (default the plane ``z = 0``; with its frame's tilt taken out) lies in the band
+    from :func:`obstacle_min_height_m` (``band_m[0]``, or the depth noise's where more) to
+    ``band_m[1]``; rays from each camera to its points (sampled every half cell, below the band's
+    top) mark the cells they cross as seen. ``ray_frames[k]`` is ``hits_frames[k]`` at another
+    stride (its tilt is taken from there)."""
+    floor = floor or FloorSurface.flat()
+    hit_frames, rays = _as_frame_points(hits_frames), _as_frame_points(ray_frames)
     hits = np.zeros(grid.shape, np.int64)
+    readings = np.zeros(grid.shape, np.int64)
+    n_hit_frames = np.zeros(grid.shape, np.int64)
+    n_reading_frames = np.zeros(grid.shape, np.int64)
     seen = np.zeros(grid.shape, bool)
     lo, hi = band_m
-    for _, pts in hits_frames:
-        h = pts[:, 2]
-        r, c, ok = grid.cells(pts[:, :2])
-        obstacle = ok & (h >= lo) & (h <= hi)
+    # the floor under each cell's centre: it changes by millimetres across a cell
+    rows, cols = np.mgrid[0:grid.shape[0], 0:grid.shape[1]]
+    centres_xy = grid.origin_xy + (np.stack([cols.ravel(), rows.ravel()], axis=1) + 0.5) * grid.resolution_m
+    floor_cells = floor.height_at(centres_xy).reshape(grid.shape)
+
+    def heights(f: FramePoints, p: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """Heights of ``p`` ``[N, 3]`` (inside the grid, in cells ``r``, ``c``) as frame ``f`` sees them."""
+        return p[:, 2] - floor_cells[r, c] - (f.tilt[0] + f.tilt[1] * (p[:, 0] - f.centre[0])
+                                              + f.tilt[2] * (p[:, 1] - f.centre[1]))
+
+    for f in hit_frames:
+        r, c, ok = grid.cells(f.points[:, :2])
+        h = np.full(len(f.points), np.inf)
+        h[ok] = heights(f, f.points[ok], r[ok], c[ok])
+        below_top = ok & (h <= hi)
+        obstacle = below_top & (h >= obstacle_min_height_m(f.depth_m, lo))
         np.add.at(hits, (r[obstacle], c[obstacle]), 1)
-        seen[r[ok & (h <= hi)], c[ok & (h <= hi)]] = True
+        np.add.at(readings, (r[below_top], c[below_top]), 1)
+        hit_cell = np.zeros(grid.shape, bool)
+        hit_cell[r[obstacle], c[obstacle]] = True
+        n_hit_frames += hit_cell
+        read_cell = np.zeros(grid.shape, bool)
+        read_cell[r[below_top], c[below_top]] = True
+        n_reading_frames += read_cell
+        seen |= read_cell
     step = grid.resolution_m / 2
-    for centre, pts in ray_frames:
-        for s in range(0, len(pts), _RAY_CHUNK):
-            end = pts[s:s + _RAY_CHUNK]
+    for k, f in enumerate(rays):
+        tilted = FramePoints(f.centre, f.points, f.depth_m, hit_frames[k].tilt if k < len(hit_frames) else f.tilt)
+        centre = f.centre
+        for s in range(0, len(f.points), _RAY_CHUNK):
+            end = f.points[s:s + _RAY_CHUNK]
             d = end - centre
             length = np.linalg.norm(d[:, :2], axis=1)  # cells are crossed in the floor's plane
             n = np.maximum(1, np.ceil(length / step).astype(np.int64))
             ray = np.repeat(np.arange(len(end)), n)
             t = (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)  # [0, 1) along each ray
             q = centre + d[ray] * t[:, None]
-            keep = q[:, 2] <= hi
-            r, c, ok = grid.cells(q[keep, :2])
-            seen[r[ok], c[ok]] = True
-    return hits, seen
+            r, c, ok = grid.cells(q[:, :2])
+            r, c, q = r[ok], c[ok], q[ok]
+            keep = heights(tilted, q, r, c) <= hi
+            seen[r[keep], c[keep]] = True
+    return CellEvidence(hits, readings, n_hit_frames, n_reading_frames, seen)
+
+
+def grid_evidence(hits_frames, ray_frames, grid: GridSpec, band_m: tuple[float, float],
+                  floor: FloorSurface | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(obstacle hits [H, W] int64, observed [H, W] bool)`` of :func:`cell_evidence`."""
+    ev = cell_evidence(hits_frames, ray_frames, grid, band_m, floor)
+    return ev.hits, ev.seen
 
 
 @dataclass
 class OccupancyGrid:
     """``state`` ``[H, W]`` int8 (:data:`FREE`, :data:`OCCUPIED`, :data:`UNKNOWN`), row 0 at the
-    map frame's lowest y; ``grid``; ``T_world_map`` ``[4, 4]``; the floor plane and the band."""
+    map frame's lowest y; ``grid``; ``T_world_map`` ``[4, 4]``; the floor plane, the band (its
+    bottom at close range: it rises with the depth noise), the floor region by region."""
 
     state: np.ndarray
     grid: GridSpec
@@ -216,6 +573,7 @@ class OccupancyGrid:
     floor_offset_m: float
     band_m: tuple[float, float]
     cameras_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # [K, 2] map frame
+    floor: FloorSurface = field(default_factory=FloorSurface.flat)
 
 
 def occupancy_grid(src: ExportSource, resolution_m: float = OCCUPANCY_RESOLUTION_M,
@@ -224,25 +582,26 @@ def occupancy_grid(src: ExportSource, resolution_m: float = OCCUPANCY_RESOLUTION
     """The occupancy grid of ``src``'s world and frames (module docstring)."""
     log = log or logger.info
     resolution_m = check_resolution(resolution_m)
-    f = src.field
-    normal, offset = find_floor(f, src.T_world_cam)
+    normal, offset = find_floor(src.field, src.T_world_cam)
     T_world_map = map_frame(normal, offset)
     T_map_world = np.linalg.inv(T_world_map)
-    hit_frames = _frame_points(src, T_map_world, HIT_STRIDE_PX)
-    ray_frames = _frame_points(src, T_map_world, RAY_STRIDE_PX)
-    xy = np.concatenate([p[:, :2] for _, p in hit_frames] + [np.array([c[:2] for c, _ in hit_frames])])
-    lo = np.floor(xy.min(axis=0) / resolution_m - GRID_MARGIN_CELLS) * resolution_m
-    hi = np.ceil(xy.max(axis=0) / resolution_m + GRID_MARGIN_CELLS) * resolution_m
-    shape = (int(round((hi[1] - lo[1]) / resolution_m)), int(round((hi[0] - lo[0]) / resolution_m)))
-    grid = GridSpec(lo, resolution_m, shape)
-    hits, seen = grid_evidence(hit_frames, ray_frames, grid, band_m)
-    state = np.full(shape, UNKNOWN, np.int8)
-    state[seen] = FREE
-    state[hits >= MIN_OBSTACLE_HITS] = OCCUPIED
-    log(f"occupancy: {shape[1]}x{shape[0]} cells of {resolution_m} m, {int((state == FREE).sum())} free, "
-        f"{int((state == OCCUPIED).sum())} occupied")
-    return OccupancyGrid(state, grid, T_world_map, normal, offset, tuple(band_m),
-                         np.array([c[:2] for c, _ in hit_frames]))
+    hit_frames, ray_frames = [], []
+    for T_world_cam, depth_m, cam in keyframe_depths(src):
+        T_map_cam = T_map_world @ T_world_cam
+        hit_frames.append(frame_points(T_map_cam, depth_m, cam, HIT_STRIDE_PX))
+        ray_frames.append(frame_points(T_map_cam, depth_m, cam, RAY_STRIDE_PX))
+    cameras_xy = np.array([f.centre[:2] for f in hit_frames])
+    grid = grid_around(np.concatenate([f.points[:, :2] for f in hit_frames] + [cameras_xy]), resolution_m)
+    floor = fit_floor(hit_frames)
+    ev = cell_evidence(hit_frames, ray_frames, grid, band_m, floor)
+    state = np.full(grid.shape, UNKNOWN, np.int8)
+    state[ev.seen] = FREE
+    state[ev.occupied()] = OCCUPIED
+    fs = floor.summary()
+    log(f"occupancy: {grid.shape[1]}x{grid.shape[0]} cells of {resolution_m} m, {int((state == FREE).sum())} free, "
+        f"{int((state == OCCUPIED).sum())} occupied; floor fitted in {fs['tiles_fitted']} regions of "
+        f"{floor.tile_m} m, {fs['height_range_m'][0]:+.3f}..{fs['height_range_m'][1]:+.3f} m off its plane")
+    return OccupancyGrid(state, grid, T_world_map, normal, offset, tuple(band_m), cameras_xy, floor)
 
 
 def write_ros_map(occ: OccupancyGrid, directory: Path, stem: str = "map") -> list[Path]:
@@ -255,7 +614,7 @@ def write_ros_map(occ: OccupancyGrid, directory: Path, stem: str = "map") -> lis
     with atomic_path(pgm_path) as tmp:
         tmp.write_bytes(f"P5\n# Atlas-GS occupancy grid, {occ.grid.resolution_m} m/cell\n{w} {h}\n255\n".encode()
                         + pgm[::-1].tobytes())  # the image's first row is the map's far (+y) edge
-    x0, y0 = (float(v) for v in occ.grid.origin_xy)
+    x0, y0 = written_origin_xy(occ.grid)
     yaml_path = write_text_atomic(directory / f"{stem}.yaml", (
         f"image: {stem}.pgm\nmode: trinary\nresolution: {occ.grid.resolution_m!r}\n"
         f"origin: [{x0!r}, {y0!r}, 0.0]\nnegate: 0\noccupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n"))
@@ -301,9 +660,12 @@ def occupancy_preview_png(occ: OccupancyGrid) -> bytes:
 
 def occupancy_info(occ: OccupancyGrid, src: ExportSource) -> dict[str, Any]:
     return {"resolution_m": occ.grid.resolution_m, "width": occ.state.shape[1], "height": occ.state.shape[0],
-            "origin_xy_m": [float(v) for v in occ.grid.origin_xy], "T_world_map": occ.T_world_map.tolist(),
-            "floor": {"normal": occ.floor_normal.tolist(), "offset_m": occ.floor_offset_m},
-            "obstacle_band_m": list(occ.band_m), "n_free": int((occ.state == FREE).sum()),
+            "origin_xy_m": written_origin_xy(occ.grid), "T_world_map": occ.T_world_map.tolist(),
+            "floor": {"normal": occ.floor_normal.tolist(), "offset_m": occ.floor_offset_m,
+                      "regions": occ.floor.summary()},
+            # the band's bottom at close range; farther it is this many std of the depth noise model
+            "obstacle_band_m": list(occ.band_m), "obstacle_band_noise_sigmas": OBSTACLE_NOISE_SIGMAS,
+            "n_free": int((occ.state == FREE).sum()),
             "n_occupied": int((occ.state == OCCUPIED).sum()), "n_unknown": int((occ.state == UNKNOWN).sum()),
             "map_id": src.map_id, "dataset": src.manifest.dataset, "pose_source": src.pose_source,
             "frame_indices": [int(i) for i in src.frame_indices]}
