@@ -310,10 +310,10 @@ def test_run_into_an_unwritable_artifacts_folder_fails_at_once(isolated, monkeyp
     blocker = isolated / "blocker"
     blocker.write_text("x")
     monkeypatch.setenv("ATLAS_ARTIFACTS_DIR", str(blocker / "artifacts"))
-    assert main(["run", "synth-small"]) == 1
-    out = json.loads(capsys.readouterr().out)
-    assert out["recomputed"] == [] and "world_bundle" not in out
-    assert any(str(blocker) in e for e in out["errors"])
+    assert main(["run", "synth-small"]) == 2  # refused before any asset runs
+    err = capsys.readouterr().err
+    assert "ATLAS_ARTIFACTS_DIR" in err and str(blocker) in err and "Traceback" not in err
+    assert not (isolated / "artifacts").exists()
 
 
 # ---- 8. concurrency -------------------------------------------------------------------------------
