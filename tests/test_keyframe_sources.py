@@ -319,3 +319,114 @@ def test_joining_recordings_tells_them_apart_by_content():
     # keyframes whose recording was never recorded stay unknown: never taken for the new one's
     recs, idx = join_recordings([], None, 4, a, 2)
     assert recs == [UNKNOWN_RECORDING, a] and idx.tolist() == [0] * 4 + [1] * 2
+
+
+# ---- older extended bundles: the parent's keyframes only where proven ---------------------------
+
+def _small_field(n: int = 20, seed: int = 0):
+    from atlas_pipeline.gaussian_world.field import GaussianField
+
+    rng = np.random.default_rng(seed)
+    return GaussianField(rng.uniform(0, 1, (n, 3)), np.full((n, 3), 0.02), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)),
+                         rng.integers(0, 256, (n, 3)), np.full(n, 0.9), np.arange(n, dtype=np.uint64) + 1)
+
+
+def _pose_at(x: float) -> list:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T.tolist()
+
+
+def _rec(name: str, h: str) -> dict:
+    return {"name": name, "root": f"/x/{name}", "content_hash": h * 64, "n_frames": 10, "camera": None}
+
+
+def _older_bundle(path: Path, dataset: dict, indices: list[int], xs: list[float], parent: Path | None,
+                  seed: int) -> Path:
+    """A bundle as written before keyframes named their recording: no ``recordings``, no
+    ``keyframes.recording``; ``lineage.parent`` names ``parent`` as ``build --extend`` did."""
+    from atlas_pipeline.scene_memory.bundle import parent_reference, write_world_bundle
+
+    meta = {"name": path.name, "dataset": dataset,
+            "keyframes": {"indices": indices, "T_world_cam": [_pose_at(x) for x in xs]},
+            "lineage": {"parent": parent_reference(parent) if parent is not None else None}}
+    return write_world_bundle(path, _small_field(seed=seed), meta)
+
+
+@pytest.fixture
+def older_chain(tmp_path) -> dict:
+    """Three older bundles: ``p`` built from recording a (keyframes 0, 4), ``c`` extended from it
+    with b (its keyframes 0, 4 then 1, 6), ``g`` extended from ``c`` with c (then 2)."""
+    a, b, c = _rec("a", "1"), _rec("b", "2"), _rec("c", "3")
+    p = _older_bundle(tmp_path / "p", a, [0, 4], [0.0, 0.4], None, 0)
+    ch = _older_bundle(tmp_path / "c", b, [0, 4, 1, 6], [0.0, 0.4, 1.1, 1.6], p, 1)
+    g = _older_bundle(tmp_path / "g", c, [0, 4, 1, 6, 2], [0.0, 0.4, 1.1, 1.6, 2.2], ch, 2)
+    return {"p": p, "c": ch, "g": g, "a": a, "b": b, "rc": c}
+
+
+def _sources(bundle: Path):
+    from atlas_pipeline.scene_memory.bundle import read_metadata
+
+    return bundle_keyframe_sources(read_metadata(bundle), bundle / "metadata.json")
+
+
+def test_an_older_extended_bundle_gives_its_parents_keyframes_to_the_parents_recording(older_chain):
+    ks = _sources(older_chain["c"])
+    assert ks.recordings == [older_chain["a"], older_chain["b"]] and ks.recording.tolist() == [0, 0, 1, 1]
+    assert ks.unknown_reason == ""
+    # followed up a lineage of older bundles: each extension's keyframes of its own recording
+    ks = _sources(older_chain["g"])
+    assert ks.recordings == [older_chain["a"], older_chain["b"], older_chain["rc"]]
+    assert ks.recording.tolist() == [0, 0, 1, 1, 2] and ks.indices.tolist() == [0, 4, 1, 6, 2]
+
+
+def _corrupt(bundle: Path, name: str = "gaussians.ply") -> None:
+    with open(bundle / name, "r+b") as f:
+        f.seek(-1, 2)
+        last = f.read(1)
+        f.seek(-1, 2)
+        f.write(bytes([last[0] ^ 0xFF]))
+
+
+def _move(bundle: Path) -> None:
+    bundle.rename(bundle.with_name(bundle.name + ".away"))
+
+
+def _rebuild_other(bundle: Path) -> None:  # another world written where the parent was
+    shutil.rmtree(bundle)
+    _older_bundle(bundle, _rec("a", "1"), [0, 4], [0.0, 0.4], None, 7)
+
+
+def _shift_keyframes(bundle: Path) -> None:  # the parent's keyframes edited since (metadata only)
+    meta = json.loads((bundle / "metadata.json").read_text())
+    meta["keyframes"]["T_world_cam"][1] = _pose_at(0.5)
+    (bundle / "metadata.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("damage, says", [
+    (_move, "(lineage.parent.path) is not on disk"),
+    (_corrupt, "does not verify"),
+    (_rebuild_other, "holds another world than the one extended"),
+    (_shift_keyframes, "are not the first keyframes of this one"),
+])
+def test_an_older_extended_bundle_whose_parent_cannot_prove_them_has_unknown_keyframes(older_chain, damage, says):
+    from atlas_pipeline.scene_memory.recordings import is_unknown
+
+    damage(older_chain["p"])
+    ks = _sources(older_chain["c"])
+    # no keyframe given to any recording: how many came from the parent is what cannot be proven
+    assert len(ks.recordings) == 1 and is_unknown(ks.recordings[0]) and ks.recording.tolist() == [0] * 4
+    assert says in ks.unknown_reason and str(older_chain["c"] / "metadata.json") in ks.unknown_reason
+    # and so in every bundle extended from it
+    ks = _sources(older_chain["g"])
+    assert is_unknown(ks.recordings[0]) and says in ks.unknown_reason
+
+
+def test_an_older_extended_bundle_whose_lineage_loops_has_unknown_keyframes(older_chain):
+    meta = json.loads((older_chain["p"] / "metadata.json").read_text())
+    meta["lineage"]["parent"] = {"path": str(older_chain["c"].resolve())}  # p names c, c names p
+    (older_chain["p"] / "metadata.json").write_text(json.dumps(meta))
+    ks = _sources(older_chain["c"])
+    # the parent still proves which keyframes are c's own; its own keyframes' recording is unknown
+    assert ks.recordings[1:] == [older_chain["b"]] and ks.recording.tolist() == [0, 0, 1, 1]
+    assert ks.recordings[0] == UNKNOWN_RECORDING and "a loop" in ks.unknown_reason

@@ -182,8 +182,16 @@ def test_another_camera_is_a_warning_naming_both(caplog):
     assert note is not None and note in caplog.text
     assert "'teddy' is read with camera freiburg3 (fx 535.4" in note and "recorded with freiburg1 (fx 517.306" in note
     assert check_camera(meta, "teddy", F1) is None and check_camera(IMPORTED, "teddy", F3) is None
-    with pytest.raises(BundleFormatError, match="metadata.json: field dataset.camera"):
-        check_camera({"dataset": {"camera": {"fx": 1}}}, "teddy", F3)
+
+
+@pytest.mark.parametrize("camera", [{"fx": 1}, "freiburg1", {**F3.to_dict(), "cx": 900.0}])
+def test_a_worlds_unusable_camera_is_a_warning_and_no_comparison(caplog, camera):
+    """A stored camera that is none (fields missing, not an object, principal point outside the
+    image): the comparison only ever warns, so it is skipped with a warning naming the field."""
+    with caplog.at_level(logging.WARNING):
+        assert check_camera({"dataset": {"name": "a", "camera": camera}}, "teddy", F3) is None
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(lines) == 1 and lines[0].startswith("metadata.json: field dataset.camera is not a usable camera"), lines
 
 
 # ---- a start pose far from the world -----------------------------------------------------------

@@ -289,7 +289,10 @@ def _bundle_manifest(meta: dict[str, Any], report: Any, dataset: Any) -> FrameMa
     ds = meta.get("dataset") if isinstance(meta.get("dataset"), dict) else {}
     name = report.dataset if report is not None else ds.get("name")
     if dataset is not None and report is not None:
-        manifest, _ = _given_manifest(dataset, [])
+        # the report's frames may be the first ones of --input (localized with dataset.max_frames):
+        # read again at the report's frame count, they are told by its content hash
+        rec = report.recording or {}
+        manifest, _ = _given_manifest(dataset, [rec] if rec.get("content_hash") else [])
         if not _frames_of_report(manifest, report):
             raise DatasetError(dataset.path, f"the frames of dataset '{dataset.name}' are not the ones the world's "
                                              f"localization placed ('{report.dataset}'): poses would be paired with "
@@ -330,8 +333,8 @@ def _keyframe_source(b: Any, dataset: Any) -> ExportSource:
     """The keyframes of the loaded bundle ``b``, each with the frames of its own recording: an
     unavailable recording's keyframes are left out (one warning each), a keyframe listed twice
     (the same frame of one recording mapped by two sessions) is exported once, at its first pose."""
-    from atlas_pipeline.scene_memory.recordings import (bundle_keyframe_sources, open_recording, recording_index,
-                                                        recording_label, recording_tag)
+    from atlas_pipeline.scene_memory.recordings import (bundle_keyframe_sources, is_unknown, open_recording,
+                                                        recording_index, recording_label, recording_tag)
 
     meta = b.metadata
     where = Path(b.directory) / "metadata.json"
@@ -346,12 +349,14 @@ def _keyframe_source(b: Any, dataset: Any) -> ExportSource:
             raise DatasetError(dataset.path, f"the frames of dataset '{dataset.name}' are not the ones this world was "
                                              f"built from (its content hash is none of its keyframes' recordings: "
                                              f"{names}): poses would be paired with other images")
-        if j is None:  # an older world without hashes: the given frames stand for every recording
-            opened = {u: manifest for u in used}
+        if j is None:  # an older world without hashes: the given frames stand for its named recordings
+            opened = {u: manifest for u in used if not is_unknown(ks.recordings[u])}
         else:
             opened[j] = manifest
     for u in used:
-        if u not in opened:
+        if u not in opened and is_unknown(ks.recordings[u]) and ks.unknown_reason:
+            why[u] = ks.unknown_reason
+        elif u not in opened:
             m, reason = open_recording(ks.recordings[u])
             if m is None:
                 why[u] = reason
@@ -364,6 +369,10 @@ def _keyframe_source(b: Any, dataset: Any) -> ExportSource:
             raise DatasetError(where, "this world has no keyframes (imported from a PLY?), so no frames at keyframe "
                                       "poses: localize a recording in it (`atlas-gs localize`) and export --poses "
                                       "estimated")
+        if all(is_unknown(ks.recordings[u]) for u in used):  # no frames may stand for them, given or found
+            raise DatasetError(where, f"{why[used[0]]}; no keyframe can be exported at its pose: restore the parent "
+                                      "bundle where lineage.parent.path says, or localize a recording in this world "
+                                      "(`atlas-gs localize`) and export --poses estimated")
         first = ks.recordings[used[0]]
         raise DatasetError(first.get("root") or first.get("name") or where,
                            "the frames of no recording of this world's keyframes are available ("

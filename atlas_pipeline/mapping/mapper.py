@@ -474,13 +474,20 @@ def extend_saved_world(bundle_dir: str | Path, manifest: FrameManifest, fused: F
         raise ConfigError(f"{bundle_dir}: cannot extend this bundle, it has no voxel statistics "
                           f"(world.npz; bundles written by `atlas-gs build` have them): {exc}") from exc
     if previous.keyframe_recording is None:
-        # a world saved before keyframes named their recording: its bundle's metadata says which
+        # a world saved before keyframes named their recording: its bundle's metadata says which,
+        # where that can be proven (an older extended bundle's parent checked); unknown ones stay
+        # unknown in the new bundle, never recorded as a guess
         from atlas_pipeline.scene_memory.bundle import read_metadata
-        from atlas_pipeline.scene_memory.recordings import bundle_keyframe_sources
+        from atlas_pipeline.scene_memory.recordings import bundle_keyframe_sources, is_unknown
 
         ks = bundle_keyframe_sources(read_metadata(Path(bundle_dir)), Path(bundle_dir) / "metadata.json")
         if len(ks) == len(previous.keyframe_indices) and np.array_equal(ks.indices, previous.keyframe_indices):
             previous.recordings, previous.keyframe_recording = ks.recordings, ks.recording
+            n_unknown = sum(int((ks.recording == j).sum()) for j, r in enumerate(ks.recordings) if is_unknown(r))
+            if n_unknown:
+                logger.warning("%d keyframes of %s are recorded in the new bundle as frames of an unknown recording "
+                               "(never read by export, mesh or viewer): %s", n_unknown, bundle_dir,
+                               ks.unknown_reason or "the bundle does not record their recording")
     return extend_world_with_visit(previous, manifest, fused, cfg, log, read_place_index(bundle_dir, manifest.camera))
 
 

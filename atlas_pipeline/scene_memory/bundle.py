@@ -69,6 +69,8 @@ from atlas_pipeline.localization.metrics import write_tum_trajectory
 from atlas_pipeline.scene_memory.binary import (
     BYTES_PER_GAUSSIAN,
     HEADER_BYTES,
+    MAGIC_V1,
+    MAGIC_V2,
     atlasgs2_bytes_per_gaussian,
     read_gaussian_binary,
     write_gaussian_binary,
@@ -84,7 +86,7 @@ from atlas_pipeline.transition_log.transitions import write_transitions
 __all__ = [
     "BUNDLE_FORMAT", "WorldBundle", "write_world_bundle", "update_world_bundle", "load_world_bundle",
     "read_metadata", "read_place_index", "verified_file", "write_bundle_files", "read_lineage", "format_lineage", "parent_reference",
-    "map_id_of",
+    "map_id_of", "binary_identity", "verified_gaussian_count",
     "verify_bundle_files", "check_bundle_update", "check_identity", "BundleMetadataSchema", "BUNDLE_KIND",
     "VOXEL_BYTES_PER_VOXEL", "bundle_disk_bytes", "world_memory_bytes", "save_peak_bytes", "load_peak_bytes",
 ]
@@ -217,6 +219,103 @@ def map_id_of(field: GaussianField) -> str:
     """The map id of the world state ``field``: derived from its arrays (``content_hash``), so a
     bundle's id is a fact of its checksummed Gaussians, never a value copied from editable JSON."""
     return field.content_hash()[:MAP_ID_HEX_DIGITS]
+
+
+# Bytes read at a time when a binary world's columns are hashed without loading it.
+_STREAM_CHUNK_BYTES = 1 << 24
+_F32 = 4  # bytes of a float32
+_IDENTITY_XYZW = np.array([0.0, 0.0, 0.0, 1.0], "<f4")  # an ATLASGS1 Gaussian's rotation
+
+
+def _binary_layout(path: Path) -> tuple[int, int, int, list[tuple[str, tuple[int, ...], int]]]:
+    """``(version, count, sh_degree, columns)`` of the ATLASGS1/2 file at ``path`` from its header,
+    its size checked against the count: ``columns`` are ``(name, shape, byte offset)`` in file
+    order. A BundleFormatError naming the file when it is no such file or of the wrong size."""
+    import struct
+
+    from atlas_pipeline.gaussian_world.field import SH_MAX_DEGREE, sh_rest_count
+
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(HEADER_BYTES[2])
+    except OSError as exc:
+        raise BundleFormatError(path, f"cannot read ({exc.strerror or exc})") from None
+    if head[:8] == MAGIC_V1 and len(head) >= HEADER_BYTES[1]:
+        version, degree, header = 1, 0, HEADER_BYTES[1]
+        n = struct.unpack("<Q", head[8:16])[0]
+        per, shapes = BYTES_PER_GAUSSIAN[1], [("positions", (n, 3), _F32), ("scale", (n,), _F32),
+                                              ("colors", (n, 3), 1), ("opacities", (n,), _F32), ("ids", (n,), 8)]
+    elif head[:8] == MAGIC_V2 and len(head) >= HEADER_BYTES[2]:
+        version, second, n = struct.unpack("<IIQ", head[8:24])
+        header = HEADER_BYTES[2]
+        degree = second if version == 3 else 0
+        if version not in (2, 3) or (version == 3 and not 1 <= degree <= SH_MAX_DEGREE):
+            raise BundleFormatError(path, f"ATLASGS2 version {version} (SH degree {second}) is not supported")
+        per = atlasgs2_bytes_per_gaussian(degree)
+        shapes = [("positions", (n, 3), _F32), ("scales", (n, 3), _F32), ("rotations_xyzw", (n, 4), _F32),
+                  ("colors", (n, 3), 1), ("opacities", (n,), _F32), ("ids", (n,), 8),
+                  ("sh_rest", (n, sh_rest_count(degree), 3), _F32)]
+    else:
+        raise BundleFormatError(path, f"not an ATLASGS binary (magic {head[:8]!r}, {size} bytes)")
+    if size != header + n * per:
+        raise BundleFormatError(path, f"count {n} needs {header + n * per} bytes, file has {size}")
+    columns, offset = [], header
+    for name, shape, itemsize in shapes:
+        columns.append((name, shape, offset))
+        offset += int(np.prod(shape)) * itemsize
+    return version, n, degree, columns
+
+
+def _column_chunks(f, offset: int, n_bytes: int, row_bytes: int):
+    """The ``n_bytes`` at ``offset`` of the open file ``f``, in chunks of whole rows."""
+    step = max(row_bytes, _STREAM_CHUNK_BYTES // row_bytes * row_bytes)
+    f.seek(offset)
+    for start in range(0, n_bytes, step):
+        chunk = f.read(min(step, n_bytes - start))
+        if len(chunk) != min(step, n_bytes - start):
+            raise BundleFormatError(Path(f.name), "file changed while reading")
+        yield chunk
+
+
+def binary_identity(path: str | Path) -> tuple[int, str]:
+    """``(count, map id)`` of the world in the ATLASGS1/2 file at ``path`` without loading it: the
+    count from its header (the size checked against it), the map id (:func:`map_id_of` of the
+    field :func:`read_gaussian_binary` would return) by hashing its columns as they lie in the
+    file, the isotropic format's one scale and identity rotation expanded a chunk at a time. One
+    read of the file and no arrays of its size, where loading checks and copies every value."""
+    import hashlib
+    import sys
+
+    path = Path(path)
+    version, n, degree, columns = _binary_layout(path)
+    if sys.byteorder != "little":  # the field's arrays are native, the file's little endian
+        field = read_gaussian_binary(path)
+        return len(field), map_id_of(field)
+    at = {name: (shape, offset) for name, shape, offset in columns}
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        order = ("ids", "positions", "scales", "rotations_xyzw", "colors", "opacities")
+        for name in order + (("sh_rest",) if degree else ()):  # GaussianField.content_hash's order
+            shape = (n, 3) if name == "scales" else (n, 4) if name == "rotations_xyzw" else at[name][0]
+            h.update(name.encode())
+            h.update(str(shape).encode())
+            if not n:
+                continue
+            if version == 1 and name == "scales":
+                for chunk in _column_chunks(f, at["scale"][1], n * _F32, _F32):
+                    h.update(np.repeat(np.frombuffer(chunk, "<f4")[:, None], 3, axis=1).tobytes())
+            elif version == 1 and name == "rotations_xyzw":
+                rows = _STREAM_CHUNK_BYTES // (4 * _F32)
+                for start in range(0, n, rows):
+                    h.update(np.tile(_IDENTITY_XYZW, (min(rows, n - start), 1)).tobytes())
+            else:
+                shape_f, offset = at[name]
+                row = int(np.prod(shape_f[1:], dtype=np.int64)) * (1 if name == "colors" else
+                                                                   8 if name == "ids" else _F32)
+                for chunk in _column_chunks(f, offset, n * row, row):
+                    h.update(chunk)
+    return n, h.hexdigest()[:MAP_ID_HEX_DIGITS]
 
 
 def _utc_now() -> str:
@@ -660,6 +759,33 @@ def load_world_bundle(directory: str | Path, source: str = "bin", verify: bool =
     return bundle
 
 
+def _count_error(path: Path, stated: Any, n: int, source: str) -> BundleFormatError:
+    return BundleFormatError(path, f"field n_gaussians is {stated!r}, but {source} (checksum verified) holds "
+                                   f"{n} Gaussians: metadata.json was edited or belongs to another world; restore "
+                                   "the bundle from a copy, or build it again")
+
+
+def _map_id_error(path: Path, stated: Any, map_id: str, source: str) -> BundleFormatError:
+    return BundleFormatError(path, f"field map_id is {stated!r}, but the Gaussians of {source} (checksum verified) "
+                                   f"are map {map_id}: metadata.json was edited or belongs to another world; restore "
+                                   "the bundle from a copy, or build it again")
+
+
+def verified_gaussian_count(directory: str | Path, meta: dict[str, Any] | None = None) -> int:
+    """How many Gaussians the bundle at ``directory`` holds, without loading them: every listed
+    file verified (:func:`verify_bundle_files`), then the count in ``gaussians.bin``'s header,
+    which metadata.json's ``n_gaussians`` must state (a BundleFormatError naming the field, as
+    :func:`check_identity` raises)."""
+    directory = Path(directory)
+    meta = verify_bundle_files(directory, meta)
+    if "gaussians.bin" not in meta["files"]:
+        raise BundleFormatError(directory / "metadata.json", "no checksum recorded for gaussians.bin")
+    _, n, _, _ = _binary_layout(directory / "gaussians.bin")
+    if meta.get("n_gaussians") != n:
+        raise _count_error(directory / "metadata.json", meta.get("n_gaussians"), n, "gaussians.bin")
+    return n
+
+
 def check_identity(bundle: WorldBundle, source: str = "gaussians.bin") -> None:
     """Refuse a bundle whose metadata.json states a ``n_gaussians`` or ``map_id`` other than its
     checksum-verified Gaussians (read from ``source``) have: a hand-edited or mixed-up
@@ -668,14 +794,10 @@ def check_identity(bundle: WorldBundle, source: str = "gaussians.bin") -> None:
     path = bundle.directory / "metadata.json"
     stated_n = bundle.metadata.get("n_gaussians")
     if stated_n != bundle.n_gaussians:  # the cheap check first: no hashing for an edited count
-        raise BundleFormatError(path, f"field n_gaussians is {stated_n!r}, but {source} (checksum verified) holds "
-                                      f"{bundle.n_gaussians} Gaussians: metadata.json was edited or belongs to "
-                                      "another world; restore the bundle from a copy, or build it again")
+        raise _count_error(path, stated_n, bundle.n_gaussians, source)
     stated_id = bundle.metadata.get("map_id")
     if stated_id != bundle.map_id:
-        raise BundleFormatError(path, f"field map_id is {stated_id!r}, but the Gaussians of {source} (checksum "
-                                      f"verified) are map {bundle.map_id}: metadata.json was edited or belongs to "
-                                      "another world; restore the bundle from a copy, or build it again")
+        raise _map_id_error(path, stated_id, bundle.map_id, source)
 
 
 def parent_reference(directory: str | Path) -> dict[str, Any]:
@@ -693,20 +815,58 @@ def parent_reference(directory: str | Path) -> dict[str, Any]:
     }
 
 
-def read_lineage(directory: str | Path, verify: bool = False) -> dict[str, Any]:
+def _lineage_problems(directory: Path, meta: dict[str, Any]) -> tuple[Any, Any, list[BundleFormatError]]:
+    """``(map id, count, problems)`` of the bundle at ``directory`` with ``meta``: every listed
+    file's size and checksum checked, and the map id and count of its ``gaussians.bin``
+    (:func:`binary_identity`, the Gaussians never loaded) against those metadata.json states;
+    where gaussians.bin does not verify, the stated ones. ``problems``: each file that does not
+    verify and each field that disagrees, in that order (empty: the bundle verifies)."""
+    problems: list[BundleFormatError] = []
+    for name in meta["files"]:
+        try:
+            verified_file(directory, meta, name)
+        except BundleFormatError as exc:
+            problems.append(exc)
+    map_id, n = meta.get("map_id"), meta.get("n_gaussians")
+    path = directory / "metadata.json"
+    if "gaussians.bin" not in meta["files"]:
+        problems.append(BundleFormatError(path, "no checksum recorded for gaussians.bin"))
+    elif not any(p.path == directory / "gaussians.bin" for p in problems):
+        try:
+            n_bin, id_bin = binary_identity(directory / "gaussians.bin")
+        except BundleFormatError as exc:
+            problems.append(exc)
+        else:
+            if n_bin != n:  # the count first, as check_identity does
+                problems.append(_count_error(path, n, n_bin, "gaussians.bin"))
+            elif id_bin != map_id:
+                problems.append(_map_id_error(path, map_id, id_bin, "gaussians.bin"))
+            map_id, n = id_bin, n_bin
+    return map_id, n, problems
+
+
+def read_lineage(directory: str | Path, verify: bool = False, strict: bool = True) -> dict[str, Any]:
     """The lineage of a bundle: partition, upstream data versions, code versions, config, run id,
-    creation time and parent, gathered from its metadata.json. With ``verify`` every listed file
-    is checked first and the map id and count are the loaded Gaussians' (:func:`load_world_bundle`:
-    a metadata.json that disagrees with them is refused); else they are as metadata.json states."""
+    creation time and parent, gathered from its metadata.json.
+
+    With ``verify`` every listed file's checksum is checked and the map id and count are those of
+    ``gaussians.bin`` (:func:`binary_identity`: read, never loaded), which metadata.json must
+    state; the result then holds ``verified`` and ``problems`` (one line per file that does not
+    verify or field that disagrees, naming it). ``strict``: the first problem is raised as a
+    BundleFormatError; else the lineage is still returned (as metadata.json states it where the
+    Gaussians do not verify), with ``verified`` false: a damaged bundle's lineage is when it is
+    wanted most. Without ``verify`` everything is as metadata.json states."""
     directory = Path(directory)
+    meta = read_metadata(directory)
+    problems: list[BundleFormatError] = []
     if verify:
-        bundle = load_world_bundle(directory)
-        meta, map_id, n_gaussians = bundle.metadata, bundle.map_id, bundle.n_gaussians
+        map_id, n_gaussians, problems = _lineage_problems(directory, meta)
+        if problems and strict:
+            raise problems[0]
     else:
-        meta = read_metadata(directory)
         map_id, n_gaussians = meta.get("map_id"), meta.get("n_gaussians")
     lin = dict(meta.get("lineage") or {})
-    return {
+    out = {
         "bundle": str(directory.resolve()),
         "map_id": map_id,
         "n_gaussians": n_gaussians,
@@ -722,6 +882,9 @@ def read_lineage(directory: str | Path, verify: bool = False) -> dict[str, Any]:
         "parent": lin.get("parent"),
         "config": meta.get("config", {}),
     }
+    if verify:
+        out.update(verified=not problems, problems=[str(p) for p in problems])
+    return out
 
 
 def format_lineage(lin: dict[str, Any]) -> str:
@@ -737,6 +900,11 @@ def format_lineage(lin: dict[str, Any]) -> str:
         f"dataset     {lin['dataset'].get('name')} ({lin['dataset'].get('n_frames')} frames, "
         f"content {str(lin['dataset'].get('content_hash') or '-')[:16]}) at {lin['dataset'].get('root')}",
     ]
+    if "verified" in lin:
+        out.append("verified    every listed file's checksum, and the map id and count of gaussians.bin"
+                   if lin["verified"] else
+                   f"verified    NO: {len(lin.get('problems') or ())} problem(s), the lineage is as metadata.json "
+                   "states it")
     parent = lin.get("parent")
     out.append(f"parent      {parent.get('path')} (map_id {parent.get('map_id')})" if parent else
                "parent      none (built from scratch)")

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from atlas_pipeline.config import PipelineConfig
-from atlas_pipeline.errors import BundleFormatError, ConfigError
+from atlas_pipeline.errors import AtlasError, ConfigError
 from atlas_pipeline.localization.localizer import OUTCOME_COMPLETE, OUTCOME_STOPPED_WORLD_MISMATCH
 from atlas_pipeline.localization.sequence import STATUS_ANCHOR, STATUS_NOT_ATTEMPTED
 from atlas_pipeline.sensors.camera import TUM_CAMERAS, CameraIntrinsics
@@ -80,8 +80,9 @@ def camera_difference(world: CameraIntrinsics, recording: CameraIntrinsics) -> s
 
 def world_camera(metadata: dict[str, Any]) -> CameraIntrinsics | None:
     """The camera the world's recording was taken with (metadata ``dataset.camera``); None for a
-    world with no recording (imported) or none recorded. A camera that cannot be read is a
-    BundleFormatError naming the field."""
+    world with no recording (imported) or none recorded. A camera that is no usable camera (a
+    bundle written before cameras were checked for what they mean, or edited) is a warning naming
+    metadata.json's field, and None: it is only ever compared, never used to read frames."""
     ds = metadata.get("dataset")
     cam = ds.get("camera") if isinstance(ds, dict) else None
     if cam is None:
@@ -90,8 +91,10 @@ def world_camera(metadata: dict[str, Any]) -> CameraIntrinsics | None:
         if not isinstance(cam, dict):
             raise ConfigError(f"must be an object, found {type(cam).__name__}")
         return CameraIntrinsics.from_dict(cam)
-    except ConfigError as exc:
-        raise BundleFormatError("metadata.json", f"field dataset.camera: {exc}") from exc
+    except AtlasError as exc:
+        logger.warning("metadata.json: field dataset.camera is not a usable camera (%s): the recording's camera is "
+                       "not compared with the world's", exc)
+        return None
 
 
 def check_camera(metadata: dict[str, Any], entry_name: str, camera: CameraIntrinsics) -> str | None:
@@ -143,6 +146,22 @@ def _none_placed(report: LocalizationReport, name: str) -> str | None:
             f"({start}), so the world evidently does not contain this recording, or not where it started")
 
 
+def _own_recording(metadata: dict[str, Any], entry: DatasetEntry, manifest: Any) -> dict[str, Any] | None:
+    """The world's record (its ``dataset`` or one of its ``recordings``) of the recording whose
+    frames ``manifest`` holds (read from ``entry``), by content: the same frames, or the same
+    recording read to another frame count (``dataset.max_frames``); None for any other recording
+    and for a world with no recording. Names are never compared."""
+    from atlas_pipeline.scene_memory.recordings import record_of_frames, recording_label
+
+    recordings = metadata.get("recordings")
+    records = [metadata.get("dataset"), *(recordings if isinstance(recordings, list) else ())]
+    record, frames = record_of_frames(records, manifest, entry)
+    if record is not None and frames is not manifest:
+        logger.info("'%s' is the world's recording %s, read to %d of its frames where the world holds %s",
+                    entry.name, recording_label(record), manifest.n_frames, record.get("n_frames"))
+    return record
+
+
 def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineConfig,
                          start_pose: np.ndarray | None = None, relocalize: bool = False,
                          drop_transitions: bool = False) -> LocalizationReport:
@@ -164,7 +183,6 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
         update_world_bundle,
     )
     from atlas_pipeline.scene_memory.metadata import start_pose as anchor_pose
-    from atlas_pipeline.scene_memory.metadata import world_recording
     from atlas_pipeline.sensors.registry import load_dataset
 
     bundle = load_world_bundle(world)  # verifies every file the bundle lists, and its map id and count
@@ -175,14 +193,15 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
     manifest = load_dataset(entry, cfg)
     check_localization_memory(cfg, manifest, len(bundle.field))
     camera_note = check_camera(bundle.metadata, entry.name, manifest.camera)
+    own = _own_recording(bundle.metadata, entry, manifest)
     T0, anchor = anchor_pose(bundle.metadata, entry.name, start_pose, relocalize=relocalize,
-                             content_hash=manifest.content_hash)
+                             content_hash=own["content_hash"] if own else manifest.content_hash,
+                             n_frames=manifest.n_frames)
     if anchor >= manifest.n_frames:
         raise ConfigError(f"anchor frame {anchor} is beyond the {manifest.n_frames} frames loaded")
-    own = world_recording(bundle.metadata, manifest.content_hash) is not None
     report = localize_sequence(manifest, bundle.tracking_model(tracking_voxel_m(bundle, cfg)), cfg.localization,
                                T0, anchor, bundle.map_id, (cfg.fusion.min_depth_m, cfg.fusion.max_depth_m),
-                               prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=not own,
+                               prior_poses=bundle_keyframe_poses(bundle.metadata), stop_on_mismatch=own is None,
                                places=bundle.stored_places(manifest.camera))
     if camera_note is not None:
         report.summary["world_camera_differs"] = camera_note
@@ -193,27 +212,67 @@ def localize_into_bundle(world: str | Path, entry: DatasetEntry, cfg: PipelineCo
     return report
 
 
+def _localized_frames(world: Path, entry: DatasetEntry, cfg: PipelineConfig, report: LocalizationReport) -> Any:
+    """The frames of ``entry`` (read with ``cfg``) that ``report`` (``world``'s localization.json)
+    placed: the recording it names by content hash (read again at the report's frame count when
+    ``dataset.max_frames`` gave another: the first frames of one recording), or, for a report that
+    records none, the frames at its times. A ConfigError naming --input (and dataset.max_frames
+    where the counts differ) for any other recording, before its ground truth could be used."""
+    from atlas_pipeline.interop.frames import REPORT_TIME_TOLERANCE_S
+    from atlas_pipeline.scene_memory.recordings import read_frames_at, record_of_frames
+    from atlas_pipeline.sensors.registry import load_dataset
+
+    manifest = load_dataset(entry, cfg)
+    n = len(report.timestamps_s)
+    spec = f"--input '{entry.name}' ({entry.path})"
+    loaded = f"{manifest.n_frames} frames" + (f" (dataset.max_frames={cfg.dataset.max_frames})"
+                                              if cfg.dataset.max_frames is not None else "")
+    recount = f", nor when read to the report's {n} frames (as dataset.max_frames={n} would)" \
+        if manifest.n_frames != n else ""
+    where = world / "localization.json"
+    want = (report.recording or {}).get("content_hash")
+    if want:
+        _, frames = record_of_frames([{**report.recording, "n_frames": n}], manifest, entry)
+        if frames is not None and frames.n_frames == n:
+            return frames
+        raise ConfigError(f"{spec} holds other frames than {where} placed: content hash "
+                          f"{manifest.content_hash[:12] or 'unknown'} of {loaded}, the report's {want[:12]} of {n}"
+                          f"{recount}; ground truth would be another recording's: give the recording that was "
+                          "localized as --input")
+    frames = manifest if manifest.n_frames == n else read_frames_at(entry, n)
+    # rtol 0: a relative tolerance of Unix times (~1.3e9 s) would let frames hours apart pass
+    if frames.n_frames != n or not np.allclose(frames.timestamps_s, report.timestamps_s, rtol=0.0,
+                                               atol=REPORT_TIME_TOLERANCE_S):
+        raise ConfigError(f"{spec}: its {loaded} are not at the times of the {n} frames {where} placed{recount}; "
+                          "ground truth would be another recording's: give the recording that was localized as "
+                          "--input")
+    return frames
+
+
 def log_bundle_transitions(world: str | Path, entry: DatasetEntry, cfg: PipelineConfig) -> pa.Table:
     """Write ``transitions.parquet`` into the world bundle at ``world`` from the localization of
     ``entry`` it holds (ground-truth poses read again from the dataset when
-    ``transitions.pose_source`` is ``ground_truth``); returns the table."""
+    ``transitions.pose_source`` is ``ground_truth``: only from the frames the localization placed,
+    :func:`_localized_frames`); returns the table. The count of Gaussians is ``gaussians.bin``'s
+    after every file is verified (the world is not loaded); the map id is the verified report's,
+    which must be the one metadata.json states."""
     from atlas_pipeline.localization.localizer import LocalizationReport
-    from atlas_pipeline.scene_memory.bundle import check_bundle_update, load_world_bundle, update_world_bundle
-    from atlas_pipeline.sensors.registry import load_dataset
+    from atlas_pipeline.scene_memory.bundle import (check_bundle_update, read_metadata, update_world_bundle,
+                                                    verified_gaussian_count)
     from atlas_pipeline.transition_log.transitions import log_transitions
 
     world = Path(world)
-    bundle = load_world_bundle(world)  # every listed file verified; the count is the Gaussians', not the JSON's
-    meta = bundle.metadata
+    meta = read_metadata(world)
     if not (world / "localization.json").is_file():
         spec = entry.name if entry.source_file else entry.path
         raise ConfigError(f"{world}: no localization.json; run `atlas-gs localize --world {world} --input {spec}` first")
+    n_gaussians = verified_gaussian_count(world, meta)  # every file's checksum, then gaussians.bin's header
     report = LocalizationReport.load(world)
     if report.dataset != entry.name:
         raise ConfigError(f"{world}/localization.json is for dataset '{report.dataset}', not '{entry.name}'")
     check_bundle_update(world, transitions_of={"dataset": entry.name, "map_id": report.map_id}, meta=meta)
     if cfg.transitions.pose_source == "ground_truth":  # refresh GT from the dataset, not the report
-        report.T_world_cam_gt = load_dataset(entry, cfg).T_world_cam_gt
-    table = log_transitions(report, entry.name, bundle.n_gaussians, cfg)
+        report.T_world_cam_gt = _localized_frames(world, entry, cfg, report).T_world_cam_gt
+    table = log_transitions(report, entry.name, n_gaussians, cfg)
     update_world_bundle(world, transitions=table)
     return table

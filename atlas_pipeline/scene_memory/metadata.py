@@ -142,8 +142,8 @@ def _anchor_refused(metadata: dict[str, Any], dataset: str, content_hash: str) -
         if ds.get("name") == dataset:  # the name says "the same recording", the content does not
             return (f"'{dataset}' has the name of the recording this world was built from, but not its frames "
                     f"(content hash {content_hash[:16] or 'unknown'}, the world's {world_hash[:16] or 'unknown'}): "
-                    "another recording, or another selection of its frames, so the world's anchor is no start "
-                    "for it; relocalizing its first frame"), logging.WARNING
+                    "another recording (not the world's frames, nor their first ones, nor more of them), so the "
+                    "world's anchor is no start for it; relocalizing its first frame"), logging.WARNING
         return (f"no start pose for '{dataset}' in this world (built from '{ds.get('name')}'): relocalizing its "
                 "first frame"), logging.INFO
     # The anchor belongs to the recording it names; one that does not name it is the first
@@ -157,16 +157,20 @@ def _anchor_refused(metadata: dict[str, Any], dataset: str, content_hash: str) -
 
 
 def start_pose(metadata: dict[str, Any], dataset: str, T_world_cam: np.ndarray | None = None,
-               relocalize: bool = False, content_hash: str = "") -> tuple[np.ndarray | None, int]:
-    """Where localizing the recording ``dataset`` (frames of ``content_hash``) in the bundle with
-    ``metadata`` starts: ``(T_world_cam, frame)``.
+               relocalize: bool = False, content_hash: str = "",
+               n_frames: int | None = None) -> tuple[np.ndarray | None, int]:
+    """Where localizing the recording ``dataset`` (frames of ``content_hash``; ``n_frames`` of them
+    loaded, None: not known) in the bundle with ``metadata`` starts: ``(T_world_cam, frame)``.
 
     A given ``T_world_cam`` (of frame 0); else, unless ``relocalize``, the bundle's anchor when the
     recording is provably the one the anchor is in (:func:`world_recording` of its main
-    ``dataset``, by content: a recording under the same name with other frames is not); else
-    nowhere (``None, 0``): the first frame is then relocalized in the world with no initial pose,
-    and one line says why (a warning where a user may have expected the anchor: an imported world,
-    a recording named as the world's but with other frames).
+    ``dataset``, by content: a recording under the same name with other frames is not; the same
+    recording read to another frame count is, given as the content hash of the world's record it
+    matched, :func:`atlas_pipeline.scene_memory.recordings.record_of_frames`) and the anchor's
+    frame is one of the ``n_frames`` loaded; else nowhere (``None, 0``): the first frame is then
+    relocalized in the world with no initial pose, and one line says why (a warning where a user
+    may have expected the anchor: an imported world, a recording named as the world's but with
+    other frames, an anchor beyond the frames loaded).
     """
     if T_world_cam is not None:
         return T_world_cam, 0
@@ -188,6 +192,10 @@ def start_pose(metadata: dict[str, Any], dataset: str, T_world_cam: np.ndarray |
         raise BundleFormatError("metadata.json", "field anchor.T_world_cam must be a finite 4x4 matrix")
     if not isinstance(frame, int) or isinstance(frame, bool) or frame < 0:
         raise BundleFormatError("metadata.json", f"field anchor.frame_index must be a frame number >= 0, got {frame!r}")
+    if n_frames is not None and frame >= n_frames:
+        log.warning("the world's anchor is frame %d of '%s', beyond the %d frames loaded (dataset.max_frames): "
+                    "relocalizing its first frame", frame, dataset, n_frames)
+        return None, 0
     return T_anchor, frame
 
 
