@@ -65,13 +65,15 @@ class CellFailure(AssertionError):
 
 @dataclass
 class Recording:
-    """One half of the source recording: its folder and, per frame, a digest of its colour pixels
-    and its ground-truth pose (``T_world_cam_gt [N, 4, 4]``, NaN where unknown)."""
+    """One half of the source recording: its folder and, per frame, a digest of its colour pixels,
+    of its depth in metres and its ground-truth pose (``T_world_cam_gt [N, 4, 4]``, NaN where
+    unknown)."""
 
     name: str
     path: Path
     pixel_digests: list[str]
     T_world_cam_gt: np.ndarray
+    depth_digests: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -107,8 +109,10 @@ def cli(*argv: str, expect: int = 0) -> str:
     return out.getvalue()
 
 
-def _digest(rgb: np.ndarray) -> str:
-    return hashlib.sha1(np.ascontiguousarray(rgb[..., :3]).tobytes()).hexdigest()
+def _digest(image: np.ndarray) -> str:
+    """A digest of an image's values (colour: its first three channels)."""
+    values = image[..., :3] if image.ndim == 3 else image
+    return hashlib.sha1(np.ascontiguousarray(values).tobytes()).hexdigest()
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -143,7 +147,8 @@ def _manifest(path: Path, camera: str):
 def _recording(path: Path, camera: str) -> Recording:
     m = _manifest(path, camera)
     digests = [_digest(_read_rgb(m.root / f)) for f in m.rgb_files]
-    return Recording(path.name, path, digests, np.asarray(m.T_world_cam_gt, np.float64))
+    depth = [_digest(m.read_depth_m(i, allow_empty=True)) for i in range(m.n_frames)]
+    return Recording(path.name, path, digests, np.asarray(m.T_world_cam_gt, np.float64), depth)
 
 
 def build_worlds(root: Path, source: Path, n_frames: int, camera: str) -> Setup:
@@ -373,7 +378,20 @@ def cell_export_occupancy(setup: Setup, kind: str) -> dict[str, Any]:
         raise CellFailure(f"the occupancy map has {occupied} occupied and {free} free cells")
     if any(len(repr(float(x))) > 12 for x in meta["origin"]):
         raise CellFailure(f"the map origin {meta['origin']} is not rounded to the grid")
-    return {"occupied": occupied, "free": free}
+    # The depth each of the map's frames contributes is that frame's own, at that frame's pose.
+    from atlas_pipeline.interop.frames import source_from_bundle
+    from atlas_pipeline.interop.occupancy import keyframe_depths
+
+    src = source_from_bundle(world, poses="estimated" if kind == "imported" else "keyframes")
+    by_depth = {d: rec.pixel_digests[i] for rec in (setup.a, setup.b) for i, d in enumerate(rec.depth_digests)}
+    used, T = [], []
+    for T_world_cam, depth_m, _ in keyframe_depths(src):
+        if _digest(depth_m) not in by_depth:
+            raise CellFailure("the occupancy map reads a depth image of no frame of either recording")
+        used.append(by_depth[_digest(depth_m)])
+        T.append(T_world_cam)
+    poses = check_poses_of_frames(setup, used, np.stack(T), world_to_ground_truth(setup, kind))
+    return {"occupied": occupied, "free": free, "frames": poses["n_images"], "max_pose_err_cm": poses["max_pose_err_cm"]}
 
 
 def cell_view(setup: Setup, kind: str) -> dict[str, Any]:

@@ -47,7 +47,7 @@ import numpy as np
 
 from atlas_pipeline.config import MappingConfig
 from atlas_pipeline.errors import ArtifactError, AtlasError, ConfigError
-from atlas_pipeline.interop.frames import ExportSource, pinhole_camera, undistorted_depth_m
+from atlas_pipeline.interop.frames import ExportSource
 from atlas_pipeline.io_utils import atomic_path, write_json_atomic, write_text_atomic
 from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.depth_noise import depth_sigma_m
@@ -221,11 +221,10 @@ def written_origin_xy(grid: GridSpec) -> list[float]:
 
 def keyframe_depths(src: ExportSource) -> Iterator[tuple[np.ndarray, np.ndarray, CameraIntrinsics]]:
     """Per frame of ``src``: ``(T_world_cam [4, 4], depth_m [H, W] float32 without lens distortion,
-    its pinhole camera)``. The one place this module reads frames."""
-    cam = src.manifest.camera
-    pinhole = pinhole_camera(cam)
-    for i, T in zip(src.frame_indices.tolist(), src.T_world_cam):
-        yield T, undistorted_depth_m(src.manifest.read_depth_m(i, allow_empty=True), cam), pinhole
+    its pinhole camera)``, each frame read from its own recording (an extended world's keyframes
+    come from several). The one place this module reads frames."""
+    for k, T in enumerate(src.T_world_cam):
+        yield T, src.pinhole_depth_m(k), src.camera
 
 
 @dataclass
@@ -668,7 +667,8 @@ def occupancy_info(occ: OccupancyGrid, src: ExportSource) -> dict[str, Any]:
             "n_free": int((occ.state == FREE).sum()),
             "n_occupied": int((occ.state == OCCUPIED).sum()), "n_unknown": int((occ.state == UNKNOWN).sum()),
             "map_id": src.map_id, "dataset": src.manifest.dataset, "pose_source": src.pose_source,
-            "frame_indices": [int(i) for i in src.frame_indices]}
+            "frame_indices": [int(i) for i in src.frame_indices],
+            "recordings": src.recordings_summary(), "frame_recordings": [int(j) for j in src.frame_recording]}
 
 
 @dataclass
