@@ -7,6 +7,7 @@ the option, before any image is decoded or any work is done."""
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -109,6 +110,22 @@ def _gt_with_jump(jump_m: float, at: int = 10) -> list[str]:
     return [" ".join(r) for r in rows]
 
 
+def _gt_with_glitch(jump_m: float, first: int, n_rows: int = 1, rows: list[str] | None = None) -> list[str]:
+    """Ground truth (``rows``, else :func:`_gt_rows`) whose x leaps ``jump_m`` for rows
+    ``first .. first + n_rows - 1`` only (a marker swap) and comes back."""
+    rows = [r.split() for r in (rows or _gt_rows())]
+    for r in rows[first:first + n_rows]:
+        r[1] = f"{float(r[1]) + jump_m:.4f}"
+    return [" ".join(r) for r in rows]
+
+
+def _gt_sparse(rate_hz: float, lag_s: float) -> list[str]:
+    """Ground truth at ``rate_hz``, ``lag_s`` after the frames' clock, over the frames (and one
+    sample either side), moving along x as :func:`_gt_rows`."""
+    t = T0_S + lag_s + np.arange(-1, round(N_FRAMES / FPS * rate_hz) + 2) / rate_hz
+    return [f"{tk:.4f} {SPEED_M_PER_S * (tk - T0_S):.4f} 0 1 0 0 0 1" for tk in t]
+
+
 def _gt_with_quaternion(q: str, at: int = 7) -> list[str]:
     rows = _gt_rows()
     rows[at] = " ".join(rows[at].split()[:4]) + " " + q
@@ -123,13 +140,19 @@ def _gt_with_quaternion(q: str, at: int = 7) -> list[str]:
      r"49\d\.\d+ s before the first frame"),
     (_gt_rows(offset_s=+500.0), r"groundtruth\.txt: .*the poses start 49\d\.\d+ s after the last frame"),
     # 5 m (and 5 mm of the pan) between two samples 10 ms apart: rows 10 and 11 on lines 11 and 12
+    # the path goes on 5 m away: the frames on each side named, the scene would be there twice
     (_gt_with_jump(5.0), r"groundtruth\.txt:12: the camera moves 5\.01 m in 0\.01 s from line 11 \(t = "
                          r"1305031100\.0400\) to this line \(t = 1305031100\.0500\): 501 m/s, faster "
-                         r"than the 20 m/s"),
+                         r"than the 20 m/s .*and the path goes on from there .*; frames 0-1 read poses before it, "
+                         r"frames 2-5 after it: the scene would be mapped twice, 5\.01 m apart"),
+    # away for 8 rows (80 ms) before coming back: longer than a glitch, refused like a jump
+    (_gt_with_glitch(5.0, first=12, n_rows=8),
+     r"groundtruth\.txt:14: the camera moves 5 m in 0\.01 s from line 13 .*does not come back within 5 rows\); "
+     r"frames 0-1 read poses before it, frames 3-5 after it, frame 2 across it"),
     (_gt_with_quaternion("0 0 1e-6 1e-6"), r"groundtruth\.txt:9: quaternion qx qy qz qw \(0, 0, 1e-6, 1e-6\) has "
                                            r"norm 1\.41421e-06, not 1"),
     (_gt_with_quaternion("0 0 0 2"), r"groundtruth\.txt:9: quaternion .* has norm 2, not 1"),
-], ids=["500-s-early", "500-s-late", "5-m-jump", "quaternion-norm-1e-6", "quaternion-norm-2"])
+], ids=["500-s-early", "500-s-late", "5-m-jump", "8-rows-away", "quaternion-norm-1e-6", "quaternion-norm-2"])
 def test_ground_truth_that_cannot_be_this_cameras_path_names_file_and_line(tmp_path, gt, message):
     root = _write_tum(tmp_path / "seq", gt=gt)
     with pytest.raises(DatasetError, match=message):
@@ -143,6 +166,74 @@ def test_ground_truth_that_cannot_be_this_cameras_path_names_file_and_line(tmp_p
 ], ids=["rounded-quaternion", "jitter", "fast-but-physical"])
 def test_ground_truth_within_tolerance_loads(tmp_path, gt):
     assert _load(_write_tum(tmp_path / "seq", gt=gt)).has_gt.all()
+
+
+# Row i of _gt_rows is at T0 - 0.05 + 0.01 i s on file line i + 2; frame k at T0 + k / 30 s. Frame 3
+# (T0 + 0.1) is row 15's time: it reads rows 14 and 15 (lines 16-17); frame 5 reads rows 21 and 22.
+@pytest.mark.parametrize("gt, max_frames, has_gt, message", [
+    # one row 5 m away and back: dropped, frame 3 interpolated between the rows around it
+    (_gt_with_glitch(5.0, first=15), None, [True] * 6,
+     r"groundtruth\.txt: line 17 \(t = 1305031100\.1000\) jumps 5 m away from line 16 and back to line 18 "
+     r"\(50\d m/s, faster than the 20 m/s a camera moves\): a motion-capture glitch .*left out; frame 3 reads it: "
+     r"now 1 interpolated between the rows around it"),
+    # three rows away (30 ms): a glitch still
+    (_gt_with_glitch(5.0, first=14, n_rows=3), None, [True] * 6,
+     r"groundtruth\.txt: lines 16-18 \(t = 1305031100\.0900 - 1305031100\.1100\) jump 5\.01 m away from line 15 "
+     r"and back to line 19 .*frame 3 reads them: now 1 interpolated"),
+    # the last row the last frame reads
+    (_gt_with_glitch(-3.0, first=22), None, [True] * 6, r"groundtruth\.txt: line 24 .*frame 5 reads it"),
+    # ground truth at 15 Hz, 10 ms after each frame: without the glitch row the rows around frames
+    # 1-4 are 0.13 s apart (no interpolation); frame 4 takes the row 10 ms away, frames 1-3 none
+    (_gt_with_glitch(5.0, first=2, rows=_gt_sparse(15.0, 0.01)), None, [True, False, False, False, True, True],
+     r"groundtruth\.txt: line 4 .*frames 1-4 read it: now 1 from the nearest row left within 20 ms, 3 without "
+     r"ground truth"),
+    # rows no kept frame reads: a jump after dataset.max_frames, a jump before the frames' time
+    (_gt_with_jump(5.0, at=20), 2, [True] * 2, None),
+    (_gt_with_jump(5.0, at=2), None, [True] * 6, None),
+], ids=["one-row-glitch", "three-row-glitch", "glitch-on-last-row-read", "sparse-ground-truth-loses-frames",
+        "jump-after-max-frames", "jump-before-the-frames"])
+def test_ground_truth_is_judged_where_the_frames_read_it_and_glitches_are_left_out(tmp_path, caplog, gt, max_frames,
+                                                                                 has_gt, message):
+    caplog.set_level("WARNING", logger="atlas_pipeline.sensors.tum")
+    m = _load(_write_tum(tmp_path / "seq", gt=gt), max_frames=max_frames)
+    assert m.has_gt.tolist() == has_gt
+    # the frames with ground truth are on the camera's path, never on a glitch or the far side of a
+    # jump (within the 5 mm a pose taken from a row 10 ms away is off at 0.5 m/s)
+    x_m = m.T_world_cam_gt[m.has_gt, 0, 3]
+    shift_m = 5.0 if gt == _gt_with_jump(5.0, at=2) else 0.0  # every frame reads the rows after that jump
+    np.testing.assert_allclose(x_m, SPEED_M_PER_S * (_frame_times()[:m.n_frames][m.has_gt] - T0_S) + shift_m,
+                               atol=6e-3)
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    if message is None:
+        assert not warned, warned
+    else:
+        assert len(warned) == 1 and re.search(message, warned[0]), warned
+
+
+def test_many_ground_truth_glitches_are_named_once_each_up_to_five_then_summed_up(tmp_path, caplog):
+    gt = _gt_rows()
+    for row in (5, 8, 11, 14, 17, 20):  # every third row, lines 7 ... 22
+        gt = _gt_with_glitch(1.0, first=row, rows=gt)
+    caplog.set_level("WARNING", logger="atlas_pipeline.sensors.tum")
+    m = _load(_write_tum(tmp_path / "seq", gt=gt))
+    assert m.has_gt.all()
+    np.testing.assert_allclose(m.T_world_cam_gt[:, 0, 3], SPEED_M_PER_S * (_frame_times() - T0_S), atol=2e-3)
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 6 and all("motion-capture glitch" in w for w in warned[:5]), warned
+    assert warned[5].endswith("groundtruth.txt: 1 more glitch(es) left out likewise (line 22)"), warned
+
+
+def test_ground_truth_with_a_gap_over_the_whole_clip_names_the_gap_not_another_recording(tmp_path):
+    """Poses before and after the frames but none within 0.1 s of any: the error names the gap's
+    times and lines and the frames in it, not "another recording's ground truth"."""
+    gap = [r for r in _gt_rows() if not T0_S - 0.025 < float(r.split()[0]) < T0_S + 0.195]
+    with pytest.raises(DatasetError) as err:
+        _load(_write_tum(tmp_path / "seq", gt=gap))
+    msg = str(err.value)
+    assert re.search(r"groundtruth\.txt: ground truth matches none of the 6 frames: .*the poses have gaps where the "
+                     r"frames are: frames 0-5 in a gap from t = 1305031099\.970 \(line 4\) to 1305031100\.200 "
+                     r"\(line 5\), 0\.23 s without a pose", msg), msg
+    assert "another recording" not in msg and "clock" not in msg
 
 
 def test_ground_truth_of_later_frames_is_no_error_when_only_earlier_frames_are_read(tmp_path):
@@ -204,6 +295,75 @@ def test_poses_of_other_layouts_moving_faster_than_a_camera_name_the_file(tmp_pa
     with pytest.raises(DatasetError, match=rf"{where} to frame 3, 0\.0333 s later at 30 fps \(registry key fps\): "
                                            r"60\.\d m/s, faster than the 20 m/s"):
         load(root, CAM, "x")
+
+
+@pytest.mark.parametrize("layout, glitch_frames, message", [
+    ("replica", [3], r"the pose of frame 3 \(traj\.txt line 4\) jumps 2\.02 m away from frame 2 and back at frame 4 "
+                     r"\(60\.\d m/s at 30 fps.*left out \(frame 3 without ground truth\)"),
+    ("7scenes", [2, 3], r"the poses of frames 2-3 \(frame-000002\.pose\.txt - frame-000003\.pose\.txt\) jump 2\.03 m "
+                        r"away from frame 1 and back at frame 4"),
+], ids=["replica-one-frame", "7scenes-two-frames"])
+def test_a_pose_that_jumps_away_and_back_leaves_that_frame_without_ground_truth(tmp_path, caplog, layout,
+                                                                                glitch_frames, message):
+    from atlas_pipeline.sensors.layouts import load_7scenes_sequence, load_replica_sequence
+
+    write, load = {"replica": (_write_replica, load_replica_sequence),
+                   "7scenes": (_write_7scenes, load_7scenes_sequence)}[layout]
+    poses = _pose_rows(0.0)
+    for k in glitch_frames:
+        poses[k][0, 3] += 2.0
+    caplog.set_level("WARNING", logger="atlas_pipeline.sensors.layouts")
+    m = load(write(tmp_path / "seq", poses), CAM, "x")
+    assert m.has_gt.tolist() == [k not in glitch_frames for k in range(N_FRAMES)]
+    np.testing.assert_allclose(m.T_world_cam_gt[m.has_gt, 0, 3], SPEED_M_PER_S * np.flatnonzero(m.has_gt) / FPS,
+                               atol=1e-5)
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and re.search(message, warned[0]), warned
+
+
+# ---- depth in range, judged on every pixel --------------------------------------------------------
+
+STRIDE = 4  # the fusion grid: pixels (0, 0), (0, 4), ... (8, 12)
+FAR_M = 13.107  # TUM's 65535 / 5000: a reading, beyond fusion.max_depth_m (4 m)
+
+
+def _off_grid(value_m: float, base: np.ndarray | None = None) -> np.ndarray:
+    """``[H, W]`` depth (``base``, else none) with ``value_m`` on a few pixels off the stride grid,
+    as sparse depth (a projected lidar) has them."""
+    d = np.zeros((H, W), np.float32) if base is None else base.copy()
+    d[1::STRIDE, 2::STRIDE] = value_m
+    return d
+
+
+def _near_and_far_off_grid() -> np.ndarray:
+    d = _off_grid(0.05)
+    d[3, 3] = 9.0
+    return d
+
+
+@pytest.mark.parametrize("depth_m, message", [
+    (_off_grid(2.0), None),  # readings in range, none on the grid: usable, not "out of range"
+    (_off_grid(2.0, np.full((H, W), FAR_M, np.float32)), None),  # far on the grid, in range between
+    (np.full((H, W), FAR_M, np.float32), r"6 of its 6 depth images have readings \(from 13\.1 to 13\.1 m\) but none "
+                                         r"within the depth range 0\.1-4 m \(fusion\.min_depth_m"),
+    # too near and too far, all off the grid: the range seen is the readings', outside 0.1-4 m
+    (_near_and_far_off_grid(), r"6 of its 6 depth images have readings \(from 0\.05 to 9 m\) but none within"),
+], ids=["sparse-in-range", "far-grid-in-range-between", "all-far", "sparse-near-and-far"])
+def test_depth_in_range_is_judged_on_every_pixel_not_the_stride_grid(tmp_path, depth_m, message):
+    from atlas_pipeline.config import FusionConfig
+    from atlas_pipeline.perception.rgbd import FrameFuser
+
+    m = _load(_write_tum(tmp_path / "seq"))
+    rgb = np.zeros((H, W, 3), np.uint8)
+    with FrameFuser(m, FusionConfig(stride=STRIDE)) as fuser:
+        for i in range(m.n_frames):
+            fuser.add(i, rgb, depth_m)
+        if message is None:
+            fuser.check_depth()
+        else:
+            with pytest.raises(DatasetError, match=message) as err:
+                fuser.check_depth()
+            assert str(m.root) in str(err.value) and "--depth-scale" in str(err.value)
 
 
 # ---- intrinsics and scales -----------------------------------------------------------------------

@@ -96,6 +96,12 @@ def backproject(
     return pts.astype(np.float32, copy=False), cols
 
 
+def _depth_in_range(depth_m: np.ndarray, min_depth_m: float, max_depth_m: float) -> bool:
+    """Whether any pixel of ``depth_m`` ``[H, W]`` (metres) lies in the open range the points are
+    taken from (as :func:`backproject` keeps them), at full resolution."""
+    return bool(np.any((depth_m > min_depth_m) & (depth_m < max_depth_m)))
+
+
 # Frames decoded ahead of the one being worked on. PNG decoding (a third of a 640x480 frame's
 # tracking time, most of its fusion time) releases the GIL, so one reader thread overlaps it with
 # tracking or back-projection; two frames in flight bound the memory to a few MB whatever the
@@ -412,7 +418,10 @@ class FrameFuser:
             self._no_depth.append(i)
         pts, cols = backproject(depth_m, rgb, self.manifest.camera, self.cfg.stride, self.cfg.min_depth_m,
                                 self.cfg.max_depth_m)
-        if not len(pts) and i not in self._no_depth[-1:]:
+        # Judged on every pixel, not the stride's: sparse depth (projected lidar, masked depth) can
+        # have readings in range, none of them on the stride grid.
+        if not len(pts) and i not in self._no_depth[-1:] and not _depth_in_range(depth_m, self.cfg.min_depth_m,
+                                                                                   self.cfg.max_depth_m):
             read = depth_m[depth_m > 0]
             self._out_of_range.append(i)
             self._seen_m = (min(self._seen_m[0], float(read.min())), max(self._seen_m[1], float(read.max())))

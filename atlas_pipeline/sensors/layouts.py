@@ -45,11 +45,13 @@ from atlas_pipeline.sensors.camera import CameraIntrinsics
 from atlas_pipeline.sensors.images import check_depth_header, check_rgb_header, image_header
 from atlas_pipeline.sensors.tum import (
     MAX_CAMERA_SPEED_M_PER_S,
-    MIN_JUMP_M,
+    MAX_GLITCH_ROWS,
+    MAX_GLITCHES_LOGGED,
     FrameManifest,
     _is_file,
     _iter_lines,
     _safe_member,
+    screen_pose_jumps,
 )
 
 logger = logging.getLogger(__name__)
@@ -273,33 +275,67 @@ def _check_fps(fps: float) -> float:
 
 
 def _check_frame_speeds(T: np.ndarray, has: np.ndarray, numbers: list[int], fps: float,
-                        pose_source: list[tuple[Path, int | None]]) -> None:
-    """Refuse poses in which the camera moves faster than ``MAX_CAMERA_SPEED_M_PER_S`` (by more
-    than ``MIN_JUMP_M``) between consecutive frames that both have one (as TUM ground truth is).
+                        pose_source: list[tuple[Path, int | None]]) -> tuple[np.ndarray, np.ndarray]:
+    """Hold the poses of consecutive frames that both have one to a camera's speed, as TUM ground
+    truth is (:func:`~atlas_pipeline.sensors.tum.screen_pose_jumps`).
 
     ``T`` ``[N, 4, 4]`` camera-to-world, ``has`` ``[N]``, ``numbers`` the frame numbers (frame ``n``
-    at ``n / fps`` s), ``pose_source`` ``[N]`` the file (and line) each pose came from. The
-    ``DatasetError`` names the later pose's file (and line), the earlier one, the distance, the
-    time at ``fps`` and the speed.
+    at ``n / fps`` s), ``pose_source`` ``[N]`` the file (and line) each pose came from. A pose (or
+    up to ``MAX_GLITCH_ROWS`` in a row) that jumps away faster than ``MAX_CAMERA_SPEED_M_PER_S``
+    and back is a glitch: that frame gets no ground truth, with a warning naming it and its file.
+
+    Returns:
+        ``(T, has)``: copies, glitch frames without a pose (NaN, False).
+
+    Raises:
+        DatasetError: a jump the path goes on from, naming the later pose's file (and line), the
+            earlier one, the distance, the time at ``fps`` and the speed.
     """
+    T, has = T.copy(), has.copy()
     idx = np.flatnonzero(has)
     if len(idx) < 2:
-        return
+        return T, has
     t = _frame_times([numbers[k] for k in idx], fps)
-    step_m = np.linalg.norm(np.diff(T[idx, :3, 3], axis=0), axis=1)  # [M-1]
-    speed = step_m / np.diff(t)
-    bad = np.flatnonzero((speed > MAX_CAMERA_SPEED_M_PER_S) & (step_m > MIN_JUMP_M))
-    if not len(bad):
-        return
-    a, b = int(idx[bad[0]]), int(idx[bad[0] + 1])
-    (path_a, line_a), (path_b, line_b) = pose_source[a], pose_source[b]
-    src_a = f"line {line_a}" if path_a == path_b and line_a is not None else f"{path_a.name}"
-    more = f"; {len(bad) - 1} more such jump(s) follow" if len(bad) > 1 else ""
-    raise DatasetError(path_b, f"the camera moves {step_m[bad[0]]:.3g} m from frame {numbers[a]} ({src_a}) to frame "
-                               f"{numbers[b]}, {t[bad[0] + 1] - t[bad[0]]:.3g} s later at {fps:g} fps (registry key "
-                               f"fps): {speed[bad[0]]:.3g} m/s, faster than the {MAX_CAMERA_SPEED_M_PER_S:g} m/s any "
-                               f"hand-held or robot camera moves{more}; these poses are not one camera's path: "
-                               "correct them, or the fps", line_b)
+    c = T[idx, :3, 3]
+    keep, glitches, jumps = screen_pose_jumps(t, c, lambda kept: (0, len(kept) - 1))  # every pose is read
+
+    def where(k: int, other: int) -> str:
+        (path_k, line_k), (path_o, _) = pose_source[k], pose_source[other]
+        return f"line {line_k}" if path_k == path_o and line_k is not None else path_k.name
+
+    if jumps:
+        ja, jb = jumps[0]
+        a, b = int(idx[ja]), int(idx[jb])
+        step_m = float(np.linalg.norm(c[jb] - c[ja]))
+        dt_s = float(t[jb] - t[ja])
+        more = f"; {len(jumps) - 1} more such jump(s) follow" if len(jumps) > 1 else ""
+        path_b, line_b = pose_source[b]
+        raise DatasetError(path_b, f"the camera moves {step_m:.3g} m from frame {numbers[a]} ({where(a, b)}) to "
+                                   f"frame {numbers[b]}, {dt_s:.3g} s later at {fps:g} fps (registry key fps): "
+                                   f"{step_m / dt_s:.3g} m/s, faster than the {MAX_CAMERA_SPEED_M_PER_S:g} m/s any "
+                                   f"hand-held or robot camera moves, and the path goes on from there (it does not "
+                                   f"come back within {MAX_GLITCH_ROWS} frames){more}; these poses are not one "
+                                   "camera's path: correct them, or the fps", line_b)
+    def named(k: int) -> str:
+        path, line = pose_source[k]
+        return path.name if line is None else f"{path.name} line {line}"
+
+    for g in glitches[:MAX_GLITCHES_LOGGED]:
+        first, last = int(idx[g.first]), int(idx[g.last])
+        frames, files = ((f"frame {numbers[first]}", named(first)) if first == last else
+                         (f"frames {numbers[first]}-{numbers[last]}", f"{named(first)} - {named(last)}"))
+        what = f"pose of {frames} ({files}) jumps" if first == last else f"poses of {frames} ({files}) jump"
+        logger.warning("%s: the %s %.3g m away from frame %d and back at frame %d (%.3g m/s at %g fps, faster than "
+                       "the %g m/s a camera moves): a glitch, left out (%s without ground truth)",
+                       pose_source[first][0].parent, what, g.distance_m, numbers[int(idx[g.before])],
+                       numbers[int(idx[g.after])], g.speed_m_per_s, fps, MAX_CAMERA_SPEED_M_PER_S, frames)
+    if len(glitches) > MAX_GLITCHES_LOGGED:
+        logger.warning("%s: %d more pose glitch(es) left out likewise", pose_source[int(idx[0])][0].parent,
+                       len(glitches) - MAX_GLITCHES_LOGGED)
+    dropped = idx[~keep]
+    T[dropped] = np.nan
+    has[dropped] = False
+    return T, has
 
 
 def _finish(dataset: str, root: Path, camera: CameraIntrinsics, numbers: list[int], fps: float,
@@ -369,7 +405,7 @@ def load_7scenes_sequence(root: str | Path, camera: CameraIntrinsics, dataset: s
         hashed += [rgb, depth]
     if not has.all():
         logger.info("%s: %d of %d frames have no pose file (no ground truth there)", folder, int((~has).sum()), len(has))
-    _check_frame_speeds(T, has, numbers, fps, pose_source)
+    T, has = _check_frame_speeds(T, has, numbers, fps, pose_source)
     return _finish(dataset, folder, camera, numbers, fps, rgb_files, depth_files, T, has, hashed,
                    {"layout": "7scenes", "path": str(folder), "max_frames": max_frames, "fps": fps,
                     "depth_invalid_raw": [SEVEN_SCENES_DEPTH_INVALID]})
@@ -418,7 +454,7 @@ def load_replica_sequence(root: str | Path, camera: CameraIntrinsics, dataset: s
         hashed += [rgb, dep]
     T = poses[numbers]
     has = np.ones(len(numbers), bool)
-    _check_frame_speeds(T, has, numbers, fps, [(traj_path, pose_lines[n]) for n in numbers])
+    T, has = _check_frame_speeds(T, has, numbers, fps, [(traj_path, pose_lines[n]) for n in numbers])
     return _finish(dataset, folder, camera, numbers, fps, rgb_files, depth_files, T, has, hashed,
                    {"layout": "replica", "path": str(folder), "max_frames": max_frames, "fps": fps})
 
@@ -488,7 +524,7 @@ def load_scannet_sequence(root: str | Path, dataset: str, max_frames: int | None
         hashed += [rgb, dep]
     if not has.all():
         logger.info("%s: %d of %d frames have no valid pose (no ground truth there)", folder, int((~has).sum()), len(has))
-    _check_frame_speeds(T, has, numbers, fps, pose_source)
+    T, has = _check_frame_speeds(T, has, numbers, fps, pose_source)
     same = (colour_camera.width, colour_camera.height, *kc) == (camera.width, camera.height, *kd)
     source = {"layout": "scannet", "path": str(folder), "max_frames": max_frames, "fps": fps}
     if not same:

@@ -64,6 +64,12 @@ MAX_CAMERA_SPEED_M_PER_S = 20.0
 # Motion capture jitters by millimetres; between stamps 0.1 ms apart that alone reads as 10 m/s, so
 # a step shorter than this is never called a jump.
 MIN_JUMP_M = 0.05
+# A motion-capture glitch (a marker swap, a reflection taken for a marker) throws the pose away for
+# one sample or a few (tens of ms at 100-300 Hz) and the path goes on where it left off; a longer
+# excursion is not told apart from a wrong or merged file, and is refused like a jump that stays.
+MAX_GLITCH_ROWS = 5
+# Glitches named one warning each; more are summed up in one line.
+MAX_GLITCHES_LOGGED = 5
 # (unit, seconds per unit, smallest stamp of an epoch in it / smallest spacing of a 1 kHz sensor in it)
 _UNITS = (("nanoseconds", 1e-9, 1e17, 1e6), ("microseconds", 1e-6, 1e14, 1e3), ("milliseconds", 1e-3, 1e11, 1.0))
 
@@ -74,6 +80,8 @@ __all__ = [
     "check_timestamps_are_seconds",
     "read_groundtruth",
     "check_groundtruth_speed",
+    "screen_pose_jumps",
+    "PoseGlitch",
     "check_groundtruth_overlap",
     "check_unique_files",
     "associate",
@@ -197,15 +205,9 @@ def increasing_timestamps(path: Path, rows: list[tuple[int, list[str]]]) -> np.n
     return ts
 
 
-def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read ``groundtruth.txt``: timestamps ``[M]`` and ``poses_se3`` ``[M, 4, 4]`` (camera-to-world).
-
-    Rows are sorted by time (motion-capture exports are not always in order), but two rows with
-    the same timestamp are an error naming both lines; a non-numeric value or a quaternion whose
-    norm is not 1 within ``QUATERNION_NORM_TOLERANCE`` names its line; timestamps must be seconds
-    (:func:`check_timestamps_are_seconds`); the camera may not move faster than
-    ``MAX_CAMERA_SPEED_M_PER_S`` between two rows (:func:`check_groundtruth_speed`).
-    """
+def _parse_groundtruth(path: Path) -> tuple[list[tuple[int, list[str]]], np.ndarray, np.ndarray]:
+    """The rows of ``groundtruth.txt`` in time order (``(line_number, fields)``), their times ``[M]``
+    and ``tx ty tz qx qy qz qw`` ``[M, 7]``, every row checked (see :func:`read_groundtruth`)."""
     rows = read_list_file(path, 8)
     ts = np.empty(len(rows))
     tq = np.empty((len(rows), 7))
@@ -232,34 +234,242 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
                                  "needs one pose per time", second[0])
     sorted_rows = [rows[k] for k in order]
     check_timestamps_are_seconds(path, sorted_rows, ts)
-    check_groundtruth_speed(path, sorted_rows, ts, tq[:, :3])
-    return ts, pose_from_tq(tq[:, :3], tq[:, 3:])
+    return sorted_rows, ts, tq
+
+
+def read_groundtruth(path: Path, frame_ts: np.ndarray | None = None,
+                     max_dt: float = MAX_ASSOCIATION_DT_S) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``groundtruth.txt``: timestamps ``[M']`` and ``poses_se3`` ``[M', 4, 4]`` (camera-to-world).
+
+    Rows are sorted by time (motion-capture exports are not always in order), but two rows with
+    the same timestamp are an error naming both lines; a non-numeric value or a quaternion whose
+    norm is not 1 within ``QUATERNION_NORM_TOLERANCE`` names its line; timestamps must be seconds
+    (:func:`check_timestamps_are_seconds`). The camera may not move faster than
+    ``MAX_CAMERA_SPEED_M_PER_S`` (:func:`check_groundtruth_speed`) between the rows the frames at
+    ``frame_ts`` ``[N]`` read (every row when None); glitch rows that jump away and back are left
+    out of what is returned (``M' <= M``), with a warning.
+    """
+    rows, ts, tq = _parse_groundtruth(path)
+    keep = check_groundtruth_speed(path, rows, ts, tq[:, :3], frame_ts, max_dt)
+    return ts[keep], pose_from_tq(tq[keep, :3], tq[keep, 3:])
+
+
+@dataclass(frozen=True)
+class PoseGlitch:
+    """Rows ``first..last`` of a camera path (indices into the poses screened) that jump away from
+    row ``before`` and come back to row ``after``: ``distance_m`` the farthest they lie from row
+    ``before``, ``speed_m_per_s`` the speed of the jump away."""
+
+    before: int
+    first: int
+    last: int
+    after: int
+    distance_m: float
+    speed_m_per_s: float
+
+
+def _too_fast(dt_s, step_m):
+    """Steps of ``step_m`` metres in ``dt_s`` seconds (both ``[K]`` arrays, or numbers) no camera
+    makes: faster than ``MAX_CAMERA_SPEED_M_PER_S`` and longer than ``MIN_JUMP_M`` (motion-capture
+    jitter)."""
+    return (step_m > MIN_JUMP_M) & (step_m > MAX_CAMERA_SPEED_M_PER_S * dt_s)
+
+
+def _glitch_around(t_s: np.ndarray, c_m: np.ndarray, k: int) -> tuple[int, int, int, int] | None:
+    """``(before, first, last, after)`` for a too-fast step from row ``k`` to ``k + 1`` when rows
+    ``first..last`` (at most ``MAX_GLITCH_ROWS``, the step's far side) leave the path that rows
+    ``before`` and ``after`` continue at a camera's speed; None when the path goes on from where
+    it jumped to. ``t_s`` ``[M]``, ``c_m`` ``[M, 3]``. The shortest such run wins, rows after the
+    step first."""
+    n = len(t_s)
+
+    def physical(a: int, b: int) -> bool:
+        return not _too_fast(float(t_s[b] - t_s[a]), float(np.linalg.norm(c_m[b] - c_m[a])))
+
+    for rows in range(1, MAX_GLITCH_ROWS + 1):
+        if k + rows + 1 < n and physical(k, k + rows + 1):
+            return k, k + 1, k + rows, k + rows + 1
+        if k - rows >= 0 and physical(k - rows, k + 1):
+            return k - rows, k - rows + 1, k, k + 1
+    return None
+
+
+def screen_pose_jumps(t_s: np.ndarray, t_world_cam_m: np.ndarray, read_span) -> tuple[
+        np.ndarray, list[PoseGlitch], list[tuple[int, int]]]:
+    """Tell glitches from jumps in a camera path (``t_s`` ``[M]`` increasing times, ``t_world_cam_m``
+    ``[M, 3]`` camera centres).
+
+    Only the rows that are read matter: ``read_span(kept)`` gives, for the indices ``kept`` of the
+    rows not dropped so far, the positions ``(first, last)`` in ``kept`` of the first and last row
+    read (or None: none is). Steps between those rows, and with one row of margin each side (so a
+    glitch on the first or last row read is seen), that no camera makes (:func:`_too_fast`) are
+    either a glitch, rows that leave the path and come back (:func:`_glitch_around`), which are
+    dropped, or a jump: the path goes on from the new place. Rows dropped can change which rows are
+    read, so this repeats until no step is left to judge.
+
+    Returns:
+        ``(keep [M] bool, glitches, jumps)``: ``jumps`` are ``(row, next row)`` (indices into the
+        input) of the too-fast steps between rows read that are no glitch, empty when the path is
+        one camera's; a jump from the first or last row read to its margin row is no error, as no
+        frame reads poses on its far side.
+    """
+    keep = np.ones(len(t_s), bool)
+    glitches: list[PoseGlitch] = []
+    while True:
+        kept = np.flatnonzero(keep)
+        span = read_span(kept) if len(kept) >= 2 else None
+        if span is None:
+            return keep, glitches, []
+        r0, r1 = span
+        lo, hi = max(r0 - 1, 0), min(r1 + 1, len(kept) - 1)
+        t, c = t_s[kept], t_world_cam_m[kept]
+        step_m = np.linalg.norm(np.diff(c[lo:hi + 1], axis=0), axis=1)  # [hi - lo]
+        bad = lo + np.flatnonzero(_too_fast(np.diff(t[lo:hi + 1]), step_m))
+        drop = np.zeros(len(kept), bool)
+        jumps: list[tuple[int, int]] = []
+        for k in (int(x) for x in bad):
+            if drop[k] or drop[k + 1]:  # a step to or from a row already found to be a glitch
+                continue
+            found = _glitch_around(t, c, k)
+            if found is None:
+                if r0 <= k < r1:
+                    jumps.append((int(kept[k]), int(kept[k + 1])))
+                continue
+            before, first, last, after = found
+            drop[first:last + 1] = True
+            away_m = np.linalg.norm(c[first:last + 1] - c[before], axis=1)
+            glitches.append(PoseGlitch(int(kept[before]), int(kept[first]), int(kept[last]), int(kept[after]),
+                                       float(away_m.max()), float(away_m[0] / (t[first] - t[before]))))
+        if jumps:
+            return keep, glitches, jumps
+        if not drop.any():
+            return keep, glitches, []
+        keep[kept[drop]] = False
+
+
+def _frame_list(frames: np.ndarray) -> str:
+    """Frame indices ``[K]`` (increasing) as ``frame 3`` / ``frames 0-1, 4``."""
+    frames = [int(f) for f in frames]
+    if not frames:
+        return "no frame"
+    parts, start = [], frames[0]
+    for prev, cur in zip(frames, frames[1:] + [None]):
+        if cur != prev + 1:
+            parts.append(f"{start}" if start == prev else f"{start}-{prev}")
+            start = cur
+    return ("frame " if len(frames) == 1 else "frames ") + ", ".join(parts)
+
+
+def _line_span(rows: list[tuple[int, list[str]]], first: int, last: int) -> str:
+    """``line 14`` or ``lines 14-16`` of rows ``first..last`` (time order; lines as in the file)."""
+    lines = sorted(rows[k][0] for k in range(first, last + 1))
+    if len(lines) == 1:
+        return f"line {lines[0]}"
+    return f"lines {lines[0]}-{lines[-1]}" if lines[-1] - lines[0] == len(lines) - 1 else \
+        "lines " + ", ".join(str(n) for n in lines)
 
 
 def check_groundtruth_speed(path: Path, rows: list[tuple[int, list[str]]], ts: np.ndarray,
-                            t_world_cam_m: np.ndarray) -> None:
-    """Refuse ground truth in which the camera moves faster than ``MAX_CAMERA_SPEED_M_PER_S``
-    between two consecutive samples (by more than ``MIN_JUMP_M``).
+                            t_world_cam_m: np.ndarray, frame_ts: np.ndarray | None = None,
+                            max_dt: float = MAX_ASSOCIATION_DT_S) -> np.ndarray:
+    """Hold ground truth to a camera's speed where the frames read it; drop glitch rows.
 
     ``rows`` ``[M]`` are the file's rows in time order, ``ts`` ``[M]`` their times (s, increasing),
-    ``t_world_cam_m`` ``[M, 3]`` the camera centres. The ``DatasetError`` names the file, both
-    lines and times, the distance and the speed of the first jump, and how many there are.
+    ``t_world_cam_m`` ``[M, 3]`` the camera centres, ``frame_ts`` ``[N]`` the times of the frames
+    used (after ``dataset.max_frames``; None: every row counts). Only the rows those frames'
+    ground truth is looked up from (:func:`lookup_groundtruth`), with one row of margin each side,
+    are judged (:func:`screen_pose_jumps`): rows of other times (before the clip, after
+    ``max_frames``) are never the frames' poses. Rows that jump faster than
+    ``MAX_CAMERA_SPEED_M_PER_S`` away and come back within ``MAX_GLITCH_ROWS`` rows (a marker swap)
+    are dropped with a warning naming the file, the lines and the frames that read them; those
+    frames then take their ground truth from the rows left, as every frame does: interpolated
+    between the rows around them when at most ``MAX_GT_INTERPOLATION_GAP_S`` apart, else the nearest
+    within ``max_dt``, else none.
+
+    Returns:
+        ``[M]`` bool, the rows kept.
+
+    Raises:
+        DatasetError: a jump the path goes on from (poses of two places: the scene would be mapped
+            twice), naming the file, both lines and times, the distance, the speed, the frames on
+            each side and how many such jumps there are.
     """
-    if len(ts) < 2:
-        return
-    step_m = np.linalg.norm(np.diff(t_world_cam_m, axis=0), axis=1)  # [M-1]
-    speed = step_m / np.diff(ts)
-    bad = np.flatnonzero((speed > MAX_CAMERA_SPEED_M_PER_S) & (step_m > MIN_JUMP_M))
-    if not len(bad):
-        return
-    k = int(bad[0])
-    (line_a, a), (line_b, b) = rows[k], rows[k + 1]
-    more = f"; {len(bad) - 1} more such jump(s) follow" if len(bad) > 1 else ""
-    raise DatasetError(path, f"the camera moves {step_m[k]:.3g} m in {ts[k + 1] - ts[k]:.3g} s from line {line_a} "
-                             f"(t = {a[0][:40]}) to this line (t = {b[0][:40]}): {speed[k]:.3g} m/s, faster than "
-                             f"the {MAX_CAMERA_SPEED_M_PER_S:g} m/s any hand-held or robot camera moves{more}; "
-                             "these poses are not one camera's path (a wrong or merged file): correct or remove "
-                             "those lines", line_b)
+    if frame_ts is None:
+        def read_span(kept: np.ndarray):
+            return 0, len(kept) - 1
+    else:
+        frame_ts = np.asarray(frame_ts, dtype=np.float64)
+
+        def read_span(kept: np.ndarray):
+            a, b = _rows_read(ts[kept], frame_ts, max_dt)
+            read = np.concatenate([a[a >= 0], b[b >= 0]])
+            return (int(read.min()), int(read.max())) if len(read) else None
+
+    keep, glitches, jumps = screen_pose_jumps(ts, t_world_cam_m, read_span)
+    if jumps:
+        a, b = jumps[0]
+        (line_a, row_a), (line_b, row_b) = rows[a], rows[b]
+        step_m = float(np.linalg.norm(t_world_cam_m[b] - t_world_cam_m[a]))
+        dt_s = float(ts[b] - ts[a])
+        more = f"; {len(jumps) - 1} more such jump(s) follow" if len(jumps) > 1 else ""
+        frames = ""
+        if frame_ts is not None:
+            kept = np.flatnonzero(keep)
+            ra, rb = _rows_read(ts[kept], frame_ts, max_dt)
+            pa, pb = int(np.searchsorted(kept, a)), int(np.searchsorted(kept, b))
+            before = np.flatnonzero((ra >= 0) & (rb <= pa))
+            after = np.flatnonzero(ra >= pb)
+            across = np.flatnonzero((ra == pa) & (rb == pb))
+            sides = [(which, f) for which, f in (("before", before), ("after", after), ("across", across)) if len(f)]
+            frames = "; " + ", ".join(f"{_frame_list(f)} {'read poses ' if n == 0 else ''}{which} it"
+                                      for n, (which, f) in enumerate(sides))
+            frames += f": the scene would be mapped twice, {step_m:.3g} m apart"
+        raise DatasetError(path, f"the camera moves {step_m:.3g} m in {dt_s:.3g} s from line {line_a} (t = "
+                                 f"{row_a[0][:40]}) to this line (t = {row_b[0][:40]}): {step_m / dt_s:.3g} m/s, "
+                                 f"faster than the {MAX_CAMERA_SPEED_M_PER_S:g} m/s any hand-held or robot camera "
+                                 f"moves, and the path goes on from there (no motion-capture glitch: it does not "
+                                 f"come back within {MAX_GLITCH_ROWS} rows){frames}{more}; these poses are not one "
+                                 "camera's path (a wrong or merged file): correct or remove those lines", line_b)
+    if glitches:
+        _warn_glitches(path, rows, ts, keep, glitches, frame_ts, max_dt)
+    return keep
+
+
+def _warn_glitches(path: Path, rows: list[tuple[int, list[str]]], ts: np.ndarray, keep: np.ndarray,
+                   glitches: list[PoseGlitch], frame_ts: np.ndarray | None, max_dt: float) -> None:
+    """One warning per dropped glitch (at most ``MAX_GLITCHES_LOGGED``): its lines, times, how far
+    and fast it jumps, the frames that read those rows and what those frames read now."""
+    if frame_ts is not None:
+        a0, b0 = _rows_read(ts, frame_ts, max_dt)  # as the file is written
+        a1, b1 = _rows_read(ts[keep], frame_ts, max_dt)  # without the glitches
+    for g in glitches[:MAX_GLITCHES_LOGGED]:
+        what = (f"{_line_span(rows, g.first, g.last)} (t = {rows[g.first][1][0][:40]}"
+                + (f" - {rows[g.last][1][0][:40]}" if g.last > g.first else "") + ")")
+        frames = ""
+        if frame_ts is not None:
+            hit = ((a0 >= g.first) & (a0 <= g.last)) | ((b0 >= g.first) & (b0 <= g.last))
+            hit_idx = np.flatnonzero(hit)
+            if not len(hit_idx):
+                frames = "; no frame reads " + ("it" if g.first == g.last else "them")
+            else:
+                interp = int((hit & (a1 >= 0) & (a1 != b1)).sum())
+                near = int((hit & (a1 >= 0) & (a1 == b1)).sum())
+                none = int((hit & (a1 < 0)).sum())
+                now = [f"{n} {text}" for n, text in (
+                    (interp, f"interpolated between the rows around {'it' if g.first == g.last else 'them'} (at "
+                             f"most {MAX_GT_INTERPOLATION_GAP_S:g} s apart)"),
+                    (near, f"from the nearest row left within {max_dt * 1000:.0f} ms"),
+                    (none, "without ground truth (no row left near enough)")) if n]
+                reads = ("reads" if len(hit_idx) == 1 else "read") + (" it" if g.first == g.last else " them")
+                frames = f"; {_frame_list(hit_idx)} {reads}: now " + ", ".join(now)
+        logger.warning("%s: %s %s %.3g m away from line %d and back to line %d (%.3g m/s, faster than the %g m/s "
+                       "a camera moves): a motion-capture glitch (a marker swap?), left out%s", path, what,
+                       "jumps" if g.first == g.last else "jump", g.distance_m, rows[g.before][0], rows[g.after][0],
+                       g.speed_m_per_s, MAX_CAMERA_SPEED_M_PER_S, frames)
+    if len(glitches) > MAX_GLITCHES_LOGGED:
+        rest = glitches[MAX_GLITCHES_LOGGED:]
+        named = ", ".join(_line_span(rows, g.first, g.last) for g in rest[:20]) + (", ..." if len(rest) > 20 else "")
+        logger.warning("%s: %d more glitch(es) left out likewise (%s)", path, len(rest), named)
 
 
 def check_unique_files(path: Path, rows: list[tuple[int, list[str]]], kind: str) -> None:
@@ -280,29 +490,48 @@ def check_unique_files(path: Path, rows: list[tuple[int, list[str]]], kind: str)
 
 
 def check_groundtruth_overlap(gt_path: Path, gt_ts: np.ndarray, gt_poses: np.ndarray, frames_path: Path,
-                              frame_ts: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S) -> None:
-    """Refuse ground truth (times ``gt_ts`` ``[M]``, poses ``[M, 4, 4]``) that gives no pose at any
-    of the recording's frame times ``frame_ts`` ``[N]`` (from ``frames_path``): such a file is
-    another recording's, or its clock is offset, and the world would silently be mapped from
-    estimated poses with no ATE.
+                              frame_ts: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S,
+                              gt_lines: list[int] | None = None) -> None:
+    """Refuse ground truth (times ``gt_ts`` ``[M]``, poses ``[M, 4, 4]``, file lines ``gt_lines``
+    ``[M]`` when known) that gives no pose at any of the recording's frame times ``frame_ts`` ``[N]``
+    (from ``frames_path``): the world would silently be mapped from estimated poses with no ATE.
+
+    Poses that all end before the first frame or start after the last are another recording's, or
+    a clock offset; poses around the frames that still give none have a gap where the frames are
+    (the motion capture lost the camera), and the error names that gap.
 
     Raises:
-        DatasetError: naming the ground-truth file and both time spans (and the offset between them).
+        DatasetError: naming the ground-truth file and both time spans (and the offset between
+            them), or the gap(s) in the poses (times and lines) and the frames they cover.
     """
     if len(gt_ts) == 0 or lookup_groundtruth(gt_ts, gt_poses, frame_ts, max_dt)[1].any():
         return
     t0, t1 = float(frame_ts.min()), float(frame_ts.max())
-    if gt_ts[-1] < t0:
-        where = f"; the poses end {t0 - gt_ts[-1]:.3f} s before the first frame"
-    elif gt_ts[0] > t1:
-        where = f"; the poses start {gt_ts[0] - t1:.3f} s after the last frame"
-    else:
-        where = (f" (no pose within {max_dt * 1000:.0f} ms of any frame, nor two around one at most "
-                 f"{MAX_GT_INTERPOLATION_GAP_S:g} s apart)")
-    raise DatasetError(gt_path, f"ground truth matches none of the {len(frame_ts)} frames: its poses span "
-                                f"{gt_ts[0]:.3f} - {gt_ts[-1]:.3f} s, the frames ({frames_path.name}) {t0:.3f} - "
-                                f"{t1:.3f} s{where}; it is another recording's ground truth, or its clock is "
-                                "offset: correct its timestamps, or remove the file to map from estimated poses")
+    head = (f"ground truth matches none of the {len(frame_ts)} frames: its poses span {gt_ts[0]:.3f} - "
+            f"{gt_ts[-1]:.3f} s, the frames ({frames_path.name}) {t0:.3f} - {t1:.3f} s")
+    if gt_ts[-1] < t0 or gt_ts[0] > t1:
+        where = (f"the poses end {t0 - gt_ts[-1]:.3f} s before the first frame" if gt_ts[-1] < t0 else
+                 f"the poses start {gt_ts[0] - t1:.3f} s after the last frame")
+        raise DatasetError(gt_path, f"{head}; {where}; it is another recording's ground truth, or its clock is "
+                                    "offset: correct its timestamps, or remove the file to map from estimated poses")
+    line = (lambda k: f" (line {gt_lines[k]})") if gt_lines is not None else (lambda k: "")
+    j = np.searchsorted(gt_ts, frame_ts)  # [N] frame i lies between rows j - 1 and j
+    holes = []
+    for jk in np.unique(j):
+        frames = _frame_list(np.flatnonzero(j == jk))
+        if jk == 0:
+            holes.append(f"{frames} before its first pose (t = {gt_ts[0]:.3f}{line(0)})")
+        elif jk == len(gt_ts):
+            holes.append(f"{frames} after its last pose (t = {gt_ts[-1]:.3f}{line(len(gt_ts) - 1)})")
+        else:
+            holes.append(f"{frames} in a gap from t = {gt_ts[jk - 1]:.3f}{line(jk - 1)} to {gt_ts[jk]:.3f}"
+                         f"{line(jk)}, {gt_ts[jk] - gt_ts[jk - 1]:.3g} s without a pose")
+    shown = "; ".join(holes[:3]) + (f"; and {len(holes) - 3} more gap(s)" if len(holes) > 3 else "")
+    raise DatasetError(gt_path, f"{head}; the poses have gaps where the frames are: {shown} (ground truth is "
+                                f"interpolated across at most {MAX_GT_INTERPOLATION_GAP_S:g} s, or taken from a "
+                                f"pose within {max_dt * 1000:.0f} ms): the motion capture lost the camera for the "
+                                "whole clip; read frames the poses cover, or remove the file to map from estimated "
+                                "poses")
 
 
 def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S) -> list[tuple[int, int]]:
@@ -350,6 +579,30 @@ def _check_association_density(rgb_path: Path, depth_path: Path, rgb_rows, rgb_t
                                        f"{MAX_DEPTH_FRAMES_PER_RGB_WINDOW} expected): are the timestamps in seconds?")
 
 
+def _rows_read(gt_ts: np.ndarray, t: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S) -> tuple[
+        np.ndarray, np.ndarray]:
+    """The ground-truth rows (of times ``gt_ts`` ``[M]``, increasing) each time in ``t`` ``[N]``
+    reads, as :func:`lookup_groundtruth` uses them: ``(a [N], b [N])`` int, the bracketing rows
+    ``j - 1, j`` when interpolated, ``(k, k)`` for the nearest row ``k`` within ``max_dt``, ``(-1,
+    -1)`` for none."""
+    t = np.asarray(t, dtype=np.float64)
+    m = len(gt_ts)
+    a = np.full(len(t), -1, np.int64)
+    b = np.full(len(t), -1, np.int64)
+    if m == 0:
+        return a, b
+    j = np.searchsorted(gt_ts, t)
+    inner = (j > 0) & (j < m)
+    interp = np.zeros(len(t), bool)
+    interp[inner] = gt_ts[j[inner]] - gt_ts[j[inner] - 1] <= MAX_GT_INTERPOLATION_GAP_S
+    lo, hi = np.clip(j - 1, 0, m - 1), np.clip(j, 0, m - 1)
+    best = np.where(np.abs(gt_ts[lo] - t) <= np.abs(gt_ts[hi] - t), lo, hi)  # ties: the earlier row
+    near = ~interp & (np.abs(gt_ts[best] - t) <= max_dt)
+    a[interp], b[interp] = j[interp] - 1, j[interp]
+    a[near] = b[near] = best[near]
+    return a, b
+
+
 def lookup_groundtruth(
     gt_ts: np.ndarray, gt_poses: np.ndarray, t: np.ndarray, max_dt: float = MAX_ASSOCIATION_DT_S
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -357,28 +610,19 @@ def lookup_groundtruth(
 
     Inside the motion-capture span the pose is interpolated (linear translation, slerp rotation)
     between the bracketing samples when they are at most ``MAX_GT_INTERPOLATION_GAP_S`` apart;
-    otherwise, and at the ends, the nearest sample is used if it lies within ``max_dt``.
+    otherwise, and at the ends, the nearest sample is used if it lies within ``max_dt`` (TUM's
+    ``associate.py`` rule).
 
     Returns:
         ``(T_world_cam [N, 4, 4] with NaN where unknown, has_gt [N] bool)``.
     """
-    n = len(t)
-    out = np.full((n, 4, 4), np.nan)
-    has = np.zeros(n, dtype=bool)
-    if len(gt_ts) == 0:
-        return out, has
-    for k, tk in enumerate(t):
-        j = int(np.searchsorted(gt_ts, tk))
-        if 0 < j < len(gt_ts) and gt_ts[j] - gt_ts[j - 1] <= MAX_GT_INTERPOLATION_GAP_S:
-            out[k] = interpolate_pose(gt_ts[j - 1], gt_poses[j - 1], gt_ts[j], gt_poses[j], tk)
-            has[k] = True
-            continue
-        near = [i for i in (j - 1, j) if 0 <= i < len(gt_ts)]
-        best = min(near, key=lambda i: abs(gt_ts[i] - tk))
-        if abs(gt_ts[best] - tk) <= max_dt:
-            out[k] = gt_poses[best]
-            has[k] = True
-    return out, has
+    t = np.asarray(t, dtype=np.float64)
+    out = np.full((len(t), 4, 4), np.nan)
+    a, b = _rows_read(gt_ts, t, max_dt)
+    for k in np.flatnonzero(a >= 0):
+        i, j = int(a[k]), int(b[k])
+        out[k] = gt_poses[i] if i == j else interpolate_pose(gt_ts[i], gt_poses[i], gt_ts[j], gt_poses[j], t[k])
+    return out, a >= 0
 
 
 @dataclass
@@ -595,8 +839,9 @@ def load_tum_sequence(
 
     Before any image is opened, rgb.txt and depth.txt must be in strictly increasing time order
     (:func:`increasing_timestamps`) and name each image file once (:func:`check_unique_files`), and
-    ``groundtruth.txt``, when there is one, must read (:func:`read_groundtruth`: unit quaternions,
-    physical speeds) and give a pose at one frame at least (:func:`check_groundtruth_overlap`).
+    ``groundtruth.txt``, when there is one, must read (:func:`read_groundtruth`: unit quaternions),
+    give a pose at one frame at least (:func:`check_groundtruth_overlap`) and move at a camera's
+    speed where the frames kept read it (:func:`check_groundtruth_speed`: glitch rows dropped).
     Every listed image must be a regular file (one that is
     missing, a directory or a FIFO is named as such, :func:`file_problem`) with the camera's size
     (header only): 8-bit colour PNG or JPEG for RGB, 16-bit single-channel PNG for depth; the first
@@ -632,9 +877,13 @@ def load_tum_sequence(
     list_files = [root / "rgb.txt", root / "depth.txt"]
     gt_problem = file_problem(gt_file)
     if gt_problem is None:
-        gt_ts, gt_poses = read_groundtruth(gt_file)
-        check_groundtruth_overlap(gt_file, gt_ts, gt_poses, root / "depth.txt", all_depth_ts, max_dt)
-        T_gt, has_gt = lookup_groundtruth(gt_ts, gt_poses, t_depth, max_dt)  # at the frame (depth) times
+        gt_rows, gt_ts, gt_tq = _parse_groundtruth(gt_file)
+        gt_poses = pose_from_tq(gt_tq[:, :3], gt_tq[:, 3:])
+        check_groundtruth_overlap(gt_file, gt_ts, gt_poses, root / "depth.txt", all_depth_ts, max_dt,
+                                  [line for line, _ in gt_rows])
+        # judged where the frames kept read it; glitch rows dropped
+        keep = check_groundtruth_speed(gt_file, gt_rows, gt_ts, gt_tq[:, :3], t_depth, max_dt)
+        T_gt, has_gt = lookup_groundtruth(gt_ts[keep], gt_poses[keep], t_depth, max_dt)  # at the frame (depth) times
         list_files.append(gt_file)
     elif gt_problem == "not found":  # optional: a recording without ground truth
         T_gt, has_gt = np.full((len(pairs), 4, 4), np.nan), np.zeros(len(pairs), bool)
