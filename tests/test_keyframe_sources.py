@@ -430,3 +430,106 @@ def test_an_older_extended_bundle_whose_lineage_loops_has_unknown_keyframes(olde
     # the parent still proves which keyframes are c's own; its own keyframes' recording is unknown
     assert ks.recordings[1:] == [older_chain["b"]] and ks.recording.tolist() == [0, 0, 1, 1]
     assert ks.recordings[0] == UNKNOWN_RECORDING and "a loop" in ks.unknown_reason
+
+
+def _as_older(world: Path, dst: Path) -> Path:
+    """A copy of the bundle ``world`` as written before keyframes named their recording (no
+    ``recordings``, no ``keyframes.recording``, no ``keyframe_recording`` in world.npz)."""
+    from atlas_pipeline.gaussian_world.builder import GaussianWorld
+    from atlas_pipeline.io_utils import sha256_file
+
+    shutil.copytree(world, dst)
+    w = GaussianWorld.load(dst)
+    w.recordings, w.keyframe_recording = [], None
+    w.save(dst)
+    meta = json.loads((dst / "metadata.json").read_text())
+    meta.pop("recordings")
+    del meta["keyframes"]["recording"]
+    for name in ("world.npz", "world.json"):  # as that older writer listed them
+        meta["files"][name].update(bytes=(dst / name).stat().st_size, sha256=sha256_file(dst / name))
+    (dst / "metadata.json").write_text(json.dumps(meta))
+    return dst
+
+
+def _third_recording(worlds) -> Path:
+    c = worlds["root"] / "C"
+    return c if c.exists() else _split(tum_folder(TEDDY), c, 2 * SPLIT, 2 * SPLIT + 20)
+
+
+@pytest.mark.slow
+def test_an_older_extended_bundle_pairs_each_image_with_its_own_frame(worlds):
+    """wB (A's world extended with B) as an older writer left it: its parent, wA, proves which
+    keyframes are A's; the export and the next --extend read and record each from its own."""
+    from assets.cli import main
+
+    old = _as_older(worlds["wB"], worlds["root"] / "wB_older")
+    kf = json.loads((worlds["wB"] / "metadata.json").read_text())["keyframes"]
+    out = worlds["root"] / "export_older"
+    summary = _export(old, out)
+    assert sorted(_check_pairs(out, worlds["teddy"])) == sorted(i + SPLIT * j for i, j in zip(kf["indices"],
+                                                                                              kf["recording"]))
+    assert summary["n_images"] == len(kf["indices"])
+    ext = worlds["root"] / "wBC_older"
+    assert main(["build", "--input", str(_third_recording(worlds)), "--extend", str(old), "--output", str(ext), *FAST,
+                 "--set", "mapping.pose_source=ground_truth"]) == 0
+    new = json.loads((ext / "metadata.json").read_text())
+    recs = json.loads((worlds["wB"] / "metadata.json").read_text())["recordings"]
+    assert [r["content_hash"] for r in new["recordings"][:2]] == [r["content_hash"] for r in recs]
+    assert new["keyframes"]["recording"][:len(kf["recording"])] == kf["recording"]
+
+
+@pytest.mark.slow
+def test_an_older_extended_bundle_without_its_parent_reads_none_of_its_keyframes(worlds, caplog, capsys):
+    """Its parent gone, which of its keyframes are A's is unproven: none is paired with any frames,
+    neither found nor given with --input, and a world extended from it records them as unknown."""
+    from assets.cli import main
+
+    old = _as_older(worlds["wB"], worlds["root"] / "wB_orphan")
+    wa, away = worlds["wA"], worlds["root"] / "wA.away"
+    wa.rename(away)
+    try:
+        for extra in ([], ["--input", str(worlds["B"]), "--camera", "freiburg3"]):
+            capsys.readouterr()
+            assert main(["export", str(old), "--format", "colmap", "--output", str(worlds["root"] / "x"),
+                         *extra]) == 2
+            err = capsys.readouterr().err
+            assert f"its parent bundle {wa} (lineage.parent.path) is not on disk" in err, err
+            assert "no keyframe can be exported at its pose" in err and not (worlds["root"] / "x").exists()
+        ext = worlds["root"] / "wBC_orphan"
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            assert main(["build", "--input", str(_third_recording(worlds)), "--extend", str(old), "--output", str(ext),
+                         *FAST, "--set", "mapping.pose_source=ground_truth"]) == 0
+        assert "recorded in the new bundle as frames of an unknown recording" in caplog.text
+        new = json.loads((ext / "metadata.json").read_text())
+        n_old = len(json.loads((old / "metadata.json").read_text())["keyframes"]["indices"])
+        assert new["recordings"][0] == UNKNOWN_RECORDING and new["keyframes"]["recording"][:n_old] == [0] * n_old
+        # its export holds C's keyframes only, each with its own frame; the unknown ones left out, said once
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            summary = _export(ext, worlds["root"] / "export_orphan")
+        assert summary["n_images"] == len(new["keyframes"]["indices"]) - n_old
+        assert min(_check_pairs(worlds["root"] / "export_orphan", worlds["teddy"])) >= 2 * SPLIT
+        lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert len(lines) == 1 and f"{n_old} keyframes of recording 'unnamed'" in lines[0], lines
+    finally:
+        away.rename(wa)
+
+
+def test_a_recorded_camera_that_is_no_camera_is_no_candidate(isolated, caplog):
+    """Read with the layout's default camera instead, the frames would carry wrong intrinsics:
+    the folder is refused with a warning naming the recording and its camera field."""
+    from atlas_pipeline.scene_memory.recordings import open_recording, recording_record
+    from atlas_pipeline.sensors.camera import TUM_CAMERAS
+    from atlas_pipeline.sensors.registry import dataset_from_spec, read_dataset_manifest
+
+    xyz = tum_folder("tum_fr1_xyz_10")
+    good = recording_record(read_dataset_manifest(dataset_from_spec(str(xyz), "freiburg1")))
+    bad = {**good, "name": "unregistered-xyz", "camera": {**TUM_CAMERAS["freiburg1"].to_dict(), "cx": 900.0}}
+    with caplog.at_level(logging.WARNING):
+        manifest, why = open_recording(bad)
+    assert manifest is None and "its recorded camera (field camera) is not a usable camera" in why
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(lines) == 1 and "recording 'unregistered-xyz'" in lines[0] and "field camera" in lines[0], lines
+    manifest, _ = open_recording({**good, "name": "unregistered-xyz"})  # the control: its own camera reads
+    assert manifest is not None and manifest.camera == TUM_CAMERAS["freiburg1"]

@@ -405,3 +405,191 @@ def test_in_an_extended_world_every_frame_is_placed_where_it_is(isolated, extend
     assert placed.sum() >= len(rep.status) - 1
     errors_m = np.linalg.norm(rep.T_world_cam[placed][:, :3, 3] - gt[placed][:, :3, 3], axis=1)
     assert errors_m.max() < MAX_PLACED_ERROR_M
+
+
+# ---- identity without loading the world: gaussians.bin read, not loaded -----------------------
+
+def _sh_field(n: int, degree: int, seed: int = 1) -> GaussianField:
+    from atlas_pipeline.gaussian_world.field import sh_rest_count
+
+    f = _field(n, seed)
+    rng = np.random.default_rng(seed)
+    return GaussianField(f.positions, rng.uniform(0.01, 0.1, (n, 3)), f.rotations_xyzw, f.colors, f.opacities, f.ids,
+                         rng.normal(size=(n, sh_rest_count(degree), 3)) if degree else None)
+
+
+@pytest.mark.parametrize("field", [
+    GaussianField(np.random.default_rng(0).uniform(0, 1, (37, 3)), np.full((37, 3), 0.02),
+                  np.tile([0.0, 0.0, 0.0, 1.0], (37, 1)), np.zeros((37, 3)), np.full(37, 0.5),
+                  np.arange(37, dtype=np.uint64) + 9),  # isotropic: ATLASGS1, scales and rotations expanded
+    _field(41),  # ATLASGS2
+    _sh_field(29, 2),  # ATLASGS2 version 3, with SH coefficients
+    GaussianField.empty(),
+], ids=["atlasgs1", "atlasgs2", "atlasgs2-sh", "empty"])
+def test_the_map_id_read_from_gaussians_bin_is_the_loaded_worlds(tmp_path, monkeypatch, field):
+    from atlas_pipeline.scene_memory import bundle as bundle_module
+    from atlas_pipeline.scene_memory.binary import read_gaussian_binary, write_gaussian_binary
+
+    path = write_gaussian_binary(field, tmp_path / "gaussians.bin")
+    want = (len(field), map_id_of(read_gaussian_binary(path)))
+    assert bundle_module.binary_identity(path) == want
+    monkeypatch.setattr(bundle_module, "_STREAM_CHUNK_BYTES", 40)  # many chunks, rows split across none
+    assert bundle_module.binary_identity(path) == want
+
+
+def test_a_truncated_gaussians_bin_is_named_by_its_count(tmp_path):
+    from atlas_pipeline.scene_memory.binary import write_gaussian_binary
+    from atlas_pipeline.scene_memory.bundle import binary_identity
+
+    path = write_gaussian_binary(_field(), tmp_path / "gaussians.bin")
+    path.write_bytes(path.read_bytes()[:-3])
+    with pytest.raises(BundleFormatError, match=r"gaussians.bin: count 50 needs \d+ bytes, file has"):
+        binary_identity(path)
+
+
+def _no_loading(monkeypatch) -> None:
+    """Loading the Gaussians fails: what runs must take the identity from the file's header and bytes."""
+    from atlas_pipeline.scene_memory import binary, bundle
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the world was loaded")
+
+    for module in (binary, bundle):
+        monkeypatch.setattr(module, "read_gaussian_binary", refuse)
+    monkeypatch.setattr(bundle, "load_world_bundle", refuse)
+
+
+def test_lineage_verifies_without_loading_the_world(isolated, small_bundle, capsys, monkeypatch):
+    _no_loading(monkeypatch)
+    assert main(["lineage", str(small_bundle), "--json"]) == 0
+    lin = json.loads(capsys.readouterr().out)
+    assert lin["verified"] is True and lin["problems"] == []
+    assert (lin["map_id"], lin["n_gaussians"]) == (map_id_of(_field()), 50)
+
+
+@pytest.mark.parametrize("damaged", ["gaussians.ply", "gaussians.bin", "metadata.json"])
+def test_a_damaged_bundles_lineage_is_shown_with_a_warning_naming_the_file(isolated, small_bundle, capsys, damaged):
+    meta = json.loads((small_bundle / "metadata.json").read_text())
+    if damaged == "metadata.json":
+        _edit(small_bundle, map_id="0123456789abcdef")
+        says = "metadata.json: field map_id is '0123456789abcdef', but the Gaussians of gaussians.bin"
+    else:
+        data = bytearray((small_bundle / damaged).read_bytes())
+        data[-1] ^= 0xFF
+        (small_bundle / damaged).write_bytes(bytes(data))
+        says = f"{damaged}: checksum does not match metadata.json"
+    assert main(["lineage", str(small_bundle)]) == 2
+    captured = capsys.readouterr()
+    assert f"bundle      {small_bundle.resolve()}" in captured.out and "verified    NO: 1 problem" in captured.out
+    warnings = [ln for ln in captured.err.splitlines() if ln.startswith("warning:")]
+    assert len(warnings) == 1 and says in warnings[0] and "Traceback" not in captured.err, captured.err
+    assert main(["lineage", str(small_bundle), "--json"]) == 2
+    lin = json.loads(capsys.readouterr().out)
+    assert lin["verified"] is False and len(lin["problems"]) == 1 and says in lin["problems"][0]
+    # the identity shown: the verified Gaussians', else (gaussians.bin damaged) as metadata.json states it
+    assert lin["map_id"] == (meta["map_id"] if damaged != "metadata.json" else map_id_of(_field()))
+    with pytest.raises(BundleFormatError, match=says.split(":")[0]):
+        read_lineage(small_bundle, verify=True)  # strict: the library's default
+
+
+def test_the_anchor_beyond_the_frames_loaded_is_no_start(caplog):
+    with caplog.at_level(logging.INFO, logger="atlas_pipeline"):
+        assert start_pose(BUILT, "a", content_hash="hA", n_frames=3) == (None, 0)  # anchor: frame 3
+    assert "beyond the 3 frames loaded (dataset.max_frames)" in caplog.text
+    assert start_pose(BUILT, "a", content_hash="hA", n_frames=4)[1] == 3
+
+
+# ---- one recording read to another frame count (dataset.max_frames) -----------------------------
+
+XYZ = "tum_fr1_xyz_10"  # 9 RGB-D frames (one RGB frame has no depth within 20 ms)
+XYZ_FAST = ["--camera", "freiburg1", "--set", "mapping.fit.epochs=0", "--set", "mapping.colour_refinement.iterations=0"]
+FEWER_FRAMES = 5
+
+
+@pytest.fixture(scope="module")
+def xyz_worlds(tmp_path_factory):
+    """xyz (folder ``xyz``, named ``xyz``), worlds built from all its frames and from its first 6,
+    and teddy's first 10 frames in a folder also named ``xyz``: ``{xyz, w_all, w_6, other}``."""
+    src = tum_folder(XYZ)
+    root = tmp_path_factory.mktemp("max_frames")
+    with pytest.MonkeyPatch.context() as mp:
+        from tests.conftest import isolate_project
+
+        isolate_project(root, mp)
+        xyz = root / "xyz"
+        shutil.copytree(src, xyz)
+        other = _trim(tum_folder(TEDDY), root / "other" / "xyz", (0, 10))
+        assert main(["build", "--input", str(xyz), "--output", str(root / "w_all"), *XYZ_FAST]) == 0
+        assert main(["build", "--input", str(xyz), "--output", str(root / "w_6"), *XYZ_FAST,
+                     "--set", "dataset.max_frames=6"]) == 0
+    return {"xyz": xyz, "w_all": root / "w_all", "w_6": root / "w_6", "other": other}
+
+
+def _xyz_localized(isolated, xyz_worlds, capsys, world: str, *options: str) -> tuple[Path, dict, str]:
+    copy = isolated / world
+    shutil.copytree(xyz_worlds[world], copy)
+    capsys.readouterr()
+    code = main(["localize", "--world", str(copy), "--input", str(xyz_worlds["xyz"]), *XYZ_FAST, *options])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    return copy, json.loads(captured.out), captured.err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("world, options", [("w_all", ["--set", f"dataset.max_frames={FEWER_FRAMES}"]),
+                                            ("w_6", [])])
+def test_the_worlds_recording_read_to_another_frame_count_starts_at_the_anchor(isolated, xyz_worlds, capsys,
+                                                                               world, options):
+    """Fewer frames than the world was built from, or more: the same recording by content (its
+    first frames), so the anchor, no warning, and not stopped as another recording."""
+    copy, summary, err = _xyz_localized(isolated, xyz_worlds, capsys, world, *options)
+    anchor = json.loads((copy / "metadata.json").read_text())["anchor"]
+    assert "has the name of the recording" not in err and summary["start"] == "given"
+    rep = LocalizationReport.load(copy)
+    assert rep.status[anchor["frame_index"]] == STATUS_ANCHOR and summary["outcome"] == OUTCOME_COMPLETE
+    assert np.allclose(rep.T_world_cam[anchor["frame_index"]], np.asarray(anchor["T_world_cam"]), rtol=0, atol=1e-9)
+    assert rep.n_frames == (FEWER_FRAMES if options else 9)
+
+
+@pytest.mark.slow
+def test_an_export_with_input_reads_the_first_frames_a_localization_placed(isolated, xyz_worlds, capsys):
+    import pycolmap
+
+    copy, summary, _ = _xyz_localized(isolated, xyz_worlds, capsys, "w_all",
+                                      "--set", f"dataset.max_frames={FEWER_FRAMES}")
+    out = isolated / "export"
+    code = main(["export", str(copy), "--format", "colmap", "--input", str(xyz_worlds["xyz"]), "--camera", "freiburg1",
+                 "--output", str(out)])
+    assert code == 0, capsys.readouterr().err
+    rep = LocalizationReport.load(copy)
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    poses = {img.name: np.linalg.inv(np.vstack([img.cam_from_world().matrix(), [0, 0, 0, 1]]))
+             for img in rec.images.values()}
+    assert sorted(poses) == [f"frame_{i:06d}.png" for i in range(FEWER_FRAMES)]
+    for i in range(FEWER_FRAMES):  # each image at the pose its own frame was placed at
+        assert np.allclose(poses[f"frame_{i:06d}.png"], rep.T_world_cam[i], atol=1e-5)
+
+
+@pytest.mark.slow
+def test_log_transitions_ground_truth_is_the_localized_frames_by_content(isolated, xyz_worlds, capsys, monkeypatch):
+    import pyarrow.parquet as pq
+
+    copy, _, _ = _xyz_localized(isolated, xyz_worlds, capsys, "w_all", "--set", f"dataset.max_frames={FEWER_FRAMES}")
+    gt_args = ["--set", "transitions.pose_source=ground_truth"]
+    # another recording under the name: refused naming --input, nothing written
+    code = main(["log-transitions", "--world", str(copy), "--input", str(xyz_worlds["other"]), *XYZ_FAST, *gt_args])
+    err = capsys.readouterr().err
+    assert code == 2 and f"--input 'xyz' ({xyz_worlds['other']}) holds other frames than" in err, err
+    assert "dataset.max_frames=5 would" in err and "Traceback" not in err
+    assert not (copy / "transitions.parquet").exists()
+    # the same recording read whole, or to fewer frames: the report's first frames, by content
+    gt = load_tum_sequence(xyz_worlds["xyz"], TUM_CAMERAS["freiburg1"], "xyz").T_world_cam_gt[:FEWER_FRAMES]
+    _no_loading(monkeypatch)  # the count comes from gaussians.bin's header
+    for options in ([], ["--set", "dataset.max_frames=3"]):
+        code = main(["log-transitions", "--world", str(copy), "--input", str(xyz_worlds["xyz"]), *XYZ_FAST, *gt_args,
+                     *options])
+        assert code == 0, capsys.readouterr().err
+        table = pq.read_table(copy / "transitions.parquet").to_pydict()
+        assert len(table["step"]) == FEWER_FRAMES - 1
+        assert np.allclose(table["before_x_m"], gt[:-1, 0, 3]) and np.allclose(table["after_x_m"], gt[1:, 0, 3])
+        assert set(table["n_gaussians"]) == {json.loads((copy / "metadata.json").read_text())["n_gaussians"]}

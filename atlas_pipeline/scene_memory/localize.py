@@ -263,10 +263,10 @@ def log_bundle_transitions(world: str | Path, entry: DatasetEntry, cfg: Pipeline
 
     world = Path(world)
     meta = read_metadata(world)
+    n_gaussians = verified_gaussian_count(world, meta)  # every file's checksum, then gaussians.bin's header
     if not (world / "localization.json").is_file():
         spec = entry.name if entry.source_file else entry.path
         raise ConfigError(f"{world}: no localization.json; run `atlas-gs localize --world {world} --input {spec}` first")
-    n_gaussians = verified_gaussian_count(world, meta)  # every file's checksum, then gaussians.bin's header
     report = LocalizationReport.load(world)
     if report.dataset != entry.name:
         raise ConfigError(f"{world}/localization.json is for dataset '{report.dataset}', not '{entry.name}'")
