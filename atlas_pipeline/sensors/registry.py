@@ -225,7 +225,8 @@ def camera_from_intrinsics(text: str, width: int, height: int, depth_scale: floa
 
 
 _SYNTH_KEYS = {"seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "fps"} | {  # + sensor / motion model
-    "orbit_rate_deg_per_s", "loop_revolutions", "pan_rate_deg_per_s", "shake_m", "shake_deg", "depth_noise_a_m",
+    "orbit_rate_deg_per_s", "loop_revolutions", "pan_rate_deg_per_s", "shake_m", "shake_deg", "look_at_height_m",
+    "depth_noise_a_m",
     "depth_noise_b_per_m", "depth_noise_angle_m", "depth_noise_corr_px", "inverse_depth_step_per_m",
     "depth_lateral_noise_px", "edge_dropout_prob", "projector_baseline_m", "dark_dropout_luma", "shiny_dropout_deg",
     "grazing_dropout_deg", "rgb_shift_x_px", "rgb_shift_y_px", "motion_blur_samples", "exposure_time_s",

@@ -115,6 +115,7 @@ class _Motion:
     shake_rad: float
     shake_f: np.ndarray  # [6, 2] Hz: x, y, z, rx, ry, rz, two sines each
     shake_ph: np.ndarray  # [6, 2]
+    look_at_height_m: float = 0.55  # the target's mean height
 
 
 @lru_cache(maxsize=8)
@@ -140,7 +141,7 @@ def _motion_of(spec: SyntheticSpec) -> _Motion:
         v = math.radians(spec.pan_rate_deg_per_s)
         pan_up, pan_down = v - rate, v + rate
     return _Motion(rate, scale, freqs, t_end, pan_up, pan_down, pan_phase, spec.shake_m,
-                   math.radians(spec.shake_deg), shake_f, shake_ph)
+                   math.radians(spec.shake_deg), shake_f, shake_ph, spec.look_at_height_m)
 
 
 def _sweep_rad(tau: float, v: float, amp2: float) -> float:
@@ -218,7 +219,7 @@ def _pose_at_motion(t: float, ph: np.ndarray, m: _Motion) -> np.ndarray:
         [
             0.35 * math.sin(2.0 * math.pi * f_x * tau + float(ph[2])),
             0.30 * math.sin(2.0 * math.pi * f_y * tau + float(ph[3])),
-            0.55 + 0.10 * math.sin(2.0 * math.pi * f_z * tau + float(ph[4])),
+            m.look_at_height_m + 0.10 * math.sin(2.0 * math.pi * f_z * tau + float(ph[4])),
         ]
     )
     env = 1.0

@@ -45,6 +45,9 @@ class SyntheticSpec:
     pan_rate_deg_per_s: float = 0.0  # > 0: sustained pans, camera yaw rate in the world frame
     shake_m: float = 0.0  # hand shake: translation amplitude per axis, 5-10 Hz
     shake_deg: float = 0.0  # hand shake: rotation amplitude per axis, 5-10 Hz
+    # Height of the point the orbit looks at (it wobbles 10 cm about it): at 0.55 m the objects in
+    # the middle of the room; at the camera's height the view runs over them to the far walls.
+    look_at_height_m: float = 0.55
     # -- Place (defaults: the one room). See synthetic_places.py. --
     place: str = "room"  # "room", or "suite": three rooms joined by doors, walked along a route
     route: int = 0  # suite: which route (0: a closed tour, 1: a second visit on another path)
@@ -175,7 +178,7 @@ class SyntheticSpec:
 _V1_FIELDS = ("seed", "n_frames", "width", "height", "fx", "fy", "cx", "cy", "depth_scale", "fps",
               "gt_rate_hz", "max_depth_m")
 _MOTION_FIELDS = ("orbit_rate_deg_per_s", "loop_revolutions", "pan_rate_deg_per_s", "shake_m",
-                  "shake_deg", "place", "route", "suite_speed_m_per_s")
+                  "shake_deg", "look_at_height_m", "place", "route", "suite_speed_m_per_s")
 PLACES = ("room", "suite")
 _FIELD_DEFAULTS = {f.name: f.default for f in fields(SyntheticSpec)}
 _SENSOR_FIELDS = tuple(n for n in _FIELD_DEFAULTS if n not in _V1_FIELDS and n not in _MOTION_FIELDS)
@@ -229,6 +232,9 @@ HANDHELD_MOTION: dict[str, float | int] = {
 }
 # One full turn around the room (~12 m of path) ending 3 mm from the start: loop closure tests.
 LOOP_MOTION: dict[str, float | int] = {"loop_revolutions": 1}
+# The same turn looking across the room at the camera's height, over the objects: most depth
+# readings lie 3-5 m away, where the Kinect's noise is 1.4-4 cm, and loops close on far geometry.
+FAR_LOOP_MOTION: dict[str, float | int] = {"loop_revolutions": 1, "look_at_height_m": 1.4}
 # A walk through the three-room suite (~25 m, back to its start) and a second visit of it on
 # another path, lower, at dusk (light_level 0.55, auto exposure on), with the noisy sensor.
 SUITE_PRESETS: dict[str, dict[str, float | int | str]] = {
@@ -245,6 +251,8 @@ SYNTHETIC_PRESETS: dict[str, dict[str, float | int]] = {
                            **KINECT_V1_SENSOR, **HANDHELD_MOTION},
     "synthetic-loop": {"seed": 0, "n_frames": 300, "width": 320, "height": 240, "fx": 262.5, "fy": 262.5,
                        "cx": 159.5, "cy": 119.5, **KINECT_V1_SENSOR, **LOOP_MOTION},
+    "synthetic-loop-far": {"seed": 0, "n_frames": 300, "width": 320, "height": 240, "fx": 262.5, "fy": 262.5,
+                           "cx": 159.5, "cy": 119.5, **KINECT_V1_SENSOR, **FAR_LOOP_MOTION},
     **SUITE_PRESETS,
 }
 
