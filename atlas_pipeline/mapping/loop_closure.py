@@ -21,9 +21,10 @@ tracking and mapping:
    :class:`Relocalizer` (no initial pose needed) searches that local map. A loop is accepted only
    when the tracker judges the fit good (``ok``: inlier fraction, agreement, residual) and the
    inlier fraction is at least :data:`LOOP_MIN_INLIER_FRACTION` with :data:`LOOP_MIN_AGREEMENT` of
-   what lands on the old geometry fitting it, and only when the matched surfaces
-   pin the camera in every direction (:data:`LOOP_MIN_TRANSLATION_CONSTRAINT`) and the two
-   guesses do not end in two good fits apart (:data:`LOOP_AMBIGUITY_M`).
+   what lands on the old geometry fitting it, that agreement counted within the depth noise at
+   each point's range (:func:`fit_within_noise`), and only when the matched surfaces pin the
+   camera in every direction (:data:`LOOP_MIN_TRANSLATION_CONSTRAINT`) and the two guesses do not
+   end in two good fits apart (:data:`LOOP_AMBIGUITY_M`).
 3. **Pose graph** (:func:`optimize_pose_graph`): Open3D's ``PoseGraph`` with one odometry edge
    between consecutive keyframes (the tracked relative pose) and one uncertain edge per verified
    loop, solved by ``global_optimization`` (Levenberg-Marquardt with a line process that prunes
@@ -44,7 +45,10 @@ camera). Math functions take arrays and do no IO; :func:`close_loops` reads the 
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
@@ -52,14 +56,15 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from atlas_pipeline.geometry import invert_se3
+from atlas_pipeline.sensors.depth_noise import depth_sigma_m
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "loop_probe_frames", "loop_candidates",
+__all__ = ["LoopEdge", "LoopClosureResult", "CovisibilityView", "NoiseFit", "loop_probe_frames", "loop_candidates",
            "covisible_candidates", "keyframe_reach_m", "keyframe_thumbnail", "appearance_candidates",
            "relative_poses", "optimize_pose_graph",
-           "propagate_correction", "trajectory_change", "information_matrix", "verify_loop", "close_loops",
-           "merge_keyframes_at_poses"]
+           "propagate_correction", "trajectory_change", "information_matrix", "noise_tolerance_m",
+           "fit_within_noise", "grade_within_noise", "verify_loop", "close_loops", "merge_keyframes_at_poses"]
 
 # Optical axes of two keyframes more than this apart rarely see the same surfaces from the short
 # range of an indoor RGB-D camera (a 57-degree field of view): not a candidate.
@@ -77,6 +82,18 @@ LOOP_MIN_INLIER_FRACTION = 0.3
 # frame slid along the old surfaces by a few dozen cm still fits with a third of its points, but
 # the rest of what lands there disagrees.
 LOOP_MIN_AGREEMENT = 0.8
+# That agreement counts a point as fitting the old geometry within the depth noise at its range
+# (fit_within_noise): within this many standard deviations of the difference of two readings of
+# the surface (the frame's and the one it was mapped from: sqrt(2) sigma(z) of sensors.depth_noise),
+# or within the tracker's grading gate (localization.min_correspondence_m) where that is wider.
+# Two sigmas hold 95 % of a true fit's points. The gate is the wider up to about 2 m, so near
+# surfaces are judged as the tracker judges them (the frames slid along old surfaces above stay
+# refused); at 3 m a point fits within 4 cm, at 4 m within 7.3 cm, where the sensor's own noise
+# (1.4 and 2.6 cm) left a true loop's agreement at 0.6-0.8 against a fixed 2 cm gate. The inlier
+# fraction stays the tracker's: far surfaces fit a pose some cm off nearly as well as the true
+# one, and on the far loop preset loops let in by a noise-wide inlier fraction moved the
+# trajectory about as much as the drift they corrected (docs/tracking.md).
+LOOP_NOISE_SIGMAS = 2.0
 # A loop is verified by geometry alone, so the matched surfaces must pin the camera in every
 # direction: a wall and the floor seen through a door let the alignment slide along them with a
 # good fit. The least over the largest eigenvalue of the translation block of the point-to-plane
@@ -501,10 +518,80 @@ def _voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 # -- verification (tracker) ----------------------------------------------------------------------------
 
+class NoiseFit(NamedTuple):
+    """How a frame at a pose fits a model view, each point judged within the depth noise at its
+    range (:func:`fit_within_noise`): ``inlier_fraction`` of the frame's points fit the surface;
+    ``agreement``: the fitting points over those that land on the surface or behind it (as
+    :class:`TrackResult` counts them)."""
+
+    inlier_fraction: float
+    agreement: float
+
+
+def noise_tolerance_m(depth_m: np.ndarray, floor_m: float, n_sigmas: float = LOOP_NOISE_SIGMAS) -> np.ndarray:
+    """How far (m) a point at depth ``depth_m`` (any shape) may lie from a surface mapped by the
+    same sensor and still fit it: ``n_sigmas`` standard deviations of the difference of two
+    readings (``sqrt(2) sigma(z)``), at least ``floor_m``."""
+    return np.maximum(floor_m, n_sigmas * math.sqrt(2.0) * depth_sigma_m(depth_m))
+
+
+def fit_within_noise(points_cam: np.ndarray, T_world_cam: np.ndarray, view, floor_m: float,
+                     min_view_depth_m: float = 0.05, n_sigmas: float = LOOP_NOISE_SIGMAS) -> NoiseFit:
+    """Grade the frame points ``points_cam`` ``[N, 3]`` (its own camera, metres) at the pose
+    ``T_world_cam`` ``[4, 4]`` against a model ``view`` (:class:`ModelView`: ``points_cam``
+    ``[h, w, 3]`` NaN where empty, its pose and pinhole), each point associated with the view's
+    pixel it projects to as the tracker associates it, and fitting when within
+    :func:`noise_tolerance_m` (``floor_m``: the tracker's grading gate; ``n_sigmas`` 0: that gate
+    alone) of its own depth. A point in front of the surface beyond it is free space the frame
+    sees through the old geometry: neither fitting nor landing. Pure."""
+    n = len(points_cam)
+    if n == 0:
+        return NoiseFit(0.0, 0.0)
+    T_view_cam = invert_se3(np.asarray(view.T_world_cam, np.float64)) @ np.asarray(T_world_cam, np.float64)
+    p = points_cam @ T_view_cam[:3, :3].T + T_view_cam[:3, 3]
+    z = p[:, 2]
+    h, w = view.points_cam.shape[:2]
+    lands = z > min_view_depth_m
+    zs = np.where(lands, z, 1.0)
+    # nearest pixel, truncated towards zero as the tracker's association kernel rounds it
+    u = np.trunc(view.fx * p[:, 0] / zs + view.cx + 0.5).astype(np.int64)
+    v = np.trunc(view.fy * p[:, 1] / zs + view.cy + 0.5).astype(np.int64)
+    lands &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q = np.full((n, 3), np.nan)
+    q[lands] = view.points_cam[v[lands], u[lands]]
+    lands &= np.isfinite(q[:, 2])
+    e = p - q
+    dist = np.sqrt(np.einsum("ij,ij->i", e, e))
+    fits = lands & (dist < noise_tolerance_m(points_cam[:, 2], floor_m, n_sigmas))
+    on = int(np.count_nonzero(lands & (fits | (e[:, 2] >= 0.0))))
+    n_fit = int(np.count_nonzero(fits))
+    return NoiseFit(n_fit / n, n_fit / on if on else 0.0)
+
+
+def grade_within_noise(tracker, frame, model, result):
+    """``result`` (a :class:`TrackResult` or relocalization result of ``frame`` aligned to
+    ``model``) with its agreement counted within the depth noise (:func:`fit_within_noise`
+    against the model re-rendered at its pose, as the tracker grades) and ``ok`` judged again
+    with it; the inlier fraction and residual stay the tracker's."""
+    from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
+
+    T = np.asarray(result.T_world_cam, np.float64)
+    if not np.isfinite(T).all():
+        return result
+    view = model.model_view(T, tracker.camera, tracker.model_level, False, math.inf, tracker.tracking_far_m)
+    pts = frame.points(tracker.cfg.finest_level, C.finest_checkerboard).points_cam
+    fit = fit_within_noise(pts, T, view, tracker.cfg.min_correspondence_m, C.min_view_depth_m)
+    ok = (tracker.judge(result.inlier_fraction, result.residual_m, fit.agreement)
+          and not getattr(result, "ambiguous", False))
+    return dataclasses.replace(result, agreement=fit.agreement, ok=ok)
+
+
 def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_factory=None,
-                min_inlier_fraction: float = LOOP_MIN_INLIER_FRACTION):
+                min_inlier_fraction: float = LOOP_MIN_INLIER_FRACTION, grade=None):
     """Align ``frame`` (a :class:`FramePyramid`) to ``model`` from each guess pose ``[4, 4]``; the
     best good fit, or, when none is good and ``relocalizer_factory`` is given, the relocalizer's.
+    ``grade``: maps each alignment's result to the one judged (:func:`grade_within_noise`: the
+    agreement within the depth noise; None: as the tracker graded it).
 
     Returns ``(TrackResult-like with T_world_cam, inlier_fraction, residual_m, method)`` or None.
     """
@@ -514,10 +601,11 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
         return (r.ok and r.inlier_fraction >= min_inlier_fraction and r.agreement >= LOOP_MIN_AGREEMENT
                 and r.translation_constraint >= LOOP_MIN_TRANSLATION_CONSTRAINT)
 
+    graded = grade if grade is not None else (lambda r: r)
     best = None
     fits = []
     for g in guesses:
-        r = tracker.align(frame, model, g, None)
+        r = graded(tracker.align(frame, model, g, None))
         if good(r):
             fits.append(r.T_world_cam)
             if best is None or r.inlier_fraction > best.inlier_fraction:
@@ -528,7 +616,7 @@ def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_fa
     if best is not None:
         return best.T_world_cam, best.inlier_fraction, best.residual_m, "tracker"
     if relocalizer_factory is not None:
-        r = relocalizer_factory().relocalize(frame, guesses)
+        r = graded(relocalizer_factory().relocalize(frame, guesses))
         if good(r):
             return r.T_world_cam, r.inlier_fraction, r.residual_m, "relocalizer"
     return None
@@ -635,7 +723,8 @@ def close_loops(manifest, T_world_cam: np.ndarray, valid: np.ndarray, kf_indices
                     nonlocal n_reloc
                     n_reloc += 1
                     return Relocalizer(tracker, model, priors)
-            found = verify_loop(tracker, frame, model, guesses, factory)
+            found = verify_loop(tracker, frame, model, guesses, factory,
+                                grade=functools.partial(grade_within_noise, tracker, frame, model))
             if found is None:
                 continue
             T_i_in_old, frac, res, method = found
