@@ -31,10 +31,10 @@ grade):
 Accuracy figures are compared with the stored ones within their tolerance: the larger of the
 figure's floor (:data:`FIGURES`) and :data:`SPREAD_FACTOR` times the spread its stored runs showed
 (``--update --repeat N`` stores the mean of N runs and their spread); frames/s are printed, never
-compared (a shared machine's timings vary by tens of per cent). The
-stored figures are those of one machine (``docs/benchmarks.md`` names it): floating point that
-differs in its last bits between CPUs moves long sequences' figures, so on another machine run
-``--update`` first and compare later runs with that.
+compared (a shared machine's timings vary by tens of per cent). The stored figures are those of
+one machine (``docs/benchmarks.md`` names it): floating point that differs in its last bits
+between CPUs moves long sequences' figures, so on another machine run ``--update`` first and
+compare later runs with that.
 """
 
 from __future__ import annotations
@@ -455,7 +455,11 @@ def main(argv: list[str] | None = None) -> int:
     for k in range(args.repeat):
         if args.repeat > 1:
             print(f"run {k + 1} of {args.repeat}", file=sys.stderr, flush=True)
-        runs.append(run_all(sequences, lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)))
+        try:
+            runs.append(run_all(sequences, lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)))
+        except ConfigError as exc:
+            print(f"bench_regression: {exc}", file=sys.stderr)
+            return 2
     measured, spread = summarize_runs(runs)
     checks = compare(measured, stored["figures"], stored["spread"])
     print(f"\nmachine: {_machine()}; stored figures: {stored['machine'] or 'unknown machine'} "
