@@ -95,11 +95,15 @@ class Figure:
 # machine and thread count), and so does localization where it places every frame by tracking; a
 # session that relocalizes often (the far loop's own frames) varies, since the full relocalization
 # search registers features by RANSAC. Such a figure's tolerance is SPREAD_FACTOR times the spread
-# its stored runs showed (two or three runs see less than the full range). The floors below cover
+# its stored runs showed: three runs see about 1.7 standard deviations of range, and a further run
+# may land 2.5 standard deviations from their mean (1 in 100), about 1.5 times that range. The
+# far loop's own-frame ATE spread 0.07 cm over its three stored runs and a fourth run landed
+# 0.12 cm from their mean (three runs of an earlier world of it spread 0.2 cm): the factor is
+# twice that margin. The floors below cover
 # what moves between machines (floating point that differs in its last bits: docs/benchmarks.md
 # saw about 0.01 cm of ATE on the TUM splits): ATE 0.02 cm or 3 % (whichever is larger), placed 1
 # frame in a hundred, PSNR 0.05 dB (a ninth of the 0.45 dB a real regression on teddy lost).
-SPREAD_FACTOR = 2.0
+SPREAD_FACTOR = 3.0
 ATE_ABS_TOL_CM = 0.02
 ATE_REL_TOL = 0.03
 PLACED_TOL_PCT = 1.0
