@@ -48,6 +48,7 @@ from atlas_pipeline.localization import _kernels as kn
 from atlas_pipeline.localization import _voxel_hash
 from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
 from atlas_pipeline.localization.culling import CHUNK_M, MAX_CHUNKS, ChunkGrid, ChunkIndex
+from atlas_pipeline.localization.noise_fit import fit_within_noise
 from atlas_pipeline.localization.normal_equations import normal_equations
 from atlas_pipeline.perception.rgbd import _undistort_normalized
 from atlas_pipeline.sensors.camera import CameraIntrinsics
@@ -817,12 +818,27 @@ class RGBDTracker:
         if not self.screening and poses_differ(view.T_world_cam, T, C.rerender_translation_m, C.rerender_rotation_deg):
             view = model.model_view(T, self.camera, self.model_level, surface_behind, far_m, self.tracking_far_m)
         H_final, stats = self.quality_stats(frame, view, T)
+        agreement = stats.agreement
+        ok = self.judge(stats.inlier_fraction, stats.rmse_m, agreement)
+        if not ok and motion_prior is not None and self.judge(stats.inlier_fraction, stats.rmse_m):
+            agreement = max(agreement, self._agreement_within_noise(frame, view, T))
+            ok = self.judge(stats.inlier_fraction, stats.rmse_m, agreement)
         T = orthonormalize(T)
         overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0
         in_front = stats.n_in_front / stats.n_points if stats.n_points else 0.0
-        return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points,
-                           self.judge(stats.inlier_fraction, stats.rmse_m, stats.agreement), total_it, stats.agreement,
+        return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points, ok, total_it, agreement,
                            overlap, in_front, translation_constraint(H_final))
+
+    def _agreement_within_noise(self, frame: FramePyramid, view: kn.ModelView, T_world_cam: np.ndarray) -> float:
+        """The agreement of ``frame``'s finest-level points at ``T_world_cam`` with ``view``, each
+        point judged within the depth noise at its range (:func:`fit_within_noise`), for a tracked
+        frame whose fit and residual pass but whose agreement at the fixed gate does not: at range
+        the map's layers of one surface, fused from poses a few cm apart along the line of sight,
+        disagree by the sensor's own noise. Only with a motion prior: with none (relocalization,
+        loops) a pose some cm off fits far surfaces nearly as well as the true one."""
+        points = frame.points(self.cfg.finest_level, C.finest_checkerboard)
+        return fit_within_noise(points.points_cam, T_world_cam, view, self.cfg.min_correspondence_m,
+                                C.min_view_depth_m).agreement
 
     def odometry(self, frame: FramePyramid, local_view: kn.ModelView, T_init: np.ndarray,
                  reference: tuple[FramePyramid, np.ndarray] | None = None,
