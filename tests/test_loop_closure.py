@@ -583,8 +583,9 @@ def test_tracking_at_range_judges_a_layered_map_within_the_depth_noise(far_loop_
     """A map whose far walls hold two layers a few cm apart along the line of sight (as SLAM fuses
     them from poses that drifted that much): a frame at its true pose has its fit and residual,
     but under the minimum agreement at the fixed 2 cm gate, and well over it within the depth noise
-    at its range. A tracked frame (a motion prior) so judged is placed; with no prior
-    (relocalization, loops) the fixed gate's verdict stands."""
+    at its range. A frame tracked in a saved world (a motion prior, a fixed map) so judged is
+    placed; in SLAM's own map, or with no prior (relocalization, loops), the fixed gate's verdict
+    stands."""
     from atlas_pipeline.config import LocalizationConfig
     from atlas_pipeline.localization.tracker import RGBDTracker, SurfelModel
     from atlas_pipeline.mapping import loop_closure as lc
@@ -614,6 +615,8 @@ def test_tracking_at_range_judges_a_layered_map_within_the_depth_noise(far_loop_
     # The verdict at the end of an alignment, held to the true pose's fixed-gate figures (the
     # solve may slide a few cm towards one layer, where the fixed gate would pass anyway).
     tracker.quality_stats = lambda *_: (H, stats)
+    assert not tracker.align(frame, model, T, None, motion_prior=T).ok  # SLAM's map: the fixed gate
+    model.fixed = True  # a saved world, localized in
     tracked = tracker.align(frame, model, T, None, motion_prior=T)
     assert tracked.ok and tracked.agreement >= tracker.cfg.min_agreement
     unprimed = tracker.align(frame, model, T, None)

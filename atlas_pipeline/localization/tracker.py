@@ -820,7 +820,7 @@ class RGBDTracker:
         H_final, stats = self.quality_stats(frame, view, T)
         agreement = stats.agreement
         ok = self.judge(stats.inlier_fraction, stats.rmse_m, agreement)
-        if not ok and motion_prior is not None and self.judge(stats.inlier_fraction, stats.rmse_m):
+        if not ok and motion_prior is not None and model.fixed and self.judge(stats.inlier_fraction, stats.rmse_m):
             agreement = max(agreement, self._agreement_within_noise(frame, view, T))
             ok = self.judge(stats.inlier_fraction, stats.rmse_m, agreement)
         T = orthonormalize(T)
@@ -834,8 +834,9 @@ class RGBDTracker:
         point judged within the depth noise at its range (:func:`fit_within_noise`), for a tracked
         frame whose fit and residual pass but whose agreement at the fixed gate does not: at range
         the map's layers of one surface, fused from poses a few cm apart along the line of sight,
-        disagree by the sensor's own noise. Only with a motion prior: with none (relocalization,
-        loops) a pose some cm off fits far surfaces nearly as well as the true one."""
+        disagree by the sensor's own noise. Only with a motion prior, and in a fixed map (a saved
+        world): with no prior (relocalization, loops) a pose some cm off fits far surfaces nearly
+        as well as the true one, and a frame SLAM accepts is fused into the map it is judged by."""
         points = frame.points(self.cfg.finest_level, C.finest_checkerboard)
         return fit_within_noise(points.points_cam, T_world_cam, view, self.cfg.min_correspondence_m,
                                 C.min_view_depth_m).agreement
