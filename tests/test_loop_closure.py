@@ -611,7 +611,7 @@ def test_tracking_at_range_judges_a_layered_map_within_the_depth_noise(far_loop_
     H, stats = tracker.quality_stats(frame, view, T)
     assert tracker.judge(stats.inlier_fraction, stats.rmse_m)  # fit and residual pass ...
     assert stats.agreement < tracker.cfg.min_agreement  # ... agreement at the fixed gate does not
-    assert tracker._agreement_within_noise(frame, view, T) >= tracker.cfg.min_agreement + 0.1
+    assert tracker.agreement_within_noise(frame, view, T) >= tracker.cfg.min_agreement + 0.1
     # The verdict at the end of an alignment, held to the true pose's fixed-gate figures (the
     # solve may slide a few cm towards one layer, where the fixed gate would pass anyway).
     tracker.quality_stats = lambda *_: (H, stats)

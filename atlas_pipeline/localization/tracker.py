@@ -821,7 +821,7 @@ class RGBDTracker:
         agreement = stats.agreement
         ok = self.judge(stats.inlier_fraction, stats.rmse_m, agreement)
         if not ok and motion_prior is not None and model.fixed and self.judge(stats.inlier_fraction, stats.rmse_m):
-            agreement = max(agreement, self._agreement_within_noise(frame, view, T))
+            agreement = max(agreement, self.agreement_within_noise(frame, view, T))
             ok = self.judge(stats.inlier_fraction, stats.rmse_m, agreement)
         T = orthonormalize(T)
         overlap = stats.n_on_model / stats.n_points if stats.n_points else 0.0
@@ -829,14 +829,15 @@ class RGBDTracker:
         return TrackResult(T, stats.inlier_fraction, stats.rmse_m, stats.n_points, ok, total_it, agreement,
                            overlap, in_front, translation_constraint(H_final))
 
-    def _agreement_within_noise(self, frame: FramePyramid, view: kn.ModelView, T_world_cam: np.ndarray) -> float:
+    def agreement_within_noise(self, frame: FramePyramid, view: kn.ModelView, T_world_cam: np.ndarray) -> float:
         """The agreement of ``frame``'s finest-level points at ``T_world_cam`` with ``view``, each
-        point judged within the depth noise at its range (:func:`fit_within_noise`), for a tracked
-        frame whose fit and residual pass but whose agreement at the fixed gate does not: at range
-        the map's layers of one surface, fused from poses a few cm apart along the line of sight,
-        disagree by the sensor's own noise. Only with a motion prior, and in a fixed map (a saved
-        world): with no prior (relocalization, loops) a pose some cm off fits far surfaces nearly
-        as well as the true one, and a frame SLAM accepts is fused into the map it is judged by."""
+        point judged within the depth noise at its range (:func:`fit_within_noise`): what loop
+        verification grades, and what :meth:`align` grades a frame tracked in a saved world by when
+        its fit and residual pass but its agreement at the fixed gate does not (at range the map's
+        layers of one surface, fused from poses a few cm apart along the line of sight, disagree by
+        the sensor's own noise). Only there with a motion prior and a fixed map: with no prior
+        (relocalization, loops) a pose some cm off fits far surfaces nearly as well as the true
+        one, and a frame SLAM accepts is fused into the map it is judged by."""
         points = frame.points(self.cfg.finest_level, C.finest_checkerboard)
         return fit_within_noise(points.points_cam, T_world_cam, view, self.cfg.min_correspondence_m,
                                 C.min_view_depth_m).agreement

@@ -523,17 +523,14 @@ def grade_within_noise(tracker, frame, model, result):
     ``model``) with its agreement counted within the depth noise (:func:`fit_within_noise`
     against the model re-rendered at its pose, as the tracker grades) and ``ok`` judged again
     with it; the inlier fraction and residual stay the tracker's."""
-    from atlas_pipeline.localization.constants import TRACKER_CONSTANTS as C
-
     T = np.asarray(result.T_world_cam, np.float64)
     if not np.isfinite(T).all():
         return result
     view = model.model_view(T, tracker.camera, tracker.model_level, False, math.inf, tracker.tracking_far_m)
-    pts = frame.points(tracker.cfg.finest_level, C.finest_checkerboard).points_cam
-    fit = fit_within_noise(pts, T, view, tracker.cfg.min_correspondence_m, C.min_view_depth_m)
-    ok = (tracker.judge(result.inlier_fraction, result.residual_m, fit.agreement)
+    agreement = tracker.agreement_within_noise(frame, view, T)
+    ok = (tracker.judge(result.inlier_fraction, result.residual_m, agreement)
           and not getattr(result, "ambiguous", False))
-    return dataclasses.replace(result, agreement=fit.agreement, ok=ok)
+    return dataclasses.replace(result, agreement=agreement, ok=ok)
 
 
 def verify_loop(tracker, frame, model, guesses: list[np.ndarray], relocalizer_factory=None,
